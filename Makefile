@@ -1,0 +1,31 @@
+# The two commands a newcomer needs: `make test` and (once the simulator lands) `make sim`.
+# Each sets up .venv on first use; later runs reuse it until pyproject.toml changes.
+
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+
+.PHONY: setup test soak bench clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[test,bench]'
+	@touch $(STAMP)
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow"
+
+soak: $(STAMP)
+	$(BIN)/python -m pytest -q -m slow
+
+# Benchmarks run single-threaded; PoseLib is installed for the comparison when the platform has it.
+bench: $(STAMP)
+	-@$(BIN)/python -m pip install --quiet -e '.[compare]' || echo "poselib not available: comparing with OpenCV only"
+	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/solvers.py --markdown docs/benchmarks.md
+
+clean:
+	rm -rf $(VENV) .pytest_cache build *.egg-info

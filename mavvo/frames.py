@@ -1,0 +1,102 @@
+"""Rotations and the frame conventions of mavvo.
+
+Frames (see design.md): ``cam`` is OpenCV (x right, y down, z forward); ``body`` is FRD; ``ned`` is
+local North-East-Down; ``lvl`` is the level frame of one view: z along gravity (down), heading that of
+the body, so two level frames differ by a rotation about z only.
+
+``R_a_b`` maps vectors of frame b into frame a: ``x_a = R_a_b @ x_b``. Angles are radians. All
+rotation matrices here are active (``rot_z(yaw) @ v`` turns v by +yaw about z).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# Camera mountings (R_body_cam). Nadir: looking down, image top towards the nose.
+R_BODY_CAM_NADIR = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+# Forward: looking along the nose, image right towards the right wing.
+R_BODY_CAM_FORWARD = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+def rot_x(angle_rad: float) -> np.ndarray:
+    """(3,3) rotation by ``angle_rad`` about x."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_y(angle_rad: float) -> np.ndarray:
+    """(3,3) rotation by ``angle_rad`` about y."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_z(angle_rad: float) -> np.ndarray:
+    """(3,3) rotation by ``angle_rad`` about z."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def R_from_euler321(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
+    """``R_ned_body`` from Euler 3-2-1 angles, the ATTITUDE convention of ArduPilot and PX4:
+    yaw about z, then pitch about the new y, then roll about the new x."""
+    return rot_z(yaw_rad) @ rot_y(pitch_rad) @ rot_x(roll_rad)
+
+
+def euler321_from_R(R_ned_body: np.ndarray) -> tuple[float, float, float]:
+    """(roll_rad, pitch_rad, yaw_rad) of a rotation; pitch in [-pi/2, pi/2], yaw in (-pi, pi].
+
+    At pitch = +-90 deg (gimbal lock) roll is set to 0 and the rotation about z goes to yaw.
+    """
+    R = _as_rotation("R_ned_body", R_ned_body)
+    pitch = float(np.arcsin(np.clip(-R[2, 0], -1.0, 1.0)))
+    if abs(R[2, 0]) < 1.0 - 1e-12:
+        roll = float(np.arctan2(R[2, 1], R[2, 2]))
+        yaw = float(np.arctan2(R[1, 0], R[0, 0]))
+    else:
+        roll = 0.0
+        yaw = float(np.arctan2(-R[0, 1], R[1, 1]))
+    return roll, pitch, yaw
+
+
+def R_lvl_body(roll_rad: float, pitch_rad: float) -> np.ndarray:
+    """Rotation taking body vectors into the level frame: ``rot_y(pitch) @ rot_x(roll)``."""
+    return rot_y(pitch_rad) @ rot_x(roll_rad)
+
+
+def R_lvl_cam(roll_rad: float, pitch_rad: float, R_body_cam: np.ndarray) -> np.ndarray:
+    """Rotation taking camera vectors into the level frame (z down, heading of the body)."""
+    return R_lvl_body(roll_rad, pitch_rad) @ _as_rotation("R_body_cam", R_body_cam)
+
+
+def derotate(f_cam: np.ndarray, R_lvl_cam_: np.ndarray) -> np.ndarray:
+    """Bearings (N,3) in the camera frame to the level frame: rows ``R_lvl_cam @ f``."""
+    f = np.asarray(f_cam, dtype=float)
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise ValueError(f"f_cam: expected an (N,3) array of bearings, got shape {f.shape}")
+    return f @ _as_rotation("R_lvl_cam", R_lvl_cam_).T
+
+
+def rotation_angle_rad(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """Angle of the rotation taking R_b to R_a (geodesic distance), radians.
+
+    Uses ``|R_a - R_b|_F = 2 sqrt(2) sin(angle / 2)``, which keeps full precision for small angles
+    where the trace formula's arccos bottoms out near 1e-8.
+    """
+    d = np.linalg.norm(np.asarray(R_a, dtype=float) - np.asarray(R_b, dtype=float))
+    return float(2.0 * np.arcsin(np.clip(d / (2.0 * np.sqrt(2.0)), 0.0, 1.0)))
+
+
+def angle_between_rad(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle between two (3,) vectors, radians, accurate for small angles (atan2, not arccos)."""
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    return float(np.arctan2(np.linalg.norm(np.cross(a, b)), a @ b))
+
+
+def _as_rotation(name: str, R: np.ndarray, tol: float = 1e-6) -> np.ndarray:
+    arr = np.asarray(R, dtype=float)
+    if arr.shape != (3, 3) or not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name}: expected a finite (3,3) rotation matrix, got shape {arr.shape}")
+    if np.abs(arr @ arr.T - np.eye(3)).max() > tol or np.linalg.det(arr) < 0:
+        raise ValueError(f"{name}: expected a rotation matrix (orthonormal, det +1)")
+    return arr
