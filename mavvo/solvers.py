@@ -63,7 +63,7 @@ _MIN_ISOLATION = 1e-6
 # Within this distance of E13 = E23 = E31 = E32 = 0 (motion nearly along gravity) the two roots
 # near the vertical point are solved sheet by sheet, with this many Newton steps.
 _NEAR_VERTICAL = 1e-3
-_SHEET_NEWTON_STEPS = 6
+_SHEET_NEWTON_STEPS = 4
 # The det cubic of the 4-point, or the 5th singular value of the linear 5-point, vanishes on a
 # horizontal plane (rank 4). Relative to the largest coefficient / singular value.
 _MIN_DEGENERACY_RATIO = 1e-9
@@ -208,21 +208,28 @@ def _orthonormal_rows(M: np.ndarray, passes: int = 2) -> tuple[np.ndarray, np.nd
     first = np.empty(M.shape[:2])
     for p in range(passes):
         for i in range(k):
-            for j in range(i):
-                Q[:, i] -= np.sum(Q[:, i] * Q[:, j], axis=-1)[:, None] * Q[:, j]
-            nrm = np.sqrt(np.sum(Q[:, i] * Q[:, i], axis=-1))
+            row = Q[:, i : i + 1]  # (B, 1, n)
+            if i:
+                done = Q[:, :i]  # (B, i, n), orthonormal
+                row = row - (row @ np.swapaxes(done, 1, 2)) @ done
+            nrm = np.sqrt((row @ np.swapaxes(row, 1, 2))[:, 0, 0])
             if p == 0:
                 first[:, i] = nrm
-            Q[:, i] /= np.where(nrm > 0.0, nrm, 1.0)[:, None]
+            Q[:, i] = row[:, 0] / np.where(nrm > 0.0, nrm, 1.0)[:, None]
     return Q, first
 
 
+def _real_map(p: np.ndarray, M: np.ndarray) -> np.ndarray:
+    # Complex @ real in two real products: numpy has no fast mixed-type matmul.
+    return p.real @ M + 1j * (p.imag @ M)
+
+
 def _poly2(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    return (x[:, :, None] * y[:, None, :]).reshape(x.shape[0], 9) @ _MAP2
+    return _real_map((x[:, :, None] * y[:, None, :]).reshape(x.shape[0], 9), _MAP2)
 
 
 def _poly3(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
-    return (x[:, :, None, None] * y[:, None, :, None] * z[:, None, None, :]).reshape(x.shape[0], 27) @ _MAP3
+    return _real_map((x[:, :, None, None] * y[:, None, :, None] * z[:, None, None, :]).reshape(x.shape[0], 27), _MAP3)
 
 
 def _solve_template(C: np.ndarray) -> np.ndarray:
@@ -263,8 +270,9 @@ def solve_upright_3pt_batch(F1: np.ndarray, F2: np.ndarray) -> tuple[np.ndarray,
         rows, first_norms = _orthonormal_rows(A)
         row_scale = np.linalg.norm(A, axis=-1).max(axis=-1)
         full_rank = first_norms.min(axis=-1) > _MIN_ROW_RANK_RATIO * row_scale
-        projector = np.eye(6) - np.einsum("bki,bkj->bij", rows, rows)
-        N, _ = _orthonormal_rows(np.swapaxes(projector @ _NULL_SEEDS, 1, 2))  # (B, 3, 6): e = a N0 + b N1 + N2
+        # Fixed directions projected onto the null space, as rows: W^T - (rows W)^T rows.
+        seeds = _NULL_SEEDS.T[None] - np.swapaxes(rows @ _NULL_SEEDS, 1, 2) @ rows
+        N, _ = _orthonormal_rows(seeds)  # (B, 3, 6): e = a N0 + b N1 + N2
 
         # alpha, beta, gamma as complex linear forms over (a, b, 1): (B, 3) each.
         L = np.swapaxes(N, 1, 2)
@@ -325,7 +333,7 @@ def _distinct_epipolar_planes(E: np.ndarray, F1: np.ndarray) -> np.ndarray:
     crossing it) lie in one epipolar plane: then the true yaw fits with any translation in that
     plane, and a solver may return a member of that continuum. Its epipolar lines E f1 coincide.
     """
-    lines = np.einsum("bkij,bnj->bkni", E, F1)  # (B, 4, 3, 3): epipolar line of each point in view 2
+    lines = np.swapaxes(E @ np.swapaxes(F1, 1, 2)[:, None], 2, 3)  # (B, 4, 3 points, 3): lines in view 2
     lines /= np.maximum(np.linalg.norm(lines, axis=-1, keepdims=True), 1e-300)
     c01 = np.linalg.norm(np.cross(lines[:, :, 0], lines[:, :, 1]), axis=-1)
     c02 = np.linalg.norm(np.cross(lines[:, :, 0], lines[:, :, 2]), axis=-1)
@@ -361,7 +369,7 @@ def _maybe_near_vertical(N: np.ndarray) -> np.ndarray:
     """(B,) bool, cheap and conservative: the null space (B, 3, 6) may pass within
     ``_NEAR_VERTICAL`` of E13 = E23 = E31 = E32 = 0 (its 4x3 restriction has a small singular value)."""
     V = N[:, :, [0, 3, 4, 5]]
-    G = np.einsum("bij,bkj->bik", V, V)  # (B, 3, 3) Gram matrix; det = product of squared singular values
+    G = V @ np.swapaxes(V, 1, 2)  # (B, 3, 3) Gram matrix; det = product of squared singular values
     det = (
         G[:, 0, 0] * (G[:, 1, 1] * G[:, 2, 2] - G[:, 1, 2] * G[:, 2, 1])
         - G[:, 0, 1] * (G[:, 1, 0] * G[:, 2, 2] - G[:, 1, 2] * G[:, 2, 0])
