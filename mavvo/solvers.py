@@ -147,6 +147,11 @@ def essential_to_vector(E: np.ndarray) -> np.ndarray:
     return e
 
 
+def _alpha_beta_gamma(e: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """alpha = E22 + i E21, beta = E13 + i E23, gamma = E31 + i E32 from (..., 6) vectors e."""
+    return e[..., 2] + 1j * e[..., 1], e[..., 0] + 1j * e[..., 3], e[..., 4] + 1j * e[..., 5]
+
+
 def upright_constraint_residual(E: np.ndarray) -> np.ndarray:
     """Largest violation of the det/trace constraints (Q, D, T above) for E scaled to unit norm.
 
@@ -154,10 +159,7 @@ def upright_constraint_residual(E: np.ndarray) -> np.ndarray:
     """
     E = np.asarray(E, dtype=float)
     n = np.linalg.norm(E, axis=(-2, -1))
-    e = essential_to_vector(E) / np.where(n > 0, n, 1.0)[..., None]
-    al = e[..., 2] + 1j * e[..., 1]
-    be = e[..., 0] + 1j * e[..., 3]
-    ga = e[..., 4] + 1j * e[..., 5]
+    al, be, ga = _alpha_beta_gamma(essential_to_vector(E) / np.where(n > 0, n, 1.0)[..., None])
     q = np.abs(be) ** 2 - np.abs(ga) ** 2
     d = (al * ga * np.conj(be)).real
     t = be * be * np.conj(al) + al * ga * ga
@@ -275,10 +277,7 @@ def solve_upright_3pt_batch(F1: np.ndarray, F2: np.ndarray) -> tuple[np.ndarray,
         N, _ = _orthonormal_rows(seeds)  # (B, 3, 6): e = a N0 + b N1 + N2
 
         # alpha, beta, gamma as complex linear forms over (a, b, 1): (B, 3) each.
-        L = np.swapaxes(N, 1, 2)
-        al = L[:, 2] + 1j * L[:, 1]
-        be = L[:, 0] + 1j * L[:, 3]
-        ga = L[:, 4] + 1j * L[:, 5]
+        al, be, ga = _alpha_beta_gamma(N)
         q = (_poly2(be, np.conj(be)) - _poly2(ga, np.conj(ga))).real
         d = _poly3(al, ga, np.conj(be)).real
         t = _poly3(be, be, np.conj(al)) + _poly3(al, ga, ga)
@@ -306,7 +305,6 @@ def solve_upright_3pt_batch(F1: np.ndarray, F2: np.ndarray) -> tuple[np.ndarray,
         near = np.zeros(B, dtype=bool)
         if rows_v.size:
             near_v, e_sheets = _near_vertical_solutions(N[rows_v])
-            e_sheets /= np.linalg.norm(essential_from_vector(e_sheets), axis=(-2, -1))[..., None]
             ok = near_v & np.all(upright_constraint_residual(essential_from_vector(e_sheets)) < _MAX_CONSTRAINT_RESIDUAL, axis=1)
             rows_v, e_sheets = rows_v[ok], e_sheets[ok]
             near[rows_v] = True
@@ -348,9 +346,7 @@ def _isolated(e: np.ndarray, al: np.ndarray, be: np.ndarray, ga: np.ndarray) -> 
     cannot reject it. There the constraints' Jacobian in (a, b) drops below rank 2.
     al, be, ga: (B, 3) linear forms over (a, b, 1).
     """
-    A = e[..., 2] + 1j * e[..., 1]
-    Bt = e[..., 0] + 1j * e[..., 3]
-    G = e[..., 4] + 1j * e[..., 5]
+    A, Bt, G = _alpha_beta_gamma(e)
     cols = []
     for k in (0, 1):  # d/da, d/db
         dA, dB, dG = al[:, None, k], be[:, None, k], ga[:, None, k]
@@ -409,10 +405,7 @@ def _near_vertical_solutions(N: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     w = np.cross(c, u)
     e0, eu, ew = (np.einsum("bk,bki->bi", v, N) for v in (c, u, w))
 
-    def parts(e: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return e[..., 2] + 1j * e[..., 1], e[..., 0] + 1j * e[..., 3], e[..., 4] + 1j * e[..., 5]
-
-    (a0, b0, g0), (au, bu, gu), (aw, bw, gw) = parts(e0), parts(eu), parts(ew)
+    (a0, b0, g0), (au, bu, gu), (aw, bw, gw) = (_alpha_beta_gamma(v) for v in (e0, eu, ew))
     sheet = np.array([1.0, -1.0])[None, :]
     x = np.zeros((B, 2))
     y = np.zeros((B, 2))

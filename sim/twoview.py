@@ -91,7 +91,6 @@ def make_scene(
     imu_noise_rad: float = 0.0,
     focal_px: float = 500.0,
     line_along_baseline: bool = False,
-    _attempt: int = 0,
 ) -> TwoViewScene:
     """Draw one scene.
 
@@ -114,6 +113,34 @@ def make_scene(
     """
     if n_points < 1:
         raise ValueError(f"n_points: expected at least 1, got {n_points}")
+    kwargs = dict(locals())
+    del kwargs["rng"], kwargs["n_points"]
+    for _ in range(_MAX_ATTEMPTS):
+        # A point behind a camera means drawing again (rare: wide baselines or tilted planes).
+        scene = _draw(rng, n_points, **kwargs)
+        if scene is not None:
+            return scene
+    raise ValueError(f"no scene with every point in front of both cameras for {structure!r} seen from a {mount!r} camera")
+
+
+def _draw(
+    rng: np.random.Generator,
+    n_points: int,
+    *,
+    motion: Motion,
+    mount: Mount,
+    structure: Structure,
+    distance_m: float,
+    depth_fraction: float,
+    baseline_fraction: float,
+    max_tilt_rad: float,
+    fov_half_rad: float,
+    pixel_noise_px: float,
+    imu_noise_rad: float,
+    focal_px: float,
+    line_along_baseline: bool,
+) -> TwoViewScene | None:
+    """One attempt of :func:`make_scene`; None when a point falls behind a camera."""
     R_body_cam = mount_rotation(mount)
     att = [(rng.uniform(-max_tilt_rad, max_tilt_rad), rng.uniform(-max_tilt_rad, max_tilt_rad), rng.uniform(-np.pi, np.pi)) for _ in range(2)]
     R_ned_cam1 = R_from_euler321(*att[0]) @ R_body_cam
@@ -169,15 +196,7 @@ def make_scene(
     x1 = X @ R_ned_cam1  # rows R_cam1_ned @ X
     x2 = (X - p2) @ R_ned_cam2
     if np.any(x1[:, 2] <= 0) or np.any(x2[:, 2] <= 0) or not np.all(np.isfinite(X)):
-        # A point behind a camera: draw again (rare: only with wide baselines or tilted planes).
-        if _attempt >= _MAX_ATTEMPTS:
-            raise ValueError(f"no scene with every point in front of both cameras for {structure!r} seen from a {mount!r} camera")
-        return make_scene(
-            rng, n_points, motion=motion, mount=mount, structure=structure, distance_m=distance_m,
-            depth_fraction=depth_fraction, baseline_fraction=baseline_fraction, max_tilt_rad=max_tilt_rad,
-            fov_half_rad=fov_half_rad, pixel_noise_px=pixel_noise_px, imu_noise_rad=imu_noise_rad,
-            focal_px=focal_px, line_along_baseline=line_along_baseline, _attempt=_attempt + 1,
-        )
+        return None
     f1_cam = _noisy_bearings(_unit(x1), rng, pixel_noise_px, focal_px)
     f2_cam = _noisy_bearings(_unit(x2), rng, pixel_noise_px, focal_px)
 
