@@ -31,6 +31,7 @@ import itertools
 
 import numpy as np
 
+from mavvo.frames import cross
 from mavvo.polyroots import cubic_real_roots, quartic_real_roots
 
 __all__ = [
@@ -43,6 +44,9 @@ __all__ = [
     "solve_upright_4pt",
     "solve_upright_linear5pt",
     "upright_pose_from_essential",
+    "solve_ground_2pt_batch",
+    "ground_pose_from_homography",
+    "as_bearing_pair",
 ]
 
 # Row and column of each entry of e in E.
@@ -90,11 +94,18 @@ def _as_bearings(name: str, f: object, min_rows: int, exact_rows: int | None = N
     return arr / norms[:, None]
 
 
-def _as_pair(f1: object, f2: object, min_rows: int, exact_rows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    a = _as_bearings("f1", f1, min_rows, exact_rows)
-    b = _as_bearings("f2", f2, min_rows, exact_rows)
+def as_bearing_pair(
+    f1: object, f2: object, min_rows: int = 0, exact_rows: int | None = None, names: tuple[str, str] = ("f1", "f2")
+) -> tuple[np.ndarray, np.ndarray]:
+    """Validate two matching (N,3) bearing arrays and return them as unit float64 rows.
+
+    Raises ValueError naming the argument for a wrong shape, a row count outside the bounds,
+    non-finite values or zero-length bearings.
+    """
+    a = _as_bearings(names[0], f1, min_rows, exact_rows)
+    b = _as_bearings(names[1], f2, min_rows, exact_rows)
     if a.shape != b.shape:
-        raise ValueError(f"f1 and f2: expected the same number of bearings, got {a.shape[0]} and {b.shape[0]}")
+        raise ValueError(f"{names[0]} and {names[1]}: expected the same number of bearings, got {a.shape[0]} and {b.shape[0]}")
     return a, b
 
 
@@ -333,8 +344,8 @@ def _distinct_epipolar_planes(E: np.ndarray, F1: np.ndarray) -> np.ndarray:
     """
     lines = np.swapaxes(E @ np.swapaxes(F1, 1, 2)[:, None], 2, 3)  # (B, 4, 3 points, 3): lines in view 2
     lines /= np.maximum(np.linalg.norm(lines, axis=-1, keepdims=True), 1e-300)
-    c01 = np.linalg.norm(np.cross(lines[:, :, 0], lines[:, :, 1]), axis=-1)
-    c02 = np.linalg.norm(np.cross(lines[:, :, 0], lines[:, :, 2]), axis=-1)
+    c01 = np.linalg.norm(cross(lines[:, :, 0], lines[:, :, 1]), axis=-1)
+    c02 = np.linalg.norm(cross(lines[:, :, 0], lines[:, :, 2]), axis=-1)
     return np.maximum(c01, c02) > _MIN_EPIPOLAR_PLANE_ANGLE
 
 
@@ -393,16 +404,16 @@ def _near_vertical_solutions(N: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     B = N.shape[0]
     V = np.swapaxes(N[:, :, [0, 3, 4, 5]], 1, 2)  # (B, 4, 3): E13, E23, E31, E32 over the basis
     pairs = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
-    crosses = np.stack([np.cross(V[:, i], V[:, j]) for i, j in pairs], axis=1)
+    crosses = np.stack([cross(V[:, i], V[:, j]) for i, j in pairs], axis=1)
     norms = np.linalg.norm(crosses, axis=-1)
     c = crosses[np.arange(B), np.argmax(norms, axis=1)]
     c /= np.maximum(np.linalg.norm(c, axis=-1), 1e-300)[:, None]
     near = (np.linalg.norm(np.einsum("bjk,bk->bj", V, c), axis=-1) < _NEAR_VERTICAL) & (norms.max(axis=1) > 1e-12)
     # Local chart e = (c + x u + y w) @ N with u, w completing c to an orthonormal frame.
     helper = np.where((np.abs(c[:, 0]) < 0.9)[:, None], np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
-    u = np.cross(c, helper)
+    u = cross(c, helper)
     u /= np.linalg.norm(u, axis=-1, keepdims=True)
-    w = np.cross(c, u)
+    w = cross(c, u)
     e0, eu, ew = (np.einsum("bk,bki->bi", v, N) for v in (c, u, w))
 
     (a0, b0, g0), (au, bu, gu), (aw, bw, gw) = (_alpha_beta_gamma(v) for v in (e0, eu, ew))
@@ -443,7 +454,7 @@ def solve_upright_3pt(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
     Returns:
         (k, 3, 3) essential matrices with unit Frobenius norm, 0 <= k <= 4.
     """
-    a, b = _as_pair(f1, f2, 3, exact_rows=3)
+    a, b = as_bearing_pair(f1, f2, 3, exact_rows=3)
     E, valid = solve_upright_3pt_batch(a[None], b[None])
     return E[0][valid[0]]
 
@@ -481,7 +492,7 @@ def solve_upright_4pt(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
         (k, 3, 3) essential matrices with unit Frobenius norm, 0 <= k <= 3. None where the cubic
         vanishes identically (all points on a horizontal plane: the system has rank 4 there).
     """
-    a, b = _as_pair(f1, f2, 4)
+    a, b = as_bearing_pair(f1, f2, 4)
     s, vt = _right_singular(a, b)
     E1, E2 = essential_from_vector(vt[4]), essential_from_vector(vt[5])
     if s[3] <= _MIN_DEGENERACY_RATIO * s[0]:
@@ -511,7 +522,7 @@ def solve_upright_linear5pt(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
         (k, 3, 3) with k in {0, 1}: none when the system has rank < 5 (all points on a horizontal
         plane, where it has rank 4 and the solution is a one-parameter family).
     """
-    a, b = _as_pair(f1, f2, 5)
+    a, b = as_bearing_pair(f1, f2, 5)
     s, vt = _right_singular(a, b)
     if s[4] <= _MIN_DEGENERACY_RATIO * s[0]:
         return np.zeros((0, 3, 3))
@@ -601,7 +612,7 @@ def upright_pose_from_essential(E: np.ndarray, f1: np.ndarray, f2: np.ndarray) -
     E = np.asarray(E, dtype=float)
     if E.shape != (3, 3) or not np.all(np.isfinite(E)):
         raise ValueError(f"E: expected a finite (3,3) matrix, got shape {E.shape}")
-    a, b = _as_pair(f1, f2, 1)
+    a, b = as_bearing_pair(f1, f2, 1)
     e = essential_to_vector(E)
     if np.linalg.norm(e) < 1e-300:
         raise ValueError("E: expected a non-zero essential matrix")
@@ -619,3 +630,83 @@ def upright_pose_from_essential(E: np.ndarray, f1: np.ndarray, f2: np.ndarray) -
                 best = (score[0], score[1], R, sign * t)
     assert best is not None
     return best[2], best[3]
+
+
+# --------------------------------------------------------------------------- ground plane, 2-point
+#
+# With gravity known and every point on the horizontal ground plane ``z_lvl1 = d1`` below view 1,
+# ``x_2 = (Rz(yaw) + (t_2_1 / d1) [0 0 1]) x_1``: a homography with 4 degrees of freedom (Saurer,
+# Vasseur, Demonceaux and Fraundorfer, ACCV 2014). On the level image planes ``u = (x/z, y/z)`` it is
+# a similarity, which in complex numbers reads ``u2 = m u1 + tau`` with ``m = exp(i yaw) / w``,
+# ``w = 1 + tz/d1`` and ``tau = (tx + i ty) / (d1 w)``. Two points fix m and tau.
+
+# Bearings closer than this (z of a unit bearing) to the horizon cannot lie on the ground below.
+_MIN_GROUND_Z = 1e-3
+
+
+def ground_homography_from_similarity(m: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) ground homographies ``Rz(yaw) + (t/d1) e_z^T`` from complex similarity parameters (...)."""
+    w = 1.0 / np.abs(m)
+    rot = m * w  # exp(i yaw)
+    tt = tau * w
+    H = np.zeros(np.shape(m) + (3, 3))
+    H[..., 0, 0] = H[..., 1, 1] = rot.real
+    H[..., 0, 1] = -rot.imag
+    H[..., 1, 0] = rot.imag
+    H[..., 0, 2] = tt.real
+    H[..., 1, 2] = tt.imag
+    H[..., 2, 2] = w
+    return H
+
+
+def solve_ground_2pt_batch(F1: np.ndarray, F2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The known-gravity ground-plane homography from 2 points, for B samples at once.
+
+    Args:
+        F1, F2: (B, 2, 3) level-frame bearings; both points of a sample on the ground below the views.
+
+    Returns:
+        H (B, 3, 3) with ``x_2 ~ H @ x_1``, ``H = Rz(yaw_2_1) + (t_2_1 / d1) @ [0, 0, 1]`` where d1 is the
+        height of view 1 above the plane (NaN where invalid), and valid (B,) bool. At most one
+        solution per sample. Invalid: a bearing at or above the horizon, or two coincident points.
+    """
+    F1 = np.asarray(F1, dtype=float)
+    F2 = np.asarray(F2, dtype=float)
+    for name, F in (("F1", F1), ("F2", F2)):
+        if F.ndim != 3 or F.shape[1:] != (2, 3):
+            raise ValueError(f"{name}: expected a (B,2,3) array (B samples of 2 bearings), got shape {F.shape}")
+        if not np.all(np.isfinite(F)):
+            raise ValueError(f"{name}: bearings must be finite, got NaN or inf")
+    if F1.shape != F2.shape:
+        raise ValueError(f"F1 and F2: expected the same shape, got {F1.shape} and {F2.shape}")
+    n1 = np.linalg.norm(F1, axis=-1)
+    n2 = np.linalg.norm(F2, axis=-1)
+    valid = np.all((F1[..., 2] > _MIN_GROUND_Z * n1) & (F2[..., 2] > _MIN_GROUND_Z * n2), axis=1)
+    with np.errstate(all="ignore"):
+        u1 = (F1[..., 0] + 1j * F1[..., 1]) / F1[..., 2]
+        u2 = (F2[..., 0] + 1j * F2[..., 1]) / F2[..., 2]
+        du1 = u1[:, 0] - u1[:, 1]
+        m = (u2[:, 0] - u2[:, 1]) / du1
+        tau = u2[:, 0] - m * u1[:, 0]
+        valid &= (np.abs(du1) > 1e-12) & (np.abs(m) > 1e-12) & np.isfinite(m) & np.isfinite(tau)
+        H = ground_homography_from_similarity(np.where(valid, m, 1.0), np.where(valid, tau, 0.0))
+    H[~valid] = np.nan
+    return H, valid
+
+
+def ground_pose_from_homography(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation and translation per height of a ground homography (3, 3) of the form above.
+
+    Returns:
+        R_2_1 (3, 3), a rotation about z, and ``t_2_1 / d1`` (3,): the translation divided by the
+        height of view 1 above the ground plane, so a rangefinder's height makes it metric.
+    """
+    H = np.asarray(H, dtype=float)
+    if H.shape != (3, 3) or not np.all(np.isfinite(H)):
+        raise ValueError(f"H: expected a finite (3,3) matrix, got shape {H.shape}")
+    k = np.hypot(H[0, 0], H[1, 0])
+    if k < 1e-12:
+        raise ValueError("H: expected a ground homography, the rotation block is zero")
+    H = H / k
+    yaw = float(np.arctan2(H[1, 0], H[0, 0]))
+    return _rot_z(yaw), np.array([H[0, 2], H[1, 2], H[2, 2] - 1.0])

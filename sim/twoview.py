@@ -8,7 +8,7 @@ service does. Truth follows mavvo's convention ``x_2 = R_2_1 @ x_1 + t_2_1`` bet
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -223,3 +223,24 @@ def _draw(
         R_lvl_cam1=R_lc1,
         R_lvl_cam2=R_lc2,
     )
+
+
+def add_outliers(
+    scene: TwoViewScene, fraction: float, rng: np.random.Generator, fov_half_rad: float = np.radians(30.0)
+) -> tuple[TwoViewScene, np.ndarray]:
+    """Replace a fraction of view 2's bearings by random directions within its field of view.
+
+    Returns the new scene and the (N,) bool mask of the replaced (outlier) correspondences; exactly
+    ``round(fraction * N)`` of them.
+    """
+    if not 0.0 <= fraction <= 1.0:
+        raise ValueError(f"fraction: expected a value in [0, 1], got {fraction}")
+    n = len(scene.f2_cam)
+    outlier = np.zeros(n, dtype=bool)
+    outlier[rng.choice(n, int(round(fraction * n)), replace=False)] = True
+    k = int(outlier.sum())
+    ang = fov_half_rad * np.sqrt(rng.uniform(0.0, 1.0, k))
+    phi = rng.uniform(-np.pi, np.pi, k)
+    f2_cam = scene.f2_cam.copy()
+    f2_cam[outlier] = np.stack([np.sin(ang) * np.cos(phi), np.sin(ang) * np.sin(phi), np.cos(ang)], axis=1)
+    return replace(scene, f2_cam=f2_cam, f2_lvl=f2_cam @ scene.R_lvl_cam2.T), outlier

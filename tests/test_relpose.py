@@ -1,0 +1,214 @@
+"""The robust relative-pose estimator on synthetic scenes with exact truth."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mavvo.camera_model import CameraModel
+from mavvo.frames import angle_between_rad, rotation_angle_rad
+from mavvo.relpose import RelposeOptions, estimate_relpose_known_gravity, estimate_upright_relpose, required_iterations
+from sim.twoview import add_outliers, make_scene
+
+FOCAL_PX = 500.0
+THRESHOLD_RAD = 1.5 / FOCAL_PX  # 3 sigma of 0.5 px noise
+
+
+def _scene(seed: int, n: int = 400, outliers: float = 0.3, **kwargs):
+    rng = np.random.default_rng(seed)
+    kwargs.setdefault("pixel_noise_px", 0.5)
+    scene = make_scene(rng, n, focal_px=FOCAL_PX, **kwargs)
+    return add_outliers(scene, outliers, rng)
+
+
+def _closed_form_iterations(w: float, s: int, p: float) -> int:
+    return math.ceil(math.log(1 - p) / math.log(1 - w**s))
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("motion", ["sideways", "forward"])
+def test_recovers_pose_and_inliers_with_outliers(seed: int, motion: str) -> None:
+    scene, outlier = _scene(seed, motion=motion, mount="oblique", imu_noise_rad=np.radians(0.02))
+    r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD, seed=seed)
+    assert r.success and r.model == "essential" and r.reason == ""
+    # 0.5 px noise, baseline 10% of the depth: the maximum-likelihood yaw itself is off by ~0.1 deg.
+    assert np.degrees(rotation_angle_rad(r.R_2_1, scene.R_2_1)) < 0.3
+    assert np.degrees(angle_between_rad(r.t_2_1, scene.t_2_1)) < 3.0
+    tp = np.count_nonzero(r.inliers & ~outlier)
+    assert tp / r.num_inliers >= 0.95  # precision
+    assert tp / np.count_nonzero(~outlier) >= 0.95  # recall
+    assert r.inlier_ratio == pytest.approx(r.num_inliers / len(outlier))
+    assert r.R_2_1[2, 2] == pytest.approx(1.0) and np.linalg.norm(r.t_2_1) == pytest.approx(1.0)
+    assert 0.0 < r.residual_rms_rad < THRESHOLD_RAD and 0.0 < r.score < 1.0
+
+
+def test_noise_free_truth_is_exact() -> None:
+    scene, _ = _scene(7, motion="random", pixel_noise_px=0.0, outliers=0.4)
+    r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=1e-6)
+    assert rotation_angle_rad(r.R_2_1, scene.R_2_1) < 1e-9
+    assert angle_between_rad(r.t_2_1, scene.t_2_1) < 1e-8
+
+
+def test_required_iterations_match_the_paper() -> None:
+    # Section 1 of the paper: 50% outliers, 99% confidence: 35 samples of 3, 146 of 5.
+    assert required_iterations(0.5, 3, 0.99) == 35
+    assert required_iterations(0.5, 5, 0.99) == 146
+    assert required_iterations(1.0, 3, 0.99) == 1
+    assert required_iterations(0.0, 3, 0.99) > 10**9
+
+
+@pytest.mark.parametrize("outliers", [0.5, 0.7])
+def test_iterations_follow_the_stopping_rule(outliers: float) -> None:
+    scene, _ = _scene(11, n=600, outliers=outliers, motion="sideways")
+    opt = RelposeOptions()
+    r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD, confidence=0.99, options=opt)
+    k = _closed_form_iterations(r.stats.sample_inlier_ratio, 3, 0.99)
+    # Samples come in blocks: at least k, and no more than one block beyond it (or the first block).
+    assert k <= r.iterations <= max(k + opt.min_block, opt.first_block)
+    assert r.stats.required_iterations == k
+    assert abs(r.stats.sample_inlier_ratio - (1 - outliers)) < 0.05
+
+
+def test_max_iterations_bounds_sampling() -> None:
+    scene, _ = _scene(3, outliers=0.85)
+    r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD, options=RelposeOptions(max_iterations=20, first_block=8))
+    assert r.iterations == 20
+
+
+def test_same_seed_same_answer_and_other_seeds_agree() -> None:
+    scene, _ = _scene(5, outliers=0.5)
+    a = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD, seed=3)
+    b = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD, seed=3)
+    c = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD, seed=4)
+    assert np.array_equal(a.R_2_1, b.R_2_1) and np.array_equal(a.t_2_1, b.t_2_1)
+    assert np.array_equal(a.inliers, b.inliers) and a.iterations == b.iterations
+    assert angle_between_rad(a.t_2_1, c.t_2_1) < np.radians(0.5)
+
+
+def test_ground_plane_selects_the_ground_model_with_translation_per_height() -> None:
+    scene, outlier = _scene(2, structure="ground", mount="nadir", motion="sideways", baseline_fraction=0.2)
+    r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD)
+    assert r.success and r.model == "ground"
+    assert r.stats.gric["ground"] < r.stats.gric["essential"]
+    height1_m = scene.points_ned[0, 2]
+    truth = scene.t_2_1 * scene.baseline_m / height1_m
+    assert r.t_2_1_per_height is not None
+    assert np.linalg.norm(r.t_2_1_per_height - truth) < 0.01 * np.linalg.norm(truth) + 2e-3
+    assert np.degrees(rotation_angle_rad(r.R_2_1, scene.R_2_1)) < 0.1
+    assert np.count_nonzero(r.inliers & ~outlier) / np.count_nonzero(~outlier) >= 0.95
+
+
+def test_ground_plane_with_the_essential_model_forced() -> None:
+    scene, _ = _scene(2, structure="ground", mount="nadir", motion="sideways", baseline_fraction=0.2)
+    r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD, options=RelposeOptions(model="essential"))
+    assert r.success and r.model == "essential" and r.t_2_1_per_height is None
+    assert np.degrees(angle_between_rad(r.t_2_1, scene.t_2_1)) < 3.0
+
+
+def test_3d_scene_keeps_the_essential_model() -> None:
+    scene, _ = _scene(4, motion="sideways", depth_fraction=1.0)
+    r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD)
+    assert r.model == "essential" and r.stats.gric["essential"] < r.stats.gric["ground"]
+
+
+@pytest.mark.parametrize("structure", ["volume", "ground"])
+def test_pure_rotation_is_reported_with_its_yaw(structure: str) -> None:
+    scene, _ = _scene(9, motion="none", structure=structure, imu_noise_rad=np.radians(0.02))
+    r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD)
+    assert not r.success and r.reason == "pure_rotation" and r.model == "rotation"
+    assert np.degrees(rotation_angle_rad(r.R_2_1, scene.R_2_1)) < 0.1
+    assert np.all(r.t_2_1 == 0)
+
+
+def test_noise_free_pure_rotation_without_any_essential_hypothesis() -> None:
+    scene, _ = _scene(10, motion="none", pixel_noise_px=0.0, outliers=0.0)
+    r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD)
+    assert r.reason == "pure_rotation" and rotation_angle_rad(r.R_2_1, scene.R_2_1) < 1e-9
+
+
+def test_degenerate_input_fails_without_raising() -> None:
+    scene, _ = _scene(1, outliers=0.0)
+    r = estimate_upright_relpose(scene.f1_lvl[:2], scene.f2_lvl[:2], max_err_rad=THRESHOLD_RAD)
+    assert (r.success, r.reason, r.inliers.shape) == (False, "too_few_points", (2,))
+    empty = estimate_upright_relpose(np.zeros((0, 3)), np.zeros((0, 3)), max_err_rad=THRESHOLD_RAD)
+    assert empty.reason == "too_few_points"
+    same = estimate_upright_relpose(np.repeat(scene.f1_lvl[:1], 20, 0), np.repeat(scene.f2_lvl[:1], 20, 0), max_err_rad=THRESHOLD_RAD)
+    assert (same.success, same.reason) == (False, "degenerate_points")
+
+
+@pytest.mark.parametrize("solver", ["4pt", "linear5pt"])
+def test_other_minimal_solvers_inside_the_same_ransac(solver: str) -> None:
+    scene, outlier = _scene(6, motion="sideways", depth_fraction=1.0)
+    opt = RelposeOptions(minimal_solver=solver, model="essential")
+    r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD, options=opt)
+    assert r.success
+    assert np.degrees(angle_between_rad(r.t_2_1, scene.t_2_1)) < 3.0
+    assert np.count_nonzero(r.inliers & ~outlier) / np.count_nonzero(~outlier) >= 0.95
+    assert r.iterations >= _closed_form_iterations(r.stats.sample_inlier_ratio, {"4pt": 4, "linear5pt": 5}[solver], 0.99)
+
+
+def test_nonminimal_step_in_local_optimisation() -> None:
+    scene, _ = _scene(8, motion="forward")
+    opt = RelposeOptions(nonminimal_solver="linear5pt")
+    r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD, options=opt)
+    assert r.success and r.stats.local_optimizations >= 1
+    assert np.degrees(angle_between_rad(r.t_2_1, scene.t_2_1)) < 3.0
+
+
+def test_tilt_refinement_reduces_translation_error_under_imu_noise() -> None:
+    sigma = np.radians(0.5)
+    plain, tilted = [], []
+    for seed in range(12):
+        scene, _ = _scene(100 + seed, n=200, outliers=0.0, motion="sideways", imu_noise_rad=sigma, depth_fraction=1.0)
+        for opt, out in ((RelposeOptions(model="essential"), plain), (RelposeOptions(model="essential", tilt_sigma_rad=sigma), tilted)):
+            r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=3 * THRESHOLD_RAD, options=opt)
+            out.append(angle_between_rad(r.t_2_1, scene.t_2_1))
+    assert np.median(tilted) < 0.7 * np.median(plain)
+
+
+def test_pixel_entry_returns_the_camera_pose() -> None:
+    scene, outlier = _scene(12, motion="sideways", mount="forward", imu_noise_rad=0.0)
+    cam = CameraModel(640, 480, FOCAL_PX, FOCAL_PX, 320.0, 240.0)
+    keep = scene.f2_cam[:, 2] > 0.2
+    uv1, uv2 = cam.bearings_to_pixels(scene.f1_cam[keep]), cam.bearings_to_pixels(scene.f2_cam[keep])
+    r = estimate_relpose_known_gravity(uv1, uv2, cam, scene.R_lvl_cam1, scene.R_lvl_cam2, max_err_px=1.5)
+    R_truth = scene.R_lvl_cam2.T @ scene.R_2_1 @ scene.R_lvl_cam1
+    t_truth = scene.R_lvl_cam2.T @ scene.t_2_1
+    assert r.success and r.inliers.shape == (int(keep.sum()),)
+    assert np.degrees(rotation_angle_rad(r.R_c2_c1, R_truth)) < 0.1
+    assert np.degrees(angle_between_rad(r.t_c2_c1, t_truth)) < 3.0
+    assert r.upright.num_inliers == int(r.inliers.sum())
+
+
+def test_result_arrays_are_read_only() -> None:
+    scene, _ = _scene(1)
+    r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD)
+    with pytest.raises(ValueError):
+        r.inliers[0] = not r.inliers[0]
+
+
+@pytest.mark.parametrize(
+    "f1, f2, kwargs, match",
+    [
+        (np.ones((5, 2)), np.ones((5, 3)), {}, "f1_lvl"),
+        (np.ones((5, 3)), np.ones((4, 3)), {}, "same number"),
+        (np.full((5, 3), np.nan), np.ones((5, 3)), {}, "finite"),
+        (np.ones((5, 3)), np.ones((5, 3)), {"max_err_rad": -1.0}, "max_err_rad"),
+        (np.ones((5, 3)), np.ones((5, 3)), {"confidence": 1.0}, "confidence"),
+    ],
+)
+def test_malformed_input_raises(f1, f2, kwargs, match) -> None:
+    kwargs = {"max_err_rad": 1e-3, **kwargs}
+    with pytest.raises(ValueError, match=match):
+        estimate_upright_relpose(f1, f2, **kwargs)
+
+
+def test_options_are_validated() -> None:
+    with pytest.raises(ValueError, match="minimal_solver"):
+        RelposeOptions(minimal_solver="7pt")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="tilt_sigma_rad"):
+        RelposeOptions(tilt_sigma_rad=0.0)
+    with pytest.raises(ValueError, match="uv1_px"):
+        estimate_relpose_known_gravity(np.ones((5, 3)), np.ones((5, 2)), CameraModel(640, 480, 500, 500, 320, 240), np.eye(3), np.eye(3))
