@@ -26,6 +26,7 @@ soak: $(STAMP)
 bench: $(STAMP)
 	-@$(BIN)/python -m pip install --quiet -e '.[compare]' || echo "poselib not available: comparing with OpenCV only"
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/solvers.py --markdown docs/benchmarks.md
+	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/relpose.py --markdown docs/benchmarks.md --plots docs/img
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

@@ -12,13 +12,8 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import os
-import platform
-import re
-import statistics
 import sys
-import time
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -26,6 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mavvo import solvers  # noqa: E402
 from mavvo.frames import angle_between_rad, rot_x, rotation_angle_rad  # noqa: E402
+from benchmarks.common import machine, per_call_us, publish  # noqa: E402
 from sim.twoview import TwoViewScene, make_scene  # noqa: E402
 
 try:
@@ -38,40 +34,6 @@ import cv2  # noqa: E402
 # PoseLib's upright solvers take gravity along camera y; ours along z. This maps our z onto y.
 TO_POSELIB = rot_x(-np.pi / 2)
 BEGIN, END = "<!-- solvers:begin -->", "<!-- solvers:end -->"
-
-
-def per_call_us(fn: Callable[[], object], min_time_s: float = 0.2, repeats: int = 5) -> float:
-    """Median over ``repeats`` of the mean time per call, each repeat lasting about ``min_time_s``."""
-    fn()
-    n = 1
-    while True:
-        t0 = time.perf_counter()
-        for _ in range(n):
-            fn()
-        if time.perf_counter() - t0 > min_time_s / 5:
-            break
-        n *= 2
-    samples = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        for _ in range(n):
-            fn()
-        samples.append((time.perf_counter() - t0) / n * 1e6)
-    return statistics.median(samples)
-
-
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}, OpenCV {cv2.__version__}" + (
-        f", PoseLib {getattr(poselib, '__version__', 'installed')}" if poselib else ", PoseLib not installed"
-    )
 
 
 def recovered(Es: list[tuple[np.ndarray, np.ndarray]], scene: TwoViewScene, tol: float = 1e-6) -> bool:
@@ -139,7 +101,7 @@ def run(n_scenes: int) -> str:
         BEGIN,
         "## Upright solvers (`benchmarks/solvers.py`)",
         "",
-        f"Measured {dt.date.today().isoformat()} on {machine()}; single-threaded "
+        f"Measured {dt.date.today().isoformat()} on {machine(poselib)}; single-threaded "
         f"(OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}, OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}). "
         "Median of 5 repetitions. Regenerate with `make bench`.",
         "",
@@ -166,16 +128,6 @@ def run(n_scenes: int) -> str:
     return "\n".join(lines)
 
 
-def write_section(path: Path, section: str) -> None:
-    """Replace this benchmark's section of the markdown file, keeping the others."""
-    text = path.read_text() if path.exists() else "# Benchmarks\n\nEach section is written by the benchmark it names.\n"
-    if BEGIN in text and END in text:
-        text = re.sub(re.escape(BEGIN) + ".*?" + re.escape(END), lambda _: section, text, flags=re.S)
-    else:
-        text = text.rstrip("\n") + "\n\n" + section + "\n"
-    path.write_text(text)
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--markdown", type=Path, help="rewrite this benchmark's section of this markdown file")
@@ -183,10 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     cv2.setNumThreads(1)
     section = run(args.scenes)
-    print(section)
-    if args.markdown:
-        write_section(args.markdown, section)
-        print(f"wrote {args.markdown}", file=sys.stderr)
+    publish(section, args.markdown, BEGIN, END)
     return 0
 
 

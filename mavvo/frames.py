@@ -47,7 +47,7 @@ def euler321_from_R(R_ned_body: np.ndarray) -> tuple[float, float, float]:
 
     At pitch = +-90 deg (gimbal lock) roll is set to 0 and the rotation about z goes to yaw.
     """
-    R = _as_rotation("R_ned_body", R_ned_body)
+    R = as_rotation("R_ned_body", R_ned_body)
     pitch = float(np.arcsin(np.clip(-R[2, 0], -1.0, 1.0)))
     if abs(R[2, 0]) < 1.0 - 1e-12:
         roll = float(np.arctan2(R[2, 1], R[2, 2]))
@@ -65,7 +65,7 @@ def R_lvl_body(roll_rad: float, pitch_rad: float) -> np.ndarray:
 
 def R_lvl_cam(roll_rad: float, pitch_rad: float, R_body_cam: np.ndarray) -> np.ndarray:
     """Rotation taking camera vectors into the level frame (z down, heading of the body)."""
-    return R_lvl_body(roll_rad, pitch_rad) @ _as_rotation("R_body_cam", R_body_cam)
+    return R_lvl_body(roll_rad, pitch_rad) @ as_rotation("R_body_cam", R_body_cam)
 
 
 def derotate(f_cam: np.ndarray, R_lvl_cam_: np.ndarray) -> np.ndarray:
@@ -73,7 +73,7 @@ def derotate(f_cam: np.ndarray, R_lvl_cam_: np.ndarray) -> np.ndarray:
     f = np.asarray(f_cam, dtype=float)
     if f.ndim != 2 or f.shape[1] != 3:
         raise ValueError(f"f_cam: expected an (N,3) array of bearings, got shape {f.shape}")
-    return f @ _as_rotation("R_lvl_cam", R_lvl_cam_).T
+    return f @ as_rotation("R_lvl_cam", R_lvl_cam_).T
 
 
 def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -108,7 +108,8 @@ def angle_between_rad(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.arctan2(np.linalg.norm(np.cross(a, b)), a @ b))
 
 
-def _as_rotation(name: str, R: np.ndarray, tol: float = 1e-6) -> np.ndarray:
+def as_rotation(name: str, R: np.ndarray, tol: float = 1e-6) -> np.ndarray:
+    """R as a float (3,3) array; ValueError naming ``name`` unless it is a finite rotation matrix."""
     arr = np.asarray(R, dtype=float)
     if arr.shape != (3, 3) or not np.all(np.isfinite(arr)):
         raise ValueError(f"{name}: expected a finite (3,3) rotation matrix, got shape {arr.shape}")

@@ -61,6 +61,10 @@ def _tangent_basis(t: np.ndarray) -> np.ndarray:
     return np.stack([b1, cross(t, b1)])
 
 
+def _skew(t: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+
+
 def _rz(yaw: float) -> np.ndarray:
     c, s = np.cos(yaw), np.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -81,7 +85,7 @@ def refine_upright(
     Args:
         yaw_rad, t_2_1: the starting pose (t of any non-zero length; it is normalised).
         f1, f2: (N, 3) unit level-frame bearings, all of them inliers (the caller selects them).
-        iterations: maximum number of steps; stops early when the step is below 1e-9.
+        iterations: maximum number of steps; stops early when the step is below 1e-8 (rad).
         tilt_sigma_rad: when given, the roll and pitch of each view may move as well, each with a
             Gaussian prior of this standard deviation (the IMU's). Needs ``noise_sigma_rad``.
         noise_sigma_rad: the bearing noise that weighs the data against the tilt prior.
@@ -104,25 +108,25 @@ def refine_upright(
         f1c = f1 @ tilt_rotation(d1).T if with_tilt else f1
         f2c = f2 @ tilt_rotation(d2).T if with_tilt else f2
         Rz = _rz(yaw)
+        E = _skew(t) @ Rz
         g = f1c @ Rz.T
-        c = cross(g, f2c)
-        n = c @ t
+        Ef1 = f1c @ E.T  # rows E @ f1 = t x g
+        Etf2 = f2c @ E  # rows E^T @ f2
+        n = np.einsum("ij,ij->i", f2c, Ef1)  # f2 . (t x g) = t . (g x f2)
         # Sampson scale: the tangent gradients of n at both bearings, held fixed within a step.
-        Ef1 = cross(t, g)  # [t]x Rz f1
-        Etf2 = cross(f2c, t) @ Rz  # Rz^T [t]x^T f2
         den = np.einsum("ij,ij->i", Ef1, Ef1) + np.einsum("ij,ij->i", Etf2, Etf2) - 2.0 * n * n
         inv_s = 1.0 / np.sqrt(np.maximum(den, 1e-30))
         B = _tangent_basis(t)
+        c = cross(g, f2c)
         # d g / d yaw = e_z x g, so d n / d yaw = t . ((e_z x g) x f2) = (t . g) f2_z - t_z (g . f2)
         gf2 = np.einsum("ij,ij->i", g, f2c)
-        cols = [(g @ t) * f2c[:, 2] - t[2] * gf2, c @ B[0], c @ B[1]]
+        cols = [(g @ t) * f2c[:, 2] - t[2] * gf2, *(c @ B.T).T]
         if with_tilt:
             q = cross(f2c, t)
-            tg = cross(t, g)
             for e in (_EX, _EY):
                 cols.append(np.einsum("ij,ij->i", cross(e, f1c) @ Rz.T, q))
             for e in (_EX, _EY):
-                cols.append(np.einsum("ij,ij->i", cross(e, f2c), tg))
+                cols.append(np.einsum("ij,ij->i", cross(e, f2c), Ef1))
         J = np.stack(cols, axis=1) * inv_s[:, None]
         r = n * inv_s
         if with_tilt:
@@ -141,7 +145,7 @@ def refine_upright(
         if with_tilt:
             d1 = d1 + delta[3:5]
             d2 = d2 + delta[5:7]
-        if np.max(np.abs(delta)) < 1e-9:
+        if np.max(np.abs(delta)) < 1e-8:
             break
     yaw = float(np.arctan2(np.sin(yaw), np.cos(yaw)))
     return UprightFit(yaw, t, d1, d2, steps)

@@ -28,7 +28,7 @@ from typing import Literal, Mapping
 import numpy as np
 
 from mavvo.camera_model import CameraModel
-from mavvo.frames import _as_rotation
+from mavvo.frames import as_rotation
 from mavvo.refine import fit_ground_similarity, fit_rotation, refine_upright, tilt_rotation
 from mavvo.residuals import ground_sq, rotation_sq, sampson_sq_upright, upright_design
 from mavvo.solvers import (
@@ -59,6 +59,8 @@ ModelChoice = Literal["auto", "essential", "ground"]
 ModelName = Literal["essential", "ground", "rotation", "none"]
 
 _SAMPLE_SIZE = {"3pt": 3, "4pt": 4, "linear5pt": 5}
+# Bearings this close to the horizon (z of a unit level bearing) count as not on the ground below.
+_MIN_GROUND_Z = 0.02
 # GRIC constants for 2-view data (r = 4 dimensions per correspondence), Torr 1998.
 _GRIC_R = 4
 _GRIC_LAMBDA3 = 2.0
@@ -94,7 +96,7 @@ class RelposeOptions:
     max_iterations: int = 1000
     min_iterations: int = 0
     minimal_solver: MinimalSolver = "3pt"
-    first_block: int = 48
+    first_block: int = 64
     min_block: int = 8
     preemptive_points: int = 96
     full_scores_per_block: int = 3
@@ -371,9 +373,9 @@ def _refit_rotation(R: np.ndarray | None, f1: np.ndarray, f2: np.ndarray, thr_sq
 
 def _ground_model(f1: np.ndarray, f2: np.ndarray, candidates: np.ndarray, thr_sq: float, samples: int, rng: np.random.Generator) -> np.ndarray | None:
     """Ground homography (3, 3) by 2-point RANSAC among the candidate indices, then least squares."""
-    below = candidates[(f1[candidates, 2] > 1e-3) & (f2[candidates, 2] > 1e-3)]
-    if below.size < 4:
-        return None
+    below = candidates[(f1[candidates, 2] > _MIN_GROUND_Z) & (f2[candidates, 2] > _MIN_GROUND_Z)]
+    if below.size < max(4, 0.8 * candidates.size):
+        return None  # a scene that is all ground lies below the horizon in both views
     idx = below[_draw_samples(rng, below.size, samples, 2)] if below.size > 2 else below[None, :2]
     H, valid = solve_ground_2pt_batch(f1[idx], f2[idx])
     if not valid.any():
@@ -477,24 +479,28 @@ def estimate_upright_relpose(
             return _failure("no_model", n, drawn, RelposeStats(**stats))
         return _result(False, "pure_rotation", "rotation", _yaw_of(R_rot), np.zeros(3), None, err, thr_sq, drawn, np.zeros(2), np.zeros(2), RelposeStats(**stats))
 
-    # Final refinement on the inliers, which are then re-selected for a short second round.
+    # Final refinement on the inliers, which are then re-selected for a second round (with the
+    # roll/pitch of both views free under the IMU prior when asked).
     yaw, t = search.pose()
     tilt1 = tilt2 = np.zeros(2)
     err_e = sampson_sq_upright(_upright_e(yaw, t)[None], search.G)[0]
-    for steps in (opt.refine_steps, min(opt.refine_steps, 2)):
-        if steps == 0:
-            break
+    sigma = _robust_sigma(err_e[err_e < thr_sq], max_err_rad)
+    if opt.refine_steps > 0:
         inl = err_e < thr_sq
-        fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=steps)
+        fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=opt.refine_steps)
         yaw, t = fit.yaw_rad, fit.t_2_1
         err_e = sampson_sq_upright(_upright_e(yaw, t)[None], search.G)[0]
-    sigma = _robust_sigma(err_e[err_e < thr_sq], max_err_rad)
-    if opt.tilt_sigma_rad is not None and opt.refine_steps > 0:
+        sigma = _robust_sigma(err_e[err_e < thr_sq], max_err_rad)
         inl = err_e < thr_sq
-        fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=opt.refine_steps, tilt_sigma_rad=opt.tilt_sigma_rad, noise_sigma_rad=sigma)
-        yaw, t, tilt1, tilt2 = fit.yaw_rad, fit.t_2_1, fit.tilt1_rad, fit.tilt2_rad
-        f1c, f2c = f1 @ tilt_rotation(tilt1).T, f2 @ tilt_rotation(tilt2).T
-        err_e = sampson_sq_upright(_upright_e(yaw, t)[None], upright_design(f1c, f2c))[0]
+        if opt.tilt_sigma_rad is None:
+            fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=min(opt.refine_steps, 2))
+            G = search.G
+        else:
+            fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=opt.refine_steps, tilt_sigma_rad=opt.tilt_sigma_rad, noise_sigma_rad=sigma)
+            tilt1, tilt2 = fit.tilt1_rad, fit.tilt2_rad
+            G = upright_design(f1 @ tilt_rotation(tilt1).T, f2 @ tilt_rotation(tilt2).T)
+        yaw, t = fit.yaw_rad, fit.t_2_1
+        err_e = sampson_sq_upright(_upright_e(yaw, t)[None], G)[0]
 
     # GRIC runs on the essential inliers only: its outlier cap differs between models (2 for E, 4
     # for the others), so gross outliers, which fit none of them, would otherwise decide the choice.
@@ -594,8 +600,8 @@ def estimate_relpose_known_gravity(
     """
     if not (np.isfinite(max_err_px) and max_err_px > 0):
         raise ValueError(f"max_err_px: expected a positive number of pixels, got {max_err_px}")
-    R1 = _as_rotation("R_lvl_cam1", R_lvl_cam1)
-    R2 = _as_rotation("R_lvl_cam2", R_lvl_cam2)
+    R1 = as_rotation("R_lvl_cam1", R_lvl_cam1)
+    R2 = as_rotation("R_lvl_cam2", R_lvl_cam2)
     for name, uv in (("uv1_px", uv1_px), ("uv2_px", uv2_px)):
         a = np.asarray(uv, dtype=float)
         if a.ndim != 2 or a.shape[1] != 2:

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mavvo.frames import cross
+
 __all__ = ["upright_design", "sampson_sq_upright", "sampson_sq", "ground_sq", "rotation_sq"]
 
 # Squared residual returned where a model cannot map a point at all (ground point above the horizon).
@@ -72,10 +74,11 @@ def ground_sq(H: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
     A point that H sends behind view 2 gets ``UNMAPPABLE_SQ``.
     """
     g = f1 @ np.swapaxes(H, -1, -2)
-    n = np.sqrt(np.sum(g * g, axis=-1))
-    cos = np.sum(g * f2, axis=-1) / np.where(n > 0, n, 1.0)
-    ok = (n > 0) & (cos > 0) & (f1[:, 2] > 0)
-    return np.where(ok, 0.5 * np.maximum(1.0 - cos * cos, 0.0), UNMAPPABLE_SQ)
+    n_sq = np.sum(g * g, axis=-1)
+    c = cross(g, f2)  # |g x f2|^2 / |g|^2 = sin^2 of the angle, precise also for tiny angles
+    sin_sq = np.sum(c * c, axis=-1) / np.where(n_sq > 0, n_sq, 1.0)
+    ok = (n_sq > 0) & (np.sum(g * f2, axis=-1) > 0) & (f1[:, 2] > 0)
+    return np.where(ok, 0.5 * sin_sq, UNMAPPABLE_SQ)
 
 
 def rotation_sq(R: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:

@@ -34,6 +34,8 @@ class TwoViewScene:
         baseline_m: distance between the camera centres.
         points_ned: (N,3) the points, with camera 1 at the origin.
         R_lvl_cam1, R_lvl_cam2: the derotations used (from the reported roll/pitch).
+        R_c2_c1, t_c2_c1: true relative pose of the camera frames, ``x_c2 = R_c2_c1 @ x_c1 + t_c2_c1``
+            (t unit; zero for no motion), independent of the IMU noise.
     """
 
     f1_lvl: np.ndarray
@@ -46,6 +48,8 @@ class TwoViewScene:
     points_ned: np.ndarray
     R_lvl_cam1: np.ndarray
     R_lvl_cam2: np.ndarray
+    R_c2_c1: np.ndarray
+    t_c2_c1: np.ndarray
 
 
 def mount_rotation(mount: Mount, oblique_depression_rad: float = np.radians(45.0)) -> np.ndarray:
@@ -222,6 +226,8 @@ def _draw(
         points_ned=X,
         R_lvl_cam1=R_lc1,
         R_lvl_cam2=R_lc2,
+        R_c2_c1=R_ned_cam2.T @ R_ned_cam1,
+        t_c2_c1=R_ned_cam2.T @ (-p2) / (baseline_m if baseline_m > 0 else 1.0),
     )
 
 
