@@ -16,6 +16,7 @@ import os
 import statistics
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
@@ -62,6 +63,15 @@ def closest(poses: list[Pose], scene: TwoViewScene) -> tuple[float, float]:
     """Errors of the solution closest to the truth (as the paper picks among a solver's solutions)."""
     errs = [errors_deg(p, scene) for p in poses]
     return min(errs, key=lambda e: e[0] + e[1], default=(float("inf"), float("inf")))
+
+
+def in_front(scene: TwoViewScene, min_z: float = 0.1) -> TwoViewScene:
+    """The correspondences that an ideal (unbounded) pinhole sees in both views: bearing z > min_z."""
+    keep = (scene.f1_cam[:, 2] > min_z) & (scene.f2_cam[:, 2] > min_z)
+    if keep.all():
+        return scene
+    return replace(scene, f1_lvl=scene.f1_lvl[keep], f2_lvl=scene.f2_lvl[keep], f1_cam=scene.f1_cam[keep],
+                   f2_cam=scene.f2_cam[keep], points_ned=scene.points_ned[keep])
 
 
 def pixels(scene: TwoViewScene, rows: slice | np.ndarray = slice(None)) -> tuple[np.ndarray, np.ndarray]:
@@ -132,9 +142,13 @@ def paper_sweep(kind: str, sweep: str, trials: int, levels: np.ndarray) -> dict[
             methods = MINIMAL if kind == "minimal" else least_squares_methods(imu)
             errs: dict[str, list[tuple[float, float]]] = {m: [] for m in methods}
             for _ in range(trials):
-                scene = make_scene(rng, n_points, motion=motion, mount="forward", distance_m=10.0, depth_fraction=0.5,
-                                   baseline_fraction=0.1, max_tilt_rad=np.radians(15.0), pixel_noise_px=px,
-                                   imu_noise_rad=imu, focal_px=FOCAL_PX)
+                scene = in_front(make_scene(rng, n_points + 2, motion=motion, mount="forward", distance_m=10.0, depth_fraction=0.5,
+                                            baseline_fraction=0.1, max_tilt_rad=np.radians(15.0), pixel_noise_px=px,
+                                            imu_noise_rad=imu, focal_px=FOCAL_PX))
+                if len(scene.f1_cam) < n_points:
+                    continue  # rare: a point near the edge of view 2
+                scene = replace(scene, f1_lvl=scene.f1_lvl[:n_points], f2_lvl=scene.f2_lvl[:n_points],
+                                f1_cam=scene.f1_cam[:n_points], f2_cam=scene.f2_cam[:n_points])
                 for name, fn in methods.items():
                     errs[name].append(fn(scene))
             for name, e in errs.items():
@@ -271,7 +285,7 @@ def side_by_side(trials: int, sizes: tuple[int, ...], outlier_levels: tuple[floa
                 scene = make_scene(rng, n, motion=("sideways", "forward", "random")[trial % 3], mount="forward",
                                    depth_fraction=0.5, baseline_fraction=0.1, pixel_noise_px=0.5,
                                    imu_noise_rad=IMU_SIGMA_RAD, focal_px=FOCAL_PX)
-                scene, _ = add_outliers(scene, outliers, rng, fov_half_rad=np.radians(30.0))
+                scene, _ = add_outliers(in_front(scene), outliers, rng, fov_half_rad=np.radians(30.0))
                 uv1, uv2 = pixels(scene)
                 for name, fn in methods.items():
                     ms, (pose, iters) = timed(lambda fn=fn: fn(scene, uv1, uv2, trial))
