@@ -484,13 +484,13 @@ def estimate_upright_relpose(
     yaw, t = search.pose()
     tilt1 = tilt2 = np.zeros(2)
     err_e = sampson_sq_upright(_upright_e(yaw, t)[None], search.G)[0]
-    sigma = _robust_sigma(err_e[err_e < thr_sq], max_err_rad)
     if opt.refine_steps > 0:
         inl = err_e < thr_sq
         fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=opt.refine_steps)
         yaw, t = fit.yaw_rad, fit.t_2_1
         err_e = sampson_sq_upright(_upright_e(yaw, t)[None], search.G)[0]
-        sigma = _robust_sigma(err_e[err_e < thr_sq], max_err_rad)
+    sigma = _robust_sigma(err_e[err_e < thr_sq], max_err_rad)
+    if opt.refine_steps > 0:
         inl = err_e < thr_sq
         if opt.tilt_sigma_rad is None:
             fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=min(opt.refine_steps, 2))
@@ -517,7 +517,12 @@ def estimate_upright_relpose(
         if H is not None:
             gric["ground"] = _gric(ground_sq(H, f1[inl_idx], f2[inl_idx]), sigma_sq, "ground")
     stats_final = RelposeStats(**stats, noise_sigma_rad=sigma, gric=dict(gric))
-    allowed = {"auto": ("essential", "ground", "rotation"), "essential": ("essential", "rotation"), "ground": ("ground", "rotation")}[opt.model]
+    if opt.model == "auto":
+        allowed: tuple[str, ...] = ("essential", "ground", "rotation")
+    elif opt.model == "ground" and "ground" in gric:
+        allowed = ("ground", "rotation")
+    else:  # essential asked for, or the ground model is not applicable
+        allowed = ("essential", "rotation")
     choice = min((m for m in gric if m in allowed), key=gric.__getitem__, default="essential")
     if choice == "rotation" and R_rot is not None and err_r is not None:
         return _result(False, "pure_rotation", "rotation", _yaw_of(R_rot), np.zeros(3), None, err_r, thr_sq, drawn, np.zeros(2), np.zeros(2), stats_final)

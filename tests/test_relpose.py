@@ -212,3 +212,10 @@ def test_options_are_validated() -> None:
         RelposeOptions(tilt_sigma_rad=0.0)
     with pytest.raises(ValueError, match="uv1_px"):
         estimate_relpose_known_gravity(np.ones((5, 3)), np.ones((5, 2)), CameraModel(640, 480, 500, 500, 320, 240), np.eye(3), np.eye(3))
+
+
+def test_ground_model_forced_where_it_cannot_apply_falls_back_to_essential() -> None:
+    scene, _ = _scene(13, motion="sideways", mount="forward", outliers=0.2)
+    r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD, options=RelposeOptions(model="ground"))
+    assert r.success and r.model == "essential" and "ground" not in r.stats.gric
+    assert np.degrees(angle_between_rad(r.t_2_1, scene.t_2_1)) < 3.0
