@@ -22,11 +22,13 @@ test: $(STAMP)
 soak: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
 
-# Benchmarks run single-threaded; PoseLib is installed for the comparison when the platform has it.
+# Benchmarks run single-threaded (the last line adds OpenCV on all cores); PoseLib is installed for the
+# comparison when the platform has it.
 bench: $(STAMP)
 	-@$(BIN)/python -m pip install --quiet -e '.[compare]' || echo "poselib not available: comparing with OpenCV only"
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/solvers.py --markdown docs/benchmarks.md
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/relpose.py --markdown docs/benchmarks.md --plots docs/img
+	$(BIN)/python benchmarks/relpose.py --threads --markdown docs/benchmarks.md
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

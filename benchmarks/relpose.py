@@ -416,13 +416,44 @@ def run(quick: bool, plots: Path | None, docs_root: Path | None) -> str:
     return "\n".join(lines)
 
 
+THREADS_BEGIN, THREADS_END = "<!-- relpose-threads:begin -->", "<!-- relpose-threads:end -->"
+
+
+def threads_section(trials: int) -> str:
+    """N = 1000, 50% outliers with OpenCV on all cores against one, beside single-threaded mavvo."""
+    rows = []
+    for label, n_threads in (("1 thread", 1), (f"all {os.cpu_count()} cores", -1)):
+        cv2.setNumThreads(n_threads)
+        r, _ = side_by_side(trials, (1000,), (0.5,))
+        rows += [dict(x, method=f"{x['method']} ({label})" if x["method"].startswith("OpenCV") else x["method"]) for x in r if not x["method"].startswith("mavvo,")]
+    cv2.setNumThreads(1)
+    lines = [
+        THREADS_BEGIN,
+        "### With threads (`benchmarks/relpose.py --threads`)",
+        "",
+        f"N = 1000, 50% outliers, {trials} trials, measured {dt.date.today().isoformat()}. mavvo and PoseLib are single-threaded "
+        "either way (mavvo's numpy work is in small arrays where BLAS threads do not help); OpenCV's USAC runs in "
+        "parallel when allowed.",
+        "",
+        "| method | median time (ms) | rotation err (deg) | translation err (deg) |",
+        "|---|---:|---:|---:|",
+    ]
+    lines += [f"| {x['method']} | {x['ms']:.2f} | {x['rot']:.3f} | {x['trans']:.2f} |" for x in rows]
+    lines += ["", THREADS_END]
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--markdown", type=Path, help="rewrite this benchmark's section of this markdown file")
     parser.add_argument("--plots", type=Path, help="write the PNG plots into this folder")
     parser.add_argument("--quick", action="store_true", help="few trials: a smoke run, not a measurement")
+    parser.add_argument("--threads", action="store_true", help="only the comparison with OpenCV on all cores")
     args = parser.parse_args(argv)
     cv2.setNumThreads(1)
+    if args.threads:
+        publish(threads_section(5 if args.quick else 25), args.markdown, THREADS_BEGIN, THREADS_END)
+        return 0
     docs_root = args.markdown.parent if args.markdown else None
     section = run(args.quick, args.plots, docs_root)
     publish(section, args.markdown, BEGIN, END)
