@@ -183,6 +183,15 @@ def plot_sweep(path: Path, title: str, xlabel: str, levels: np.ndarray, data: di
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=70)
     plt.close(fig)
+    _to_palette(path)
+
+
+def _to_palette(path: Path) -> None:
+    """Re-save a plot with a 64-colour palette: a third of the size, nothing visible lost."""
+    from PIL import Image  # matplotlib's own dependency
+
+    with Image.open(path) as im:
+        im.convert("RGB").quantize(64).save(path, optimize=True)
 
 
 def paper_findings(data: dict[tuple[str, str], dict[str, dict[str, np.ndarray]]]) -> list[str]:
