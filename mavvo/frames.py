@@ -76,6 +76,11 @@ def derotate(f_cam: np.ndarray, R_lvl_cam_: np.ndarray) -> np.ndarray:
     return f @ as_rotation("R_lvl_cam", R_lvl_cam_).T
 
 
+def skew(t: np.ndarray) -> np.ndarray:
+    """(3,3) cross-product matrix: ``skew(t) @ v == cross(t, v)``."""
+    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+
+
 def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Cross product over the last axis of broadcastable (..., 3) arrays.
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mavvo.frames import cross
+from mavvo.frames import cross, rot_z, skew
 
 __all__ = ["UprightFit", "tilt_rotation", "refine_upright", "fit_ground_similarity", "fit_rotation"]
 
@@ -61,15 +61,6 @@ def _tangent_basis(t: np.ndarray) -> np.ndarray:
     return np.stack([b1, cross(t, b1)])
 
 
-def _skew(t: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-
-
-def _rz(yaw: float) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def refine_upright(
     yaw_rad: float,
     t_2_1: np.ndarray,
@@ -107,8 +98,8 @@ def refine_upright(
     for steps in range(1, iterations + 1):
         f1c = f1 @ tilt_rotation(d1).T if with_tilt else f1
         f2c = f2 @ tilt_rotation(d2).T if with_tilt else f2
-        Rz = _rz(yaw)
-        E = _skew(t) @ Rz
+        Rz = rot_z(yaw)
+        E = skew(t) @ Rz
         g = f1c @ Rz.T
         Ef1 = f1c @ E.T  # rows E @ f1 = t x g
         Etf2 = f2c @ E  # rows E^T @ f2

@@ -28,7 +28,7 @@ from typing import Literal, Mapping
 import numpy as np
 
 from mavvo.camera_model import CameraModel
-from mavvo.frames import as_rotation
+from mavvo.frames import as_rotation, rot_z, skew
 from mavvo.refine import fit_ground_similarity, fit_rotation, refine_upright, tilt_rotation
 from mavvo.residuals import ground_sq, rotation_sq, sampson_sq_upright, upright_design
 from mavvo.solvers import (
@@ -210,11 +210,6 @@ def required_iterations(inlier_ratio: float, sample_size: int, confidence: float
     return int(math.ceil(math.log(1.0 - confidence) / math.log1p(-p_good)))
 
 
-def _rz(yaw: float) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def _yaw_of(R: np.ndarray) -> float:
     """Yaw (Euler 3-2-1) of a rotation (3, 3)."""
     return float(np.arctan2(R[1, 0], R[0, 0]))
@@ -222,10 +217,7 @@ def _yaw_of(R: np.ndarray) -> float:
 
 def _upright_e(yaw: float, t: np.ndarray) -> np.ndarray:
     """e vector (6,) of ``[t]x Rz(yaw)``."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    tx, ty, tz = t
-    # [t]x Rz = [[-tz s, -tz c, ty], [tz c, -tz s, -tx], [-ty c + tx s, ty s + tx c, 0]]
-    return np.array([ty, tz * c, -tz * s, -tx, tx * s - ty * c, ty * s + tx * c])
+    return essential_to_vector(skew(t) @ rot_z(yaw))
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
@@ -356,7 +348,7 @@ def _rotation_ransac(f1: np.ndarray, f2: np.ndarray, thr_sq: float, rng: np.rand
     if usable.size == 0:
         return None
     pick = usable[rng.integers(0, usable.size, min(samples, usable.size))]
-    R = np.array([_rz(y) for y in np.angle(h2[pick] * np.conj(h1[pick]))])
+    R = np.array([rot_z(y) for y in np.angle(h2[pick] * np.conj(h1[pick]))])
     return _refit_rotation(R[int(np.argmin(np.minimum(rotation_sq(R, f1, f2), thr_sq).sum(axis=1)))], f1, f2, thr_sq)
 
 
@@ -376,7 +368,7 @@ def _ground_model(f1: np.ndarray, f2: np.ndarray, candidates: np.ndarray, thr_sq
     below = candidates[(f1[candidates, 2] > _MIN_GROUND_Z) & (f2[candidates, 2] > _MIN_GROUND_Z)]
     if below.size < max(4, 0.8 * candidates.size):
         return None  # a scene that is all ground lies below the horizon in both views
-    idx = below[_draw_samples(rng, below.size, samples, 2)] if below.size > 2 else below[None, :2]
+    idx = below[_draw_samples(rng, below.size, samples, 2)]
     H, valid = solve_ground_2pt_batch(f1[idx], f2[idx])
     if not valid.any():
         return None
@@ -563,7 +555,7 @@ def _result(
         success=success,
         reason=reason,
         model=model,
-        R_2_1=_frozen(_rz(yaw)),
+        R_2_1=_frozen(rot_z(yaw)),
         t_2_1=_frozen(t),
         yaw_rad=float(yaw),
         t_2_1_per_height=None if t_per_height is None else _frozen(t_per_height),
@@ -611,6 +603,8 @@ def estimate_relpose_known_gravity(
         a = np.asarray(uv, dtype=float)
         if a.ndim != 2 or a.shape[1] != 2:
             raise ValueError(f"{name}: expected an (N,2) array of pixels, got shape {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{name}: pixels must be finite, got NaN or inf")
     f1 = camera.pixels_to_bearings(uv1_px) @ R1.T
     f2 = camera.pixels_to_bearings(uv2_px) @ R2.T
     max_err_rad = max_err_px / (0.5 * (camera.fx_px + camera.fy_px))

@@ -31,7 +31,7 @@ import itertools
 
 import numpy as np
 
-from mavvo.frames import cross
+from mavvo.frames import cross, rot_z, skew
 from mavvo.polyroots import cubic_real_roots, quartic_real_roots
 
 __all__ = [
@@ -527,20 +527,11 @@ def solve_upright_linear5pt(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
     if s[4] <= _MIN_DEGENERACY_RATIO * s[0]:
         return np.zeros((0, 3, 3))
     yaw, t = _nearest_upright(vt[5])
-    E = _skew(t) @ _rot_z(yaw)
+    E = skew(t) @ rot_z(yaw)
     return (E / np.linalg.norm(E))[None]
 
 
 # --------------------------------------------------------------------------- decomposition
-
-
-def _rot_z(yaw: float) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _skew(t: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
 
 
 def _translation_for_yaw(e: np.ndarray, yaw: float) -> np.ndarray:
@@ -623,7 +614,7 @@ def upright_pose_from_essential(E: np.ndarray, f1: np.ndarray, f2: np.ndarray) -
     for yaw, en in zip(yaws[keep], energy[keep]):
         t = _translation_for_yaw(e, float(yaw))
         t = t / np.linalg.norm(t)
-        R = _rot_z(float(yaw))
+        R = rot_z(float(yaw))
         for sign in (1.0, -1.0):
             score = (_count_in_front(R, sign * t, a, b), float(en))
             if best is None or score > best[:2]:
@@ -709,4 +700,4 @@ def ground_pose_from_homography(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError("H: expected a ground homography, the rotation block is zero")
     H = H / k
     yaw = float(np.arctan2(H[1, 0], H[0, 0]))
-    return _rot_z(yaw), np.array([H[0, 2], H[1, 2], H[2, 2] - 1.0])
+    return rot_z(yaw), np.array([H[0, 2], H[1, 2], H[2, 2] - 1.0])

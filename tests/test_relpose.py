@@ -212,6 +212,8 @@ def test_options_are_validated() -> None:
         RelposeOptions(tilt_sigma_rad=0.0)
     with pytest.raises(ValueError, match="uv1_px"):
         estimate_relpose_known_gravity(np.ones((5, 3)), np.ones((5, 2)), CameraModel(640, 480, 500, 500, 320, 240), np.eye(3), np.eye(3))
+    with pytest.raises(ValueError, match="uv2_px: pixels must be finite"):
+        estimate_relpose_known_gravity(np.ones((5, 2)), np.full((5, 2), np.nan), CameraModel(640, 480, 500, 500, 320, 240), np.eye(3), np.eye(3))
 
 
 def test_ground_model_forced_where_it_cannot_apply_falls_back_to_essential() -> None:
