@@ -121,3 +121,51 @@ def as_rotation(name: str, R: np.ndarray, tol: float = 1e-6) -> np.ndarray:
     if np.abs(arr @ arr.T - np.eye(3)).max() > tol or np.linalg.det(arr) < 0:
         raise ValueError(f"{name}: expected a rotation matrix (orthonormal, det +1)")
     return arr
+
+
+def quat_wxyz_from_R(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z), w >= 0, of a (3,3) rotation or (N,4) of an (N,3,3) stack
+    (Hamilton convention, as MAVLink's ODOMETRY ``q`` and TUM files use, there ordered x y z w)."""
+    R = np.asarray(R, dtype=float)
+    single = R.ndim == 2
+    Rs = R[None] if single else R
+    if Rs.ndim != 3 or Rs.shape[1:] != (3, 3):
+        raise ValueError(f"R: expected (3,3) or (N,3,3), got shape {R.shape}")
+    m = Rs
+    tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
+    # the four candidate magnitudes; take the largest per rotation for stability
+    cand = np.stack([1 + tr, 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2], 1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2], 1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], axis=1)
+    k = np.argmax(cand, axis=1)
+    q = np.empty((len(m), 4))
+    s = 2.0 * np.sqrt(np.maximum(cand[np.arange(len(m)), k], 1e-300))
+    a, b = m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0]
+    c = m[:, 1, 0] - m[:, 0, 1]
+    d, e, f = m[:, 0, 1] + m[:, 1, 0], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1]
+    rows = {
+        0: np.stack([s / 4, a / s, b / s, c / s], axis=1),
+        1: np.stack([a / s, s / 4, d / s, e / s], axis=1),
+        2: np.stack([b / s, d / s, s / 4, f / s], axis=1),
+        3: np.stack([c / s, e / s, f / s, s / 4], axis=1),
+    }
+    for i, val in rows.items():
+        q[k == i] = val[k == i]
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return q[0] if single else q
+
+
+def R_from_quat_wxyz(q: np.ndarray) -> np.ndarray:
+    """(3,3) rotation of a quaternion (w, x, y, z), or (N,3,3) of (N,4); the quaternion is normalised."""
+    q = np.asarray(q, dtype=float)
+    single = q.ndim == 1
+    qs = q[None] if single else q
+    if qs.ndim != 2 or qs.shape[1] != 4:
+        raise ValueError(f"q: expected (4,) or (N,4), got shape {q.shape}")
+    qs = qs / np.linalg.norm(qs, axis=1, keepdims=True)
+    w, x, y, z = qs.T
+    R = np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1),
+    ], axis=1)
+    return R[0] if single else R
