@@ -173,12 +173,16 @@ def _virtual_pinhole(camera: CameraModel) -> tuple[np.ndarray, tuple[int, int], 
     xy = np.full((f.shape[0], 2), np.nan)
     xy[ok] = f[ok, :2] / f[ok, 2:]
     fx, fy = camera.fx_px, camera.fy_px
+    # at most _MAX_VIRTUAL_SCALE times the image each way; pixels beyond stay black
+    half = np.array([_MAX_VIRTUAL_SCALE * w / (2 * fx), _MAX_VIRTUAL_SCALE * h / (2 * fy)])
+    ok &= np.all(np.abs(np.nan_to_num(xy, nan=np.inf)) < half, axis=1)
+    xy[~ok] = np.nan
     lo = np.nanmin(xy, axis=0)
     hi = np.nanmax(xy, axis=0)
     cx = -lo[0] * fx + 1.0
     cy = -lo[1] * fy + 1.0
-    vw = int(min(np.ceil((hi[0] - lo[0]) * fx) + 3, _MAX_VIRTUAL_SCALE * w))
-    vh = int(min(np.ceil((hi[1] - lo[1]) * fy) + 3, _MAX_VIRTUAL_SCALE * h))
+    vw = int(np.ceil((hi[0] - lo[0]) * fx) + 3)
+    vh = int(np.ceil((hi[1] - lo[1]) * fy) + 3)
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     mx = np.where(ok, fx * xy[:, 0] + cx, -1.0).reshape(h, w).astype(np.float32)
     my = np.where(ok, fy * xy[:, 1] + cy, -1.0).reshape(h, w).astype(np.float32)

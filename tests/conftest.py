@@ -1,0 +1,25 @@
+"""Shared fixtures: free loopback ports and a plain pymavlink client."""
+
+from __future__ import annotations
+
+import os
+import socket
+
+import pytest
+
+
+def free_port(kind: int = socket.SOCK_DGRAM) -> int:
+    """A port on 127.0.0.1 that nothing is bound to right now."""
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def mavutil():
+    """pymavlink's mavutil in MAVLink 2 with the ardupilotmega dialect, as a ground-station script uses it."""
+    os.environ["MAVLINK20"] = "1"
+    from pymavlink import mavutil as mu
+
+    mu.set_dialect("ardupilotmega")
+    return mu

@@ -1,0 +1,125 @@
+"""The renderer's geometry and texture: world points appear where the camera model projects them."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from mavvo.camera_model import CameraModel
+from mavvo.frames import R_BODY_CAM_FORWARD, R_BODY_CAM_NADIR, R_from_euler321, rot_y
+from sim.render import Renderer, apply_effects
+from sim.world import BoxSpec, World, WorldSpec
+
+PINHOLE = CameraModel(640, 480, 500.0, 500.0, 319.5, 239.5)
+RADTAN = CameraModel(640, 480, 420.0, 420.0, 322.0, 236.0, "pinhole", (-0.28, 0.07, 0.0005, -0.0003))
+FISHEYE = CameraModel(640, 480, 260.0, 260.0, 320.0, 240.0, "fisheye", (0.02, -0.01, 0.003, -0.001))
+
+
+def _grid_corners_px(camera: CameraModel, R_ned_cam: np.ndarray, p_ned_cam: np.ndarray, square_m: float) -> np.ndarray:
+    """Pixels of the checkerboard's X-corners (integer multiples of square_m on z = 0) well inside the
+    image and with squares big enough around them (>= 25 px; smaller ones are minified, and aliasing then moves edges by up to half a pixel) for a corner detector to resolve."""
+    n, e = np.meshgrid(np.arange(-40, 41), np.arange(-40, 41))
+    X = np.column_stack([n.ravel() * square_m, e.ravel() * square_m, np.zeros(n.size)])
+
+    def project(points: np.ndarray) -> np.ndarray:
+        x_cam = (points - p_ned_cam) @ R_ned_cam
+        uv = camera.bearings_to_pixels(x_cam)
+        uv[x_cam[:, 2] < 0.5] = np.nan
+        return uv
+
+    uv = project(X)
+    for step in ([square_m, 0, 0], [-square_m, 0, 0], [0, square_m, 0], [0, -square_m, 0]):
+        uv[~(np.linalg.norm(project(X + step) - uv, axis=1) >= 25.0)] = np.nan
+    margin = 12
+    inside = np.all(np.isfinite(uv), axis=1) & (uv[:, 0] > margin) & (uv[:, 0] < camera.width_px - margin)
+    inside &= (uv[:, 1] > margin) & (uv[:, 1] < camera.height_px - margin)
+    return uv[inside]
+
+
+@pytest.mark.parametrize(
+    "camera, rpy, height_m, mount",
+    [
+        (PINHOLE, (0.0, 0.0, 0.0), 6.0, R_BODY_CAM_NADIR),
+        (PINHOLE, (0.12, -0.08, 0.7), 7.5, R_BODY_CAM_NADIR),
+        (PINHOLE, (0.05, 0.0, -0.4), 3.0, rot_y(-0.9) @ R_BODY_CAM_FORWARD),  # oblique: 52 deg down
+        (RADTAN, (0.1, 0.05, 0.3), 6.0, R_BODY_CAM_NADIR),
+        (FISHEYE, (-0.05, 0.1, 1.2), 5.0, R_BODY_CAM_NADIR),
+    ],
+)
+def test_checkerboard_corners_appear_where_projected(camera, rpy, height_m, mount):
+    world = World.build(WorldSpec(texture="checker", checker_size_m=1.0))
+    R_ned_cam = R_from_euler321(*rpy) @ mount
+    p = np.array([0.23, -0.41, -height_m])
+    img = Renderer(world, camera).render(R_ned_cam, p)
+    expected = _grid_corners_px(camera, R_ned_cam, p, 1.0)
+    assert len(expected) >= 12
+
+    found = cv2.goodFeaturesToTrack(img, 2000, 0.05, 5, blockSize=5)[:, 0, :]
+    found = cv2.cornerSubPix(img, found.astype(np.float32), (5, 5), (-1, -1), (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3))
+    d = np.linalg.norm(expected[:, None, :] - found[None, :, :], axis=2).min(axis=1)
+    assert np.mean(d < 0.5) >= 0.9, f"median miss {np.median(d):.3f} px, worst {d.max():.3f} px"
+    assert np.median(d) < 0.25
+
+
+def test_box_covers_its_projected_silhouette():
+    box = BoxSpec(north_m=1.0, east_m=-0.5, length_m=2.0, width_m=1.5, height_m=1.2, yaw_deg=25.0)
+    plain = World.build(WorldSpec(texture_seed=3))
+    boxed = World.build(WorldSpec(texture_seed=3, boxes=(box,)))
+    R = R_from_euler321(0.05, -0.1, 0.4) @ R_BODY_CAM_NADIR
+    p = np.array([-1.0, 0.5, -8.0])
+    a = Renderer(plain, PINHOLE).render(R, p)
+    b = Renderer(boxed, PINHOLE).render(R, p)
+    corners = boxed.boxes[0].corners_ned
+    uv = PINHOLE.bearings_to_pixels((corners - p) @ R)
+    hull = np.zeros_like(a)
+    cv2.fillConvexPoly(hull, np.round(cv2.convexHull(uv.astype(np.float32))[:, 0, :]).astype(np.int32), 1)
+    changed = cv2.morphologyEx((np.abs(a.astype(int) - b.astype(int)) > 0).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8))
+    inter = np.sum(hull & changed)
+    union = np.sum(hull | changed)
+    assert hull.sum() > 2000
+    assert inter / union > 0.93
+
+
+@pytest.mark.parametrize("height_m", [2.0, 10.0, 40.0, 100.0])
+def test_corner_texture_has_corners_everywhere_at_every_height(height_m):
+    world = World.build(WorldSpec())
+    img = Renderer(world, PINHOLE).render(R_from_euler321(0.02, -0.03, 0.3) @ R_BODY_CAM_NADIR, [3.0, -7.0, -height_m])
+    pts = cv2.goodFeaturesToTrack(img, 1000, 0.01, 8)[:, 0, :]
+    cells = set(map(tuple, (pts // [160, 120]).astype(int)))
+    assert len(pts) >= 300
+    assert len(cells) == 16  # every cell of a 4x4 grid holds corners
+
+
+def test_forward_camera_sees_sky_above_the_horizon():
+    world = World.build(WorldSpec())
+    img = Renderer(world, PINHOLE).render(R_BODY_CAM_FORWARD, [0.0, 0.0, -5.0])
+    assert np.all(img[:200] > 150)  # the horizon is the middle row for a level forward camera
+    assert img[300:].std() > 20
+
+
+def test_world_and_render_are_deterministic_for_a_seed():
+    R = R_from_euler321(0.1, 0.0, 0.2) @ R_BODY_CAM_NADIR
+    a = Renderer(World.build(WorldSpec(texture_seed=5)), PINHOLE).render(R, [0, 0, -9.0])
+    b = Renderer(World.build(WorldSpec(texture_seed=5)), PINHOLE).render(R, [0, 0, -9.0])
+    c = Renderer(World.build(WorldSpec(texture_seed=6)), PINHOLE).render(R, [0, 0, -9.0])
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, c)
+
+
+def test_effects_gain_noise_and_blur():
+    rng = np.random.default_rng(0)
+    img = np.zeros((100, 100), np.uint8)
+    img[:, 50:] = 200
+    dark = apply_effects(img, gain=0.05)
+    assert dark.max() == 10
+    noisy = apply_effects(np.full((200, 200), 100, np.uint8), noise_sigma=3.0, rng=np.random.default_rng(1))
+    assert abs(noisy.astype(float).std() - 3.0) < 0.2
+    blurred = apply_effects(img, blur_px=(9.0, 0.0))
+    ramp = blurred[50, 40:60].astype(float)
+    assert np.all(np.diff(ramp) >= 0) and 3 < np.count_nonzero((ramp > 5) & (ramp < 195)) <= 10
+    vertical = apply_effects(img, blur_px=(0.0, 9.0))
+    assert np.array_equal(vertical[10:90], img[10:90])  # blur along the edge changes nothing
+    with pytest.raises(ValueError, match="rng"):
+        apply_effects(img, noise_sigma=1.0, rng=None)
+    assert rng is not None
