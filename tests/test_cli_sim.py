@@ -1,0 +1,65 @@
+"""``mavvo sim --fc-only``: a plain pymavlink client talks to the simulated flight controller run as a
+command, which stops cleanly on SIGINT and writes what it received."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from conftest import free_port
+from mavvo.cli import main
+
+
+def test_fc_only_serves_a_plain_pymavlink_client(mavutil, tmp_path):
+    port = free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mavvo", "sim", "--fc-only", "--mavlink", f"udpin:127.0.0.1:{port}", "--scenario", "hover", "--out", str(tmp_path)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        client = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
+        hb = None
+        for _ in range(60):  # the command needs a moment to start; UDP replies go to whoever sent last
+            client.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            hb = client.recv_match(type="HEARTBEAT", blocking=True, timeout=0.5)
+            if hb is not None:
+                break
+        assert hb is not None and hb.autopilot == mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+        client.mav.command_long_send(1, 1, mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, 30, 40000, 0, 0, 0, 0, 0)
+        att = []
+        while len(att) < 15:
+            m = client.recv_match(type="ATTITUDE", blocking=True, timeout=5)
+            assert m is not None
+            att.append(m)
+        stamps = [m.time_boot_ms for m in att]
+        assert sorted(stamps) == stamps and 35 <= (stamps[-1] - stamps[0]) / 14 <= 45  # 25 Hz on the boot clock
+        for i in range(5):
+            client.mav.vision_position_estimate_send(i * 100000, 0.0, 0.0, -10.0, 0.0, 0.0, 0.0)
+            client.recv_match(type="ATTITUDE", blocking=True, timeout=1)
+        client.close()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
+    assert (tmp_path / "received.tlog").stat().st_size > 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["poses"] == 5 and summary["ate_se3_m"]["rmse"] < 1.0  # the hover drifts 0.6 m at most
+    assert "5 vision estimates" in out
+
+
+def test_sim_arguments_are_checked(capsys):
+    assert main(["sim", "--fc-only", "--scenario", "nowhere"]) == 2
+    assert "scenario 'nowhere': not found" in capsys.readouterr().err
+    assert main(["sim", "--fc-only", "--duration", "-1"]) == 2
+    assert "--duration: expected a positive number" in capsys.readouterr().err
+    assert main(["sim"]) == 2
+    assert "use --fc-only" in capsys.readouterr().err
+    assert main(["sim", "--list"]) == 0
+    assert "survey" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as e:
+        main(["sim", "--help"])
+    assert e.value.code == 0

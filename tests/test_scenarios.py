@@ -1,0 +1,121 @@
+"""Scenarios: every shipped one loads, renders and repeats; bad files get errors naming file and key;
+the simulated camera hands out frames at exposure times, with its faults."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from conftest import free_port
+from mavvo.camera import FrameSource
+from mavvo.errors import CameraError, ConfigError
+from sim.scenario import Scenario, load_scenario, scenario_names
+from sim.simulation import Simulation
+
+
+@pytest.mark.parametrize("name", scenario_names())
+def test_shipped_scenarios_load_and_render(name):
+    sc = load_scenario(name)
+    assert sc.name == name and sc.description
+    sim = Simulation(sc, f"udpin:127.0.0.1:{free_port()}")
+    try:
+        assert isinstance(sim.camera, FrameSource)
+        for t in np.linspace(0.0, sim.duration_s, 4):
+            if any(f.start_s <= t < f.end_s for f in sc.faults if f.kind in ("dark_frames", "textureless_frames")):
+                continue
+            img = sim.camera.render_at(t)
+            assert img.shape == (sc.camera.height_px, sc.camera.width_px) and img.dtype == np.uint8
+            assert img.std() > 15, f"{name} at {t:.1f} s looks featureless"
+    finally:
+        sim.close()
+
+
+def _frames(sc: Scenario, n: int) -> list:
+    """The first n frames of a lockstep run."""
+    sim = Simulation(sc, f"udpin:127.0.0.1:{free_port()}")
+    try:
+        return [sim.camera.read(1.0) for _ in range(n)]
+    finally:
+        sim.close()
+
+
+def test_lockstep_frames_repeat_bit_for_bit_and_advance_the_clock():
+    sc = load_scenario("figure_eight")
+    a, b = _frames(sc, 6), _frames(sc, 6)
+    assert [f.t_exposure_s for f in a] == pytest.approx([k / sc.camera.rate_hz for k in range(6)])
+    assert [f.seq for f in a] == list(range(6))
+    assert all(np.array_equal(x.image, y.image) for x, y in zip(a, b))
+    other = _frames(replace(sc, seed=sc.seed + 1), 2)
+    assert not np.array_equal(other[1].image, a[1].image)  # another seed, other pixel noise
+
+    sim = Simulation(sc, f"udpin:127.0.0.1:{free_port()}")
+    try:
+        sim.camera.read(1.0)
+        f = sim.camera.read(1.0)
+        assert sim.clock.now_s() == pytest.approx(f.t_exposure_s + sc.camera.readout_latency_ms * 1e-3)
+    finally:
+        sim.close()
+
+
+def test_camera_faults():
+    sc = load_scenario("faults")
+    sim = Simulation(sc, f"udpin:127.0.0.1:{free_port()}")
+    try:
+        by_kind = {f.kind: f for f in sc.faults}
+        miss = by_kind["frames_missing"]
+        sim.camera._next = int(round((miss.start_s - 0.2) * sc.camera.rate_hz))
+        got = [sim.camera.read(1.0) for _ in range(10)]
+        times = np.array([f.t_exposure_s for f in got])
+        assert not np.any((times >= miss.start_s) & (times < miss.end_s))
+        assert np.diff([f.seq for f in got]).max() == int(round(miss.duration_s * sc.camera.rate_hz)) + 1  # the gap shows in seq
+        dark = by_kind["dark_frames"]
+        normal = sim.camera.render_at(dark.start_s - 0.5)
+        assert sim.camera.render_at(dark.start_s + 0.1).mean() < 0.1 * normal.mean()
+        flat = sim.camera.render_at(by_kind["textureless_frames"].start_s + 0.1)
+        assert flat.std() < 3 * sc.camera.noise_sigma
+    finally:
+        sim.close()
+
+
+def test_scenario_ends_with_a_camera_error():
+    sim = Simulation(load_scenario("yaw_spin"), f"udpin:127.0.0.1:{free_port()}", duration_s=0.2)
+    try:
+        frames = []
+        with pytest.raises(CameraError, match="scenario ended"):
+            while True:
+                frames.append(sim.camera.read(1.0))
+        assert len(frames) == 5  # 0, 0.05, ..., 0.2 s
+    finally:
+        sim.close()
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("trajectory: {type: hover, altitude_m: -3}", r"bad.yaml: trajectory.altitude_m: expected a number > 0, got -3"),
+        ("trajectory: {type: spiral}", r"bad.yaml: trajectory.type: expected one of 'hover', .*got 'spiral'"),
+        ("camera: {fx_px: fast}", r"bad.yaml: camera.fx_px: expected a finite number, got 'fast'"),
+        ("camera: {distortion: [0.1, 0.2, 0.3]}", r"bad.yaml: camera: distortion: expected 4 or 5 coefficients"),
+        ("world: {boxes: [{height_m: 0}]}", r"bad.yaml: world.boxes\[0\].height_m: expected a number > 0"),
+        ("faults: [{kind: meteor, start_s: 1}]", r"bad.yaml: faults\[0\].kind: expected one of 'link_silence'"),
+        ("flight_controller: {attitude_rate: 50}", r"bad.yaml: flight_controller.attitude_rate: unknown key; expected one of"),
+        ("seed: 1.5", r"bad.yaml: seed: expected an integer, got 1.5"),
+        ("camera: {motion_blur: 1}", r"bad.yaml: camera.motion_blur: expected true or false, got 1"),
+        ("name: [a", r"bad.yaml: not valid YAML"),
+        ("- a\n- b", r"bad.yaml: expected a mapping of keys at the top level, got list"),
+    ],
+)
+def test_scenario_validation_errors_name_file_and_key(tmp_path, text, message):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text + "\n")
+    with pytest.raises(ConfigError, match=message):
+        load_scenario(path)
+
+
+def test_unknown_scenario_lists_the_shipped_ones(tmp_path):
+    with pytest.raises(ConfigError, match=r"scenario 'nowhere': not found; expected one of .*hover"):
+        load_scenario("nowhere")
+    with pytest.raises(ConfigError, match=r"missing.yaml: scenario file not found"):
+        load_scenario(tmp_path / "missing.yaml")
