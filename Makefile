@@ -1,4 +1,4 @@
-# The two commands a newcomer needs: `make test` and (once the simulator lands) `make sim`.
+# The two commands a newcomer needs: `make test` and (once the service lands) `make sim`.
 # Each sets up .venv on first use; later runs reuse it until pyproject.toml changes.
 
 PYTHON ?= python3
@@ -29,6 +29,7 @@ bench: $(STAMP)
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/solvers.py --markdown docs/benchmarks.md
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/relpose.py --markdown docs/benchmarks.md --plots docs/img
 	$(BIN)/python benchmarks/relpose.py --threads --markdown docs/benchmarks.md
+	OMP_NUM_THREADS=1 $(BIN)/python benchmarks/render.py --markdown docs/benchmarks.md
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

@@ -9,6 +9,8 @@ the file and the key path.
 
 from __future__ import annotations
 
+import dataclasses
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -17,8 +19,8 @@ from mavvo.errors import ConfigError
 from sim.camera_source import CameraSpec
 from sim.faults import FaultSpec
 from sim.flight_controller import FlightControllerSpec
-from sim.trajectories import HoverSpec, TrajectorySpec
-from sim.world import WorldSpec
+from sim.trajectories import TRAJECTORY_SPECS, HoverSpec, TrajectorySpec
+from sim.world import BoxSpec, WorldSpec
 
 SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
 
@@ -60,3 +62,23 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
     """Load and validate a scenario by shipped name or path."""
     path = scenario_path(name_or_path)
     return build(Scenario, load_yaml(path), str(path))
+
+
+def scenario_keys_markdown() -> str:
+    """Every scenario key with its default and help, as markdown tables (docs/simulator.md holds a copy
+    that a test keeps current)."""
+    sections = [(Scenario, "top level"), (WorldSpec, "world"), (BoxSpec, "world.boxes[]")]
+    sections += [(cls, f"trajectory, type: {name}") for name, cls in TRAJECTORY_SPECS.items()]
+    sections += [(CameraSpec, "camera"), (FlightControllerSpec, "flight_controller"), (FaultSpec, "faults[]")]
+    out = []
+    for cls, title in sections:
+        out += [f"#### {title}", "", "| key | default | meaning |", "|---|---|---|"]
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            if dataclasses.is_dataclass(hints[f.name]) or f.name in ("boxes", "faults", "trajectory"):
+                continue  # sections of their own
+            d = f.default
+            shown = "the trajectory's" if d is None else (list(d) if isinstance(d, tuple) else d)
+            out.append(f"| `{f.name}` | `{shown}` | {f.metadata.get('help', '')} |")
+        out.append("")
+    return "\n".join(out)

@@ -119,3 +119,13 @@ def test_unknown_scenario_lists_the_shipped_ones(tmp_path):
         load_scenario("nowhere")
     with pytest.raises(ConfigError, match=r"missing.yaml: scenario file not found"):
         load_scenario(tmp_path / "missing.yaml")
+
+
+def test_docs_list_every_scenario_key():
+    from pathlib import Path
+
+    from sim.scenario import scenario_keys_markdown
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "simulator.md").read_text()
+    section = doc.split("<!-- keys:begin -->\n", 1)[1].split("<!-- keys:end -->", 1)[0]
+    assert section == scenario_keys_markdown(), "docs/simulator.md is stale: paste sim.scenario.scenario_keys_markdown()"
