@@ -11,10 +11,11 @@ import math
 import signal
 import sys
 import threading
+from collections import Counter
 from pathlib import Path
 from typing import Sequence
 
-from mavvo.errors import ConfigError, MavvoError
+from mavvo.errors import ConfigError, LinkError, MavvoError
 
 log = logging.getLogger("mavvo")
 
@@ -92,8 +93,8 @@ def _fc_only(scenario, args: argparse.Namespace) -> int:
 
     try:
         sim = Simulation(scenario, args.mavlink, realtime=True)
-    except OSError as e:
-        raise ConfigError(f"--mavlink {args.mavlink}: cannot open: {e.strerror or e}") from e
+    except LinkError as e:
+        raise ConfigError(f"--mavlink {e}") from e
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     until = args.duration if args.duration is not None else math.inf
@@ -126,10 +127,7 @@ def _fc_only(scenario, args: argparse.Namespace) -> int:
 
 
 def _received(sim) -> dict[str, int]:
-    counts: dict[str, int] = {}
-    for r in sim.fc.received:
-        counts[r.type] = counts.get(r.type, 0) + 1
-    return counts
+    return Counter(r.type for r in sim.fc.received)
 
 
 def _counts(d: dict[str, int]) -> str:

@@ -102,8 +102,8 @@ class SimCamera:
 
     def camera_pose(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """(R_ned_cam, p_ned_cam_m) at ``t_s``."""
-        s = self.trajectory.state(t_s)
-        return s.R_ned_body @ self._R_body_cam, s.p_ned_m + s.R_ned_body @ self._lever
+        p, R = self.trajectory.pose(t_s)
+        return R @ self._R_body_cam, p + R @ self._lever
 
     def read(self, timeout_s: float) -> Frame | None:
         """The next frame (see the module docstring); CameraError after the scenario's end."""
@@ -144,12 +144,12 @@ class SimCamera:
         gain = 1.0 + spec.gain_variation * np.sin(2 * np.pi * t_exp_s / spec.gain_period_s)
         if self.faults.active("dark_frames", t_exp_s):
             gain *= _DARK_GAIN
-        blur = self._blur_px(t_exp_s) if spec.motion_blur and spec.exposure_ms > 0 else (0.0, 0.0)
+        blur = self._blur_px(t_exp_s, R, p) if spec.motion_blur and spec.exposure_ms > 0 else (0.0, 0.0)
         return apply_effects(img, gain=gain, blur_px=blur, noise_sigma=spec.noise_sigma, rng=self._rng)
 
-    def _blur_px(self, t_s: float) -> tuple[float, float]:
-        """Image motion of the point seen at the image centre over the exposure, pixels."""
-        R, p = self.camera_pose(t_s)
+    def _blur_px(self, t_s: float, R: np.ndarray, p: np.ndarray) -> tuple[float, float]:
+        """Image motion over the exposure of the point seen at the image centre from pose (R, p) at
+        ``t_s``, pixels."""
         centre = self.model.pixels_to_bearings(np.array([[self.model.cx_px, self.model.cy_px]]))[0]
         ray = R @ centre
         depth = -p[2] / ray[2] if ray[2] > 0.05 else 50.0

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from mavvo.config import bounded
+from mavvo.errors import LinkError
 from sim.clock import Clock
 from sim.faults import FaultSchedule
 from sim.trajectories import Trajectory
@@ -41,6 +42,7 @@ log = logging.getLogger(__name__)
 RECORDED_TYPES = frozenset(
     {"VISION_POSITION_ESTIMATE", "VISION_SPEED_ESTIMATE", "ODOMETRY", "HEARTBEAT", "STATUSTEXT", "NAMED_VALUE_FLOAT"}
 )
+_SOCKET_SCHEMES = ("udpin:", "udpout:", "udp:", "tcpin:", "tcp:")
 _UNIX_EPOCH_AT_START_US = 1_790_000_000_000_000  # SYSTEM_TIME's wall clock at t = 0, fixed for repeatability
 
 
@@ -111,7 +113,12 @@ class SimFlightController:
         self.clock = clock
         self.faults = faults or FaultSchedule()
         self._rng = np.random.default_rng(seed)
-        self._conn = self._mavutil.mavlink_connection(url, source_system=spec.system_id, source_component=1, autoreconnect=True)
+        if not url.startswith(_SOCKET_SCHEMES):
+            raise LinkError(f"{url}: expected a socket connection string starting with {', '.join(_SOCKET_SCHEMES)}")
+        try:
+            self._conn = self._mavutil.mavlink_connection(url, source_system=spec.system_id, source_component=1, autoreconnect=True)
+        except (OSError, ValueError, OverflowError) as e:  # socket errors; a bad host or port number
+            raise LinkError(f"{url}: cannot open: {getattr(e, 'strerror', None) or e}") from e
         self.received: list[Received] = []
         self.sent_counts: dict[str, int] = {}
         self._boot_host_s = 0.0
@@ -270,9 +277,9 @@ class SimFlightController:
         return msg
 
     def _distance_sensor(self, t_s: float) -> Any:
-        s = self.trajectory.state(t_s)
-        height = -s.p_ned_m[2]
-        cos_tilt = s.R_ned_body[2, 2]
+        p, R = self.trajectory.pose(t_s)
+        height = -p[2]
+        cos_tilt = R[2, 2]
         sp = self.spec
         r = height / cos_tilt + self._rng.normal(0.0, sp.rangefinder_noise_m) if cos_tilt > 0.1 else np.inf
         max_cm = int(round(sp.rangefinder_max_m * 100))

@@ -65,8 +65,8 @@ class Simulation:
     def truth_at(self, times_s: np.ndarray) -> PoseSeries:
         """The true body poses at ``times_s`` (simulation seconds)."""
         times = np.asarray(times_s, dtype=float)
-        states = [self.trajectory.state(t) for t in times]
-        return PoseSeries.from_rotations(times, np.array([s.p_ned_m for s in states]), np.array([s.R_ned_body for s in states]))
+        poses = [self.trajectory.pose(t) for t in times]
+        return PoseSeries.from_rotations(times, np.array([p for p, _ in poses]), np.array([R for _, R in poses]))
 
     def close(self) -> None:
         self.camera.close()

@@ -58,11 +58,11 @@ class Trajectory(ABC):
     def kinematics(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
         """(p_ned_m, v_ned_m_s, a_ned_m_s2, yaw_rad, yaw_rate_rad_s) at ``t_s`` in [0, duration_s]."""
 
-    def attitude(self, t_s: float) -> np.ndarray:
-        """(3,3) R_ned_body at ``t_s``."""
+    def pose(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """(p_ned_m, R_ned_body) at ``t_s``: what a camera or a rangefinder needs, without the rates."""
         t = min(max(float(t_s), 0.0), self.duration_s)
-        _, _, a, yaw, _ = self.kinematics(t)
-        return attitude_from_acceleration(a, yaw)
+        p, _, a, yaw, _ = self.kinematics(t)
+        return p, attitude_from_acceleration(a, yaw)
 
     def state(self, t_s: float) -> TruthState:
         """The full truth at ``t_s``."""
@@ -70,7 +70,7 @@ class Trajectory(ABC):
         p, v, a, yaw, _ = self.kinematics(t)
         R = attitude_from_acceleration(a, yaw)
         h = 1e-4
-        dR = self.attitude(t + h) - self.attitude(t - h)
+        dR = self.pose(t + h)[1] - self.pose(t - h)[1]
         W = R.T @ dR / (2 * h)
         omega = np.array([W[2, 1] - W[1, 2], W[0, 2] - W[2, 0], W[1, 0] - W[0, 1]]) / 2
         roll, pitch, yaw_ = euler321_from_R(R)
