@@ -15,6 +15,7 @@ differ by a yaw and a translation: ``x_2 = R_2_1 @ x_1 + t_2_1``, ``R_2_1 = Rz(y
    roll and pitch free under the IMU's sigma.
 7. Model selection by GRIC (Torr, 1998) between the essential matrix, the known-gravity ground-plane
    homography (Saurer et al., 2 points) and a pure rotation (no baseline).
+   A median parallax under a pixel or so (``min_parallax_ratio``) is a pure rotation outright.
 
 :func:`estimate_relpose_known_gravity` is the same for pixel coordinates and camera frames.
 """
@@ -32,6 +33,7 @@ from mavvo.frames import as_rotation, rot_z, skew
 from mavvo.refine import fit_ground_similarity, fit_rotation, refine_upright, tilt_rotation
 from mavvo.residuals import ground_sq, rotation_sq, sampson_sq_upright, upright_design
 from mavvo.solvers import (
+    alpha_beta_gamma,
     as_bearing_pair,
     essential_from_vector,
     essential_to_vector,
@@ -91,6 +93,13 @@ class RelposeOptions:
         tilt_sigma_rad: when set, the final refinement also moves roll and pitch of both views within
             this standard deviation (the IMU's); the corrections are reported.
         ground_samples: 2-point samples for the ground model among the essential inliers.
+        min_parallax_ratio: when the inliers' median parallax after the best pure rotation is below
+            this many ``max_err_rad``, the pose is reported as a pure rotation: the translation is
+            not observable.
+        yaw_prior_tolerance_rad: with a yaw prior, hypotheses whose yaw is further from it than this
+            are dropped before scoring. Over flat ground a nadir camera's image shift is explained
+            exactly by the true pose and by a twin (yaw + pi, translation along gravity); the prior,
+            from the flight controller's yaw change or the previous frame, tells them apart.
     """
 
     max_iterations: int = 1000
@@ -107,6 +116,8 @@ class RelposeOptions:
     model: ModelChoice = "auto"
     tilt_sigma_rad: float | None = None
     ground_samples: int = 16
+    min_parallax_ratio: float = 1.0
+    yaw_prior_tolerance_rad: float = math.radians(30.0)
 
     def __post_init__(self) -> None:
         if self.minimal_solver not in _SAMPLE_SIZE:
@@ -120,6 +131,10 @@ class RelposeOptions:
                 raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)}")
         if self.min_iterations < 0 or self.min_iterations > self.max_iterations:
             raise ValueError(f"min_iterations: expected 0..max_iterations ({self.max_iterations}), got {self.min_iterations}")
+        if not 0 < self.yaw_prior_tolerance_rad <= math.pi:
+            raise ValueError(f"yaw_prior_tolerance_rad: expected an angle in (0, pi], got {self.yaw_prior_tolerance_rad}")
+        if not self.min_parallax_ratio >= 0:
+            raise ValueError(f"min_parallax_ratio: expected a number >= 0, got {self.min_parallax_ratio}")
         if self.tilt_sigma_rad is not None and not self.tilt_sigma_rad > 0:
             raise ValueError(f"tilt_sigma_rad: expected a positive angle or None, got {self.tilt_sigma_rad}")
 
@@ -240,8 +255,9 @@ def _draw_samples(rng: np.random.Generator, n: int, count: int, size: int) -> np
 class _Search:
     """Mutable state of one RANSAC run (kept out of the public result)."""
 
-    def __init__(self, f1: np.ndarray, f2: np.ndarray, thr_sq: float, options: RelposeOptions, rng: np.random.Generator):
+    def __init__(self, f1: np.ndarray, f2: np.ndarray, thr_sq: float, options: RelposeOptions, rng: np.random.Generator, yaw_prior: float | None):
         self.f1, self.f2, self.thr_sq, self.opt = f1, f2, thr_sq, options
+        self.yaw_prior = yaw_prior
         self.n = len(f1)
         self.G = upright_design(f1, f2)
         if self.n > options.preemptive_points:
@@ -263,6 +279,10 @@ class _Search:
     def offer(self, e: np.ndarray) -> None:
         """Score hypotheses e (M, 6); keep and locally optimise the best if it beats the current one."""
         self.models += len(e)
+        if self.yaw_prior is not None:
+            e = e[_near_yaw(e, self.yaw_prior, self.opt.yaw_prior_tolerance_rad)]
+            if not len(e):
+                return
         if self.G_sub is not None and len(e) > self.opt.full_scores_per_block:
             pre = self.cost(sampson_sq_upright(e, self.G_sub))
             e = e[np.argsort(pre)[: self.opt.full_scores_per_block]]
@@ -313,6 +333,22 @@ class _Search:
         k = int(np.argmin(costs))
         if costs[k] < self.best_cost:
             self._accept(candidates[k], float(costs[k]), err[k], poses[k])
+
+
+def _near_yaw(e: np.ndarray, prior: float, tol: float) -> np.ndarray:
+    """(M,) bool: the yaw of each upright hypothesis e (M, 6) is within ``tol`` of ``prior``.
+
+    For ``E = [t]x Rz(yaw)`` with |t| = 1: ``-conj(gamma) * beta = exp(i yaw) |t_xy|^2`` fixes the yaw
+    whenever t has a horizontal part; for t along z only ``alpha^2 = -t_z^2 exp(2i yaw)`` is left,
+    which fixes it up to pi.
+    """
+    alpha, beta, gamma = alpha_beta_gamma(e)
+    # A solver's E has the upright form exactly, so even a small horizontal part fixes the yaw.
+    horizontal = np.abs(beta) ** 2 > 1e-9 * (np.abs(alpha) ** 2 + np.abs(beta) ** 2)
+    ref = np.exp(1j * prior)
+    d1 = np.abs(np.angle(-np.conj(gamma) * beta * np.conj(ref)))
+    d2 = 0.5 * np.abs(np.angle(-(alpha**2) * np.conj(ref**2)))
+    return np.where(horizontal, d1, d2) <= tol
 
 
 def _decompose(e: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> tuple[float, np.ndarray] | None:
@@ -412,6 +448,7 @@ def estimate_upright_relpose(
     confidence: float = 0.99,
     seed: int = 0,
     options: RelposeOptions | None = None,
+    yaw_prior_rad: float | None = None,
 ) -> UprightRelpose:
     """Robust relative pose between two level frames from bearing correspondences.
 
@@ -422,6 +459,8 @@ def estimate_upright_relpose(
         confidence: probability of having drawn at least one all-inlier sample when sampling stops.
         seed: seed of the random sampling; the same inputs and seed give the same result.
         options: :class:`RelposeOptions`.
+        yaw_prior_rad: the expected yaw of ``R_2_1`` (within ``options.yaw_prior_tolerance_rad``),
+            or None.
 
     Returns:
         :class:`UprightRelpose`. Degenerate input (fewer points than a sample, identical points, no
@@ -443,7 +482,7 @@ def estimate_upright_relpose(
 
     rng = np.random.default_rng(seed)
     thr_sq = float(max_err_rad) ** 2
-    search = _Search(f1, f2, thr_sq, opt, rng)
+    search = _Search(f1, f2, thr_sq, opt, rng, yaw_prior_rad)
     drawn = 0
     needed = max(opt.min_iterations, 1)
     block = opt.first_block
@@ -503,6 +542,15 @@ def estimate_upright_relpose(
     err_r = rotation_sq(R_rot, f1, f2) if R_rot is not None else None
     if err_r is not None:
         gric["rotation"] = _gric(err_r[inl_idx], sigma_sq, "rotation")
+        # Below about a pixel of parallax a translation direction is noise, and a near-vertical one
+        # leaves yaw ambiguous by pi (E = [t]x Rz(yaw) is the same for yaw + pi when t is along z).
+        # Measured about z only: roll and pitch are known, and a free tilt would pass off a nadir
+        # camera's image shift as rotation.
+        err_yaw = rotation_sq(rot_z(_yaw_of(R_rot)), f1[inl_idx], f2[inl_idx])
+        parallax = float(np.median(np.sqrt(2.0 * err_yaw))) if len(inl_idx) else 0.0
+        if parallax < opt.min_parallax_ratio * max_err_rad:
+            stats_final = RelposeStats(**stats, noise_sigma_rad=sigma, gric=dict(gric))
+            return _result(False, "pure_rotation", "rotation", _yaw_of(R_rot), np.zeros(3), None, err_r, thr_sq, drawn, np.zeros(2), np.zeros(2), stats_final)
     H = None
     if opt.model in ("auto", "ground"):
         H = _ground_model(f1, f2, inl_idx, thr_sq, opt.ground_samples, rng)

@@ -38,6 +38,7 @@ __all__ = [
     "epipolar_rows",
     "essential_from_vector",
     "essential_to_vector",
+    "alpha_beta_gamma",
     "upright_constraint_residual",
     "solve_upright_3pt",
     "solve_upright_3pt_batch",
@@ -158,7 +159,7 @@ def essential_to_vector(E: np.ndarray) -> np.ndarray:
     return e
 
 
-def _alpha_beta_gamma(e: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def alpha_beta_gamma(e: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """alpha = E22 + i E21, beta = E13 + i E23, gamma = E31 + i E32 from (..., 6) vectors e."""
     return e[..., 2] + 1j * e[..., 1], e[..., 0] + 1j * e[..., 3], e[..., 4] + 1j * e[..., 5]
 
@@ -170,7 +171,7 @@ def upright_constraint_residual(E: np.ndarray) -> np.ndarray:
     """
     E = np.asarray(E, dtype=float)
     n = np.linalg.norm(E, axis=(-2, -1))
-    al, be, ga = _alpha_beta_gamma(essential_to_vector(E) / np.where(n > 0, n, 1.0)[..., None])
+    al, be, ga = alpha_beta_gamma(essential_to_vector(E) / np.where(n > 0, n, 1.0)[..., None])
     q = np.abs(be) ** 2 - np.abs(ga) ** 2
     d = (al * ga * np.conj(be)).real
     t = be * be * np.conj(al) + al * ga * ga
@@ -288,7 +289,7 @@ def solve_upright_3pt_batch(F1: np.ndarray, F2: np.ndarray) -> tuple[np.ndarray,
         N, _ = _orthonormal_rows(seeds)  # (B, 3, 6): e = a N0 + b N1 + N2
 
         # alpha, beta, gamma as complex linear forms over (a, b, 1): (B, 3) each.
-        al, be, ga = _alpha_beta_gamma(N)
+        al, be, ga = alpha_beta_gamma(N)
         q = (_poly2(be, np.conj(be)) - _poly2(ga, np.conj(ga))).real
         d = _poly3(al, ga, np.conj(be)).real
         t = _poly3(be, be, np.conj(al)) + _poly3(al, ga, ga)
@@ -357,7 +358,7 @@ def _isolated(e: np.ndarray, al: np.ndarray, be: np.ndarray, ga: np.ndarray) -> 
     cannot reject it. There the constraints' Jacobian in (a, b) drops below rank 2.
     al, be, ga: (B, 3) linear forms over (a, b, 1).
     """
-    A, Bt, G = _alpha_beta_gamma(e)
+    A, Bt, G = alpha_beta_gamma(e)
     cols = []
     for k in (0, 1):  # d/da, d/db
         dA, dB, dG = al[:, None, k], be[:, None, k], ga[:, None, k]
@@ -416,7 +417,7 @@ def _near_vertical_solutions(N: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     w = cross(c, u)
     e0, eu, ew = (np.einsum("bk,bki->bi", v, N) for v in (c, u, w))
 
-    (a0, b0, g0), (au, bu, gu), (aw, bw, gw) = (_alpha_beta_gamma(v) for v in (e0, eu, ew))
+    (a0, b0, g0), (au, bu, gu), (aw, bw, gw) = (alpha_beta_gamma(v) for v in (e0, eu, ew))
     sheet = np.array([1.0, -1.0])[None, :]
     x = np.zeros((B, 2))
     y = np.zeros((B, 2))

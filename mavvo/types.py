@@ -21,3 +21,92 @@ class Frame:
     image: np.ndarray
     t_exposure_s: float
     seq: int
+
+
+@dataclass(frozen=True)
+class PairedFrame:
+    """A camera frame with the flight controller's state at its exposure time, as the odometry takes it.
+
+    Attributes:
+        image: (H,W) uint8 grey image.
+        t_exposure_s: middle of the exposure, seconds, on the clock the estimates are stamped with.
+        seq: frame counter of the source (a gap means frames were lost).
+        roll_rad, pitch_rad: ATTITUDE roll and pitch (Euler 3-2-1 of FRD body in NED) at the exposure.
+        yaw_rad: ATTITUDE yaw at the exposure: sets north at initialisation and, optionally, slowly
+            corrects the vision heading; NaN when unknown.
+        range_m: downward rangefinder distance along the body z axis (DISTANCE_SENSOR), or None when
+            there is no valid reading (out of range, stale, no sensor).
+        height_m: height of the vehicle above the ground it took off from (the flight controller's
+            altitude, positive up), or None when unknown.
+    """
+
+    image: np.ndarray
+    t_exposure_s: float
+    seq: int
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float = float("nan")
+    range_m: float | None = None
+    height_m: float | None = None
+
+
+@dataclass(frozen=True)
+class VoDiagnostics:
+    """How one frame's estimate came about; every count refers to this frame against its keyframe.
+
+    Attributes:
+        state: ``tracking``, ``degraded`` (a pose with reduced trust: pure rotation, no metric scale,
+            few inliers), ``failed`` (no pose from vision) or ``initialising``.
+        reason: why the state is not ``tracking`` (empty when it is).
+        tracks: features tracked into this frame. inliers, inlier_ratio: of the relative pose.
+        parallax_px: median rotation-compensated parallax against the keyframe.
+        residual_rms_px: RMS reprojection (Sampson) error of the inliers, pixels.
+        tilt_residual_rad: how far vision moves the given roll/pitch (norm of the correction).
+        scale_source: ``rangefinder``, ``altitude``, ``fixed``, ``carried`` or ``none``.
+        keyframe: a new keyframe was made from this frame.
+        gated: the filter rejected this frame's vision position as a jump.
+    """
+
+    state: str
+    reason: str = ""
+    tracks: int = 0
+    inliers: int = 0
+    inlier_ratio: float = 0.0
+    parallax_px: float = 0.0
+    residual_rms_px: float = float("nan")
+    tilt_residual_rad: float = float("nan")
+    scale_source: str = "none"
+    keyframe: bool = False
+    gated: bool = False
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """The odometry's output for one frame: the camera's pose in the world frame, filtered.
+
+    World frame: NED with north from the flight controller's heading at initialisation; the origin is
+    the camera's position at initialisation (or the anchor of the last re-initialisation).
+
+    Attributes:
+        t_exposure_s: the frame's exposure time (same clock as :class:`PairedFrame`).
+        seq: the frame's sequence number.
+        p_ned_m: (3,) position of the camera centre (the vision sensor: set VISO_POS_X/Y/Z or
+            EKF2_EV_POS_X/Y/Z to the camera's lever arm), metres.
+        rpy_rad: (3,) body roll, pitch (from the flight controller, vision-corrected) and yaw (vision).
+        v_ned_m_s: (3,) velocity of the camera centre in NED.
+        covariance: (6,6) of (x, y, z, roll, pitch, yaw), m^2 and rad^2.
+        quality: 1..100 (higher is better), -1 when failed (then the position is the filter's
+            prediction and must not be sent as a measurement).
+        reset_counter: bumped once per discontinuity of the world frame (re-initialisation), mod 256.
+        diagnostics: :class:`VoDiagnostics`.
+    """
+
+    t_exposure_s: float
+    seq: int
+    p_ned_m: np.ndarray
+    rpy_rad: np.ndarray
+    v_ned_m_s: np.ndarray
+    covariance: np.ndarray
+    quality: int
+    reset_counter: int
+    diagnostics: VoDiagnostics

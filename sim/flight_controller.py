@@ -35,6 +35,7 @@ from mavvo.config import bounded
 from mavvo.errors import LinkError
 from sim.clock import Clock
 from sim.faults import FaultSchedule
+from sim.sensors import attitude_sample, baro_height_sample, range_sample
 from sim.trajectories import Trajectory
 
 log = logging.getLogger(__name__)
@@ -262,14 +263,7 @@ class SimFlightController:
         t_meas = max(t_s - self.spec.attitude_latency_ms * 1e-3, 0.0)
         if self.faults.active("stale_attitude", t_s) and self._last_attitude is not None:
             return self._last_attitude
-        s = self.trajectory.state(t_meas)
-        sig = np.radians(self.spec.attitude_noise_deg)
-        bias = np.radians(self.spec.attitude_bias_deg)
-        n = self._rng.standard_normal(3)
-        roll = s.roll_rad + bias[0] + sig * n[0]
-        pitch = s.pitch_rad + bias[1] + sig * n[1]
-        yaw = float((s.yaw_rad + np.radians(self.spec.yaw_noise_deg) * n[2] + np.pi) % (2 * np.pi) - np.pi)
-        w = s.omega_body_rad_s
+        roll, pitch, yaw, w = attitude_sample(self.trajectory, t_meas, self.spec, self._rng)
         if self.faults.active("nan_attitude", t_s):
             roll = pitch = yaw = float("nan")
         msg = self._mav.MAVLink_attitude_message(self.boot_time_ms(t_meas), roll, pitch, yaw, w[0], w[1], w[2])
@@ -277,34 +271,31 @@ class SimFlightController:
         return msg
 
     def _distance_sensor(self, t_s: float) -> Any:
-        p, R = self.trajectory.pose(t_s)
-        height = -p[2]
-        cos_tilt = R[2, 2]
         sp = self.spec
-        r = height / cos_tilt + self._rng.normal(0.0, sp.rangefinder_noise_m) if cos_tilt > 0.1 else np.inf
+        r = range_sample(self.trajectory, t_s, sp, self._rng)
         max_cm = int(round(sp.rangefinder_max_m * 100))
-        cm = int(round(r * 100)) if sp.rangefinder_min_m <= r <= sp.rangefinder_max_m else max_cm + 1
+        cm = int(round(r * 100)) if r is not None else max_cm + 1
         mav = self._mav
         return mav.MAVLink_distance_sensor_message(
             self.boot_time_ms(t_s), int(round(sp.rangefinder_min_m * 100)), max_cm, cm,
             mav.MAV_DISTANCE_SENSOR_LASER, 0, mav.MAV_SENSOR_ROTATION_PITCH_270, 255,
         )
 
-    def _baro_height_m(self, s: Any) -> float:
-        return float(-s.p_ned_m[2] + self._baro_bias_m + self._rng.normal(0.0, self.spec.baro_noise_m))
+    def _baro_height_m(self, t_s: float) -> float:
+        return baro_height_sample(self.trajectory, t_s, self.spec, self._baro_bias_m, self._rng)
 
     def _local_position(self, t_s: float) -> Any:
         s = self.trajectory.state(t_s)
         v = self._last_vision
         x, y = (v.x, v.y) if v is not None else (0.0, 0.0)
         return self._mav.MAVLink_local_position_ned_message(
-            self.boot_time_ms(t_s), x, y, -self._baro_height_m(s), 0.0, 0.0, float(s.v_ned_m_s[2])
+            self.boot_time_ms(t_s), x, y, -self._baro_height_m(t_s), 0.0, 0.0, float(s.v_ned_m_s[2])
         )
 
     def _global_position(self, t_s: float) -> Any:
         s = self.trajectory.state(t_s)
         sp = self.spec
-        h = self._baro_height_m(s)
+        h = self._baro_height_m(t_s)
         hdg = int(round(np.degrees(s.yaw_rad) % 360 * 100)) % 36000
         return self._mav.MAVLink_global_position_int_message(
             self.boot_time_ms(t_s), int(round(sp.home_lat_deg * 1e7)), int(round(sp.home_lon_deg * 1e7)),
