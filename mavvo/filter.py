@@ -85,24 +85,32 @@ class PoseFilter:
         self._kf.predict(F=F, Q=Q)
         self._t_s = float(t_s)
 
-    def update(self, p_ned_m: np.ndarray, yaw_rad: float, *, pos_sigma_m: float, yaw_sigma_rad: float) -> bool:
-        """Fuse a measurement taken at the current time; False when it was rejected by the gate."""
+    def update(self, p_ned_m: np.ndarray | None, yaw_rad: float, *, pos_sigma_m: float, yaw_sigma_rad: float) -> bool:
+        """Fuse a measurement taken at the current time; False when it was rejected by the gate.
+
+        ``p_ned_m`` None measures the yaw only (vision saw a rotation but no translation).
+        """
         kf = self._kf
+        rows = slice(0, 4) if p_ned_m is not None else slice(3, 4)
+        H = _H[rows]
         z = np.empty((_DIM_Z, 1))
-        z[0:3, 0] = p_ned_m
+        if p_ned_m is not None:
+            z[0:3, 0] = p_ned_m
         z[3, 0] = kf.x[6, 0] + wrap_angle(yaw_rad - kf.x[6, 0])
-        R = np.diag([pos_sigma_m**2] * 3 + [yaw_sigma_rad**2])
-        y = z - _H @ kf.x
-        S = _H @ kf.P @ _H.T + R
+        z = z[rows]
+        R = np.diag([pos_sigma_m**2] * 3 + [yaw_sigma_rad**2])[rows, rows]
+        y = z - H @ kf.x
+        S = H @ kf.P @ H.T + R
         d2 = float((y.T @ np.linalg.solve(S, y))[0, 0])
         if d2 > self.options.gate_chi2:
             self.rejections += 1
             if self.rejections < self.options.max_rejections:
                 return False
-            self.reset(self._t_s, z[0:3, 0], z[3, 0], v_ned_m_s=kf.x[3:6, 0], pos_sigma_m=pos_sigma_m, yaw_sigma_rad=yaw_sigma_rad)
+            p = kf.x[0:3, 0] if p_ned_m is None else p_ned_m
+            self.reset(self._t_s, p, z[-1, 0], v_ned_m_s=kf.x[3:6, 0], pos_sigma_m=pos_sigma_m, yaw_sigma_rad=yaw_sigma_rad)
             return True
         self.rejections = 0
-        kf.update(z, R=R)
+        kf.update(z, R=R, H=H)
         return True
 
     @property

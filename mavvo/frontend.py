@@ -120,7 +120,7 @@ class Frontend:
         p0 = uv0.reshape(-1, 1, 2)
         lk = dict(winSize=self._win, maxLevel=opt.klt_levels, criteria=self._criteria)
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, **lk)
-        # Backward from the forward result, started at the forward result's mirror: converges faster.
+        # Backward from the forward result, started at the original positions.
         p0b, st0, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
         p1 = p1.reshape(-1, 2)
         fb = np.linalg.norm(p0b.reshape(-1, 2) - uv0, axis=1)
@@ -129,6 +129,11 @@ class Frontend:
         inside = (p1[:, 0] >= b) & (p1[:, 0] <= w - 1 - b) & (p1[:, 1] >= b) & (p1[:, 1] <= h - 1 - b)
         keep = (st1.ravel() == 1) & (st0.ravel() == 1) & (fb < opt.fb_max_px) & inside
         return keep, p1[keep]
+
+    def _cell(self, uv: np.ndarray, w: int, h: int) -> np.ndarray:
+        """(N,) index of each pixel's detection-grid cell."""
+        gc, gr = self.options.grid_cols, self.options.grid_rows
+        return np.minimum((uv[:, 1] * gr / h).astype(int), gr - 1) * gc + np.minimum((uv[:, 0] * gc / w).astype(int), gc - 1)
 
     def _detect(self, img: np.ndarray, live_uv: np.ndarray) -> np.ndarray:
         """New corners in cells short of their share, away from live tracks: (M,2) float32."""
@@ -158,28 +163,19 @@ class Frontend:
         fu = (pts[:, 0] / d).astype(int) + 1
         fv = (pts[:, 1] / d).astype(int) + 1
         free = ~occupied[fv, fu]
-        pts, resp, fine = pts[free], resp[free], (fv * (fw + 2) + fu)[free]
-        if not len(pts):
-            return np.zeros((0, 2), np.float32)
-        # Strongest first; one corner per fine cell keeps new corners apart.
-        order = np.argsort(-resp, kind="stable")
-        pts, fine = pts[order], fine[order]
-        _, first = np.unique(fine, return_index=True)
-        first.sort()
-        pts = pts[first]
-
-        # Coarse grid quota: each cell tops up to its share of max_features.
-        gc, gr = opt.grid_cols, opt.grid_rows
-        cell_of = lambda p: np.minimum((p[:, 1] * gr / h).astype(int), gr - 1) * gc + np.minimum((p[:, 0] * gc / w).astype(int), gc - 1)  # noqa: E731
-        have = np.bincount(cell_of(live_uv), minlength=gc * gr) if len(live_uv) else np.zeros(gc * gr, int)
-        quota = np.maximum(self._per_cell - have, 0)
-        cells = cell_of(pts)
-        # Rank of each corner within its cell (pts are strongest first, a stable sort keeps that).
-        by_cell = np.argsort(cells, kind="stable")
-        sorted_cells = cells[by_cell]
-        start = np.searchsorted(sorted_cells, sorted_cells, side="left")
-        rank = np.empty(len(pts), int)
-        rank[by_cell] = np.arange(len(pts)) - start
-        take = rank < quota[cells]
+        pts, resp, fu, fv = pts[free], resp[free], fu[free], fv[free]
+        cells = self._cell(pts, w, h)
+        quota = np.maximum(self._per_cell - np.bincount(self._cell(live_uv, w, h), minlength=opt.grid_cols * opt.grid_rows), 0)
         room = max(opt.max_features - len(live_uv), 0)
-        return pts[take][:room]
+        # Greedy, strongest first: a corner takes its fine cell and the eight around it.
+        taken: list[int] = []
+        for k in np.argsort(-resp, kind="stable"):
+            if len(taken) >= room:
+                break
+            c, v, u = cells[k], fv[k], fu[k]
+            if quota[c] == 0 or occupied[v, u]:
+                continue
+            taken.append(int(k))
+            quota[c] -= 1
+            occupied[v - 1 : v + 2, u - 1 : u + 2] = True
+        return pts[taken] if taken else np.zeros((0, 2), np.float32)

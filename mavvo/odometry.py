@@ -257,7 +257,10 @@ class Odometry:
         pos_sigma = (opt.position_sigma_m + spread * float(np.linalg.norm(m.c2_m))) * 100.0 / quality
         yaw_sigma = self._yaw_sigma_rad * 100.0 / quality
         self.filter.predict(frame.t_exposure_s)
-        accepted = self.filter.update(m.p_ned_m, m.yaw_rad, pos_sigma_m=pos_sigma, yaw_sigma_rad=yaw_sigma)
+        # Without parallax the translation is not measured (the keyframe's position would be a frozen
+        # pose for a camera moving along its axis): the filter carries the position on.
+        p_meas = m.p_ned_m if m.scale is not None else None
+        accepted = self.filter.update(p_meas, m.yaw_rad, pos_sigma_m=pos_sigma, yaw_sigma_rad=yaw_sigma)
         survival = len(i_kf) / len(kf.ids)
         why_kf = keyframe_reason(opt.keyframes, parallax_px=m.parallax_px, survival=survival, inliers=rp.num_inliers) if accepted else ""
         if why_kf:

@@ -221,3 +221,50 @@ def test_ground_model_forced_where_it_cannot_apply_falls_back_to_essential() -> 
     r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD, options=RelposeOptions(model="ground"))
     assert r.success and r.model == "essential" and "ground" not in r.stats.gric
     assert np.degrees(angle_between_rad(r.t_2_1, scene.t_2_1)) < 3.0
+
+
+def test_yaw_of_a_hypothesis_is_read_from_e_alone() -> None:
+    """The yaw filter sees the decomposition's yaw in E: exactly for any t with a horizontal part,
+    up to pi for t along gravity, whatever the scale and sign of E."""
+    from mavvo.frames import skew
+    from mavvo.relpose import _near_yaw
+    from mavvo.solvers import essential_to_vector
+
+    rng = np.random.default_rng(31)
+    for i in range(400):
+        motion = ("sideways", "forward", "random", "vertical")[i % 4]
+        scene = make_scene(rng, 8, motion=motion, mount=("nadir", "oblique")[i % 2])
+        e = essential_to_vector(skew(scene.t_2_1) @ scene.R_2_1)[None] * rng.choice([-1.0, 1.0]) * rng.uniform(0.1, 10.0)
+        yaw = math.atan2(scene.R_2_1[1, 0], scene.R_2_1[0, 0])
+        assert _near_yaw(e, yaw + 0.1, 0.2)[0]
+        assert not _near_yaw(e, yaw + 0.5, 0.2)[0]
+        assert _near_yaw(e, yaw + math.pi, 0.2)[0] == (motion == "vertical")
+
+
+def test_yaw_prior_keeps_the_true_pose() -> None:
+    scene, _ = _scene(41, motion="sideways", mount="nadir", structure="ground", outliers=0.2)
+    yaw = math.atan2(scene.R_2_1[1, 0], scene.R_2_1[0, 0])
+    r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD, seed=1, yaw_prior_rad=yaw + 0.2)
+    assert r.success
+    assert np.degrees(rotation_angle_rad(r.R_2_1, scene.R_2_1)) < 0.3
+
+
+def test_yaw_prior_far_from_the_truth_excludes_it() -> None:
+    scene, _ = _scene(42, motion="sideways", mount="oblique", outliers=0.0)
+    yaw = math.atan2(scene.R_2_1[1, 0], scene.R_2_1[0, 0])
+    r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD, seed=1, yaw_prior_rad=yaw + math.pi, options=RelposeOptions(model="essential"))
+    # No essential hypothesis near the truth may be chosen: the answer is a failure or far from it.
+    assert not (r.model == "essential" and np.degrees(rotation_angle_rad(r.R_2_1, scene.R_2_1)) < 30.0)
+
+
+def test_subpixel_parallax_is_a_pure_rotation() -> None:
+    """A baseline too short to resolve (well under a pixel of parallax) is reported as a rotation
+    with the right yaw, not as a translation direction drawn from the noise."""
+    for seed in range(10):
+        # 2 cm at 10 m: about 1 px of shift, which GRIC alone takes for the ground model.
+        scene = make_scene(np.random.default_rng(seed), 300, motion="sideways", mount="nadir", structure="ground", baseline_fraction=0.002, pixel_noise_px=0.1, focal_px=FOCAL_PX)
+        r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD, seed=0)
+        assert r.reason == "pure_rotation" and r.model == "rotation"
+        assert np.degrees(rotation_angle_rad(r.R_2_1, scene.R_2_1)) < 0.1
+        gric_only = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD, seed=0, options=RelposeOptions(min_parallax_ratio=0.0))
+        assert gric_only.model == "ground"  # so the parallax rule, not GRIC, made the call above

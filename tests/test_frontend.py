@@ -1,0 +1,88 @@
+"""Feature tracking on rendered images: tracks follow the true projection, detection spreads over the
+grid, bad input is refused."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mavvo.frames import R_from_euler321
+from mavvo.frontend import Frontend, FrontendOptions
+from sim.camera_source import CameraSpec
+from sim.render import Renderer, apply_effects
+from sim.world import World, WorldSpec
+
+SPEC = CameraSpec()
+CAMERA = SPEC.camera_model()
+
+
+@pytest.fixture(scope="module")
+def renderer() -> Renderer:
+    return Renderer(World.build(WorldSpec(texture_seed=5)), CAMERA)
+
+
+def _pose(k: int) -> tuple[np.ndarray, np.ndarray]:
+    """A nadir camera at 20 m, slightly tilted, moving 0.16 m and turning 0.2 deg per frame."""
+    R = R_from_euler321(0.02, -0.01, np.radians(0.2 * k)) @ SPEC.R_body_cam()
+    return R, np.array([0.15 * k, 0.05 * k, -20.0])
+
+
+def test_tracks_follow_the_true_projection(renderer: Renderer) -> None:
+    fe = Frontend(CAMERA)
+    rng = np.random.default_rng(0)
+    ground: dict[int, np.ndarray] = {}
+    errors = []
+    for k in range(15):
+        R, p = _pose(k)
+        tr = fe.process(apply_effects(renderer.render(R, p), noise_sigma=2.0, rng=rng))
+        rays = tr.f_cam @ R.T
+        for i, f, ray in zip(tr.ids, tr.f_cam, rays):
+            if int(i) not in ground:
+                ground[int(i)] = p - p[2] / ray[2] * ray  # where the track was first seen, on z = 0
+                continue
+            x = (ground[int(i)] - p) @ R
+            errors.append(np.degrees(np.arccos(np.clip(f @ (x / np.linalg.norm(x)), -1, 1))) * CAMERA.fx_px * np.pi / 180)
+    errors = np.array(errors)
+    assert len(errors) > 1000
+    assert np.median(errors) < 0.15 and np.percentile(errors, 99) < 1.0
+
+
+def test_ids_persist_and_new_ones_increase(renderer: Renderer) -> None:
+    fe = Frontend(CAMERA)
+    a = fe.process(renderer.render(*_pose(0)))
+    b = fe.process(renderer.render(*_pose(3)))
+    assert a.tracked == 0 and len(a.ids) == FrontendOptions().max_features
+    assert np.all(np.diff(a.ids) > 0) and np.all(np.diff(b.ids) > 0)
+    survivors = np.intersect1d(a.ids, b.ids)
+    assert len(survivors) == b.tracked > 0.9 * len(a.ids)
+    assert np.all(b.ids[b.tracked:] > a.ids.max())
+    assert np.allclose(np.linalg.norm(b.f_cam, axis=1), 1.0)
+
+
+def test_detection_spreads_over_the_grid_and_keeps_its_distance(renderer: Renderer) -> None:
+    opt = FrontendOptions(max_features=192, grid_cols=8, grid_rows=6, min_distance_px=12.0)
+    tr = Frontend(CAMERA, opt).process(renderer.render(*_pose(0)))
+    cells = (tr.uv_px[:, 1] * 6 // CAMERA.height_px) * 8 + tr.uv_px[:, 0] * 8 // CAMERA.width_px
+    counts = np.bincount(cells.astype(int), minlength=48)
+    assert counts.min() >= 1 and counts.max() <= 192 // 48
+    d = np.linalg.norm(tr.uv_px[:, None] - tr.uv_px[None], axis=2) + np.eye(len(tr.uv_px)) * 1e9
+    assert d.min() >= 12.0 - 1e-6
+
+
+def test_textureless_image_gives_no_tracks() -> None:
+    rng = np.random.default_rng(1)
+    flat = apply_effects(np.full((480, 640), 120, np.uint8), noise_sigma=2.0, rng=rng)
+    assert len(Frontend(CAMERA).process(flat).ids) < 20
+
+
+@pytest.mark.parametrize(
+    "image, match",
+    [
+        (np.zeros((480, 640), np.float32), "uint8"),
+        (np.zeros((480, 640, 3), np.uint8), "uint8"),
+        (np.zeros((240, 320), np.uint8), "640x480"),
+    ],
+)
+def test_bad_images_are_refused(image: np.ndarray, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        Frontend(CAMERA).process(image)

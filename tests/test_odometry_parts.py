@@ -1,0 +1,123 @@
+"""The odometry's parts on synthetic data with exact truth: triangulation and scale, keyframes, filter."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mavvo.filter import FilterOptions, PoseFilter, wrap_angle
+from mavvo.frames import rot_z
+from mavvo.keyframes import Keyframe, KeyframeOptions, carry_depths, keyframe_reason
+from mavvo.scale import ScaleOptions, estimate_scale, ground_depth, scale_from_scene_depth, triangulate_unit
+from sim.twoview import make_scene
+
+
+def _unit_geometry(scene):
+    """Triangulation of a scene with its unit translation: points, parallax, c2 (unit)."""
+    lam1, lam2, par, valid = triangulate_unit(scene.f1_lvl, scene.f2_lvl, scene.R_2_1, scene.t_2_1, math.radians(0.05))
+    return lam1, lam2, par, valid, -scene.R_2_1.T @ scene.t_2_1
+
+
+def test_triangulation_recovers_depths_in_baseline_units() -> None:
+    scene = make_scene(np.random.default_rng(0), 50, motion="sideways", mount="oblique")
+    lam1, lam2, _, valid, _ = _unit_geometry(scene)
+    X = scene.points_ned  # camera 1 at the origin; depth along each ray is the distance
+    assert valid.all()
+    np.testing.assert_allclose(lam1 * scene.baseline_m, np.linalg.norm(X, axis=1), rtol=1e-9)
+    assert np.all(lam2 > 0)
+
+
+@pytest.mark.parametrize("source, kwargs", [("rangefinder", {}), ("altitude", {}), ("fixed", {})])
+def test_ground_sources_give_the_metric_baseline(source: str, kwargs: dict) -> None:
+    rng = np.random.default_rng(1)
+    scene = make_scene(rng, 200, motion="sideways", mount="nadir", structure="ground", distance_m=12.0, max_tilt_rad=0.0)
+    lam1, _, par, valid, c2 = _unit_geometry(scene)
+    pts = lam1[valid, None] * scene.f1_lvl[valid]
+    height2 = 12.0 - (scene.baseline_m * c2)[2]  # camera 2's height above the ground (z down)
+    opt = ScaleOptions(source=source, fixed_height_m=height2)
+    s = estimate_scale(
+        opt, points_lvl=pts, parallax_rad=par[valid], c2_lvl1=c2, down_lvl2=np.array([0.0, 0.0, 1.0]),
+        range_m=height2, height_m=height2, carried_depth_m=np.zeros(0), depth_unit=np.zeros(0), first_interval=False,
+    )
+    assert s is not None and s.source == source
+    assert s.baseline_m == pytest.approx(scene.baseline_m, rel=1e-9)
+
+
+def test_carried_scale_and_the_fallback_order() -> None:
+    rng = np.random.default_rng(2)
+    scene = make_scene(rng, 100, motion="forward", mount="forward", distance_m=15.0)
+    lam1, _, par, valid, c2 = _unit_geometry(scene)
+    pts = lam1[valid, None] * scene.f1_lvl[valid]
+    metric = lam1[valid] * scene.baseline_m * rng.choice([1.0, 1.0, 1.0, 5.0], valid.sum())  # a quarter wrong
+    common = dict(points_lvl=pts, parallax_rad=par[valid], c2_lvl1=c2, down_lvl2=np.array([0.0, 0.0, 1.0]), height_m=None)
+    # No range: the rangefinder source falls back to the carried depths, outliers outvoted.
+    s = estimate_scale(ScaleOptions(source="rangefinder"), range_m=None, carried_depth_m=metric, depth_unit=lam1[valid], first_interval=False, **common)
+    assert s is not None and s.source == "carried" and s.baseline_m == pytest.approx(scene.baseline_m, rel=1e-9)
+    # Carried with nothing carried yet: nothing, unless a rangefinder reading is there in the first interval.
+    none = dict(carried_depth_m=np.zeros(0), depth_unit=np.zeros(0))
+    assert estimate_scale(ScaleOptions(source="carried"), range_m=None, first_interval=True, **none, **common) is None
+    assert estimate_scale(ScaleOptions(source="carried"), range_m=3.0, first_interval=False, **none, **common) is None
+    got = estimate_scale(ScaleOptions(source="carried"), range_m=3.0, first_interval=True, **none, **common)
+    assert got is not None and got.source == "rangefinder"
+    held = scale_from_scene_depth(pts, 30.0, "held", 12)
+    assert held is not None and np.median(np.linalg.norm(pts, axis=1)) * held.baseline_m == pytest.approx(30.0)
+    assert scale_from_scene_depth(pts[:5], 30.0, "held", 12) is None
+
+
+def test_ground_depth_outvotes_raised_objects() -> None:
+    rng = np.random.default_rng(3)
+    pts = np.column_stack([rng.uniform(-5, 5, (300, 2)), np.full(300, 10.0)])
+    pts[:100, 2] = rng.uniform(4.0, 8.0, 100)  # a third on boxes, closer to the camera
+    d, _ = ground_depth(pts, np.ones(300), 12)
+    assert d == pytest.approx(10.0)
+    assert ground_depth(pts[:5], np.ones(5), 12) is None
+
+
+def test_keyframe_rules_and_pose_composition() -> None:
+    opt = KeyframeOptions(parallax_px=40.0, min_survival=0.5, min_inliers=60)
+    assert keyframe_reason(opt, parallax_px=41.0, survival=0.9, inliers=200) == "parallax"
+    assert keyframe_reason(opt, parallax_px=10.0, survival=0.4, inliers=200) == "survival"
+    assert keyframe_reason(opt, parallax_px=10.0, survival=0.9, inliers=59) == "inliers"
+    assert keyframe_reason(opt, parallax_px=10.0, survival=0.9, inliers=200) == ""
+    kf = Keyframe(0, 0.0, np.arange(3), np.eye(3), np.full(3, np.nan), np.array([1.0, 2.0, -3.0]), math.radians(90.0), 0.0)
+    p, yaw = kf.pose_of(np.array([1.0, 0.0, 0.5]), math.radians(30.0))
+    np.testing.assert_allclose(p, [1.0, 3.0, -2.5], atol=1e-12)  # level x of a heading-east frame is east
+    assert yaw == pytest.approx(math.radians(60.0))
+    i_kf, i_cur = kf.match(np.array([1, 2, 7]))
+    assert list(i_kf) == [1, 2] and list(i_cur) == [0, 1]
+
+
+def test_depths_carry_through_a_pure_rotation() -> None:
+    f = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.6, 0.8]])
+    kf = Keyframe(0, 0.0, np.arange(3), f, np.array([10.0, 5.0, np.nan]), np.zeros(3), 0.0, 0.0)
+    R = rot_z(0.3)
+    out = carry_depths(kf, np.arange(3), np.array([2, 0, 1]), 4, R, np.zeros(3), np.full(3, np.nan), np.zeros(3), math.radians(1.0))
+    np.testing.assert_allclose(out[[2, 0]], [10.0, 5.0])
+    assert np.isnan(out[1]) and np.isnan(out[3])
+    # A new triangulation with enough parallax wins over the moved one.
+    out = carry_depths(kf, np.arange(3), np.arange(3), 3, R, np.zeros(3), np.array([7.0, 6.0, 4.0]), np.radians([2.0, 0.5, 2.0]), math.radians(1.0))
+    np.testing.assert_allclose(out, [7.0, 5.0, 4.0])
+
+
+def test_filter_follows_constant_velocity_and_rejects_a_jump() -> None:
+    rng = np.random.default_rng(4)
+    f = PoseFilter(FilterOptions(max_rejections=3, accel_sigma_m_s2=0.5))
+    f.reset(0.0, np.zeros(3), 3.1, pos_sigma_m=0.05, yaw_sigma_rad=0.01)
+    v = np.array([2.0, -1.0, 0.5])
+    for k in range(1, 101):
+        t = 0.05 * k
+        f.predict(t)
+        # the yaw wraps through +-pi on the way
+        assert f.update(v * t + rng.normal(0, 0.02, 3), wrap_angle(3.1 + 0.2 * t), pos_sigma_m=0.02, yaw_sigma_rad=0.005)
+    np.testing.assert_allclose(f.velocity_ned_m_s, v, atol=0.05)
+    assert abs(wrap_angle(f.yaw_rad - (3.1 + 0.2 * 5.0))) < 0.01
+    p_before = f.position_ned_m
+    f.predict(5.05)
+    assert not f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_sigma_m=0.02, yaw_sigma_rad=0.005)
+    assert np.linalg.norm(f.position_ned_m - (p_before + 0.05 * v)) < 0.05  # coasted, not jumped
+    assert not f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_sigma_m=0.02, yaw_sigma_rad=0.005)
+    assert f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_sigma_m=0.02, yaw_sigma_rad=0.005)  # third: believed
+    np.testing.assert_allclose(f.position_ned_m, v * 5.05 + [10.0, 0, 0])
+    assert np.all(np.linalg.eigvalsh(f.position_covariance) > 0)
