@@ -51,10 +51,6 @@ class PoseFilter:
         self._t_s: float | None = None
         self.rejections = 0
 
-    @property
-    def initialised(self) -> bool:
-        return self._t_s is not None
-
     def reset(self, t_s: float, p_ned_m: np.ndarray, yaw_rad: float, *, v_ned_m_s: np.ndarray | None = None, pos_sigma_m: float, yaw_sigma_rad: float) -> None:
         """Start at a pose (velocity zero with ``initial_velocity_sigma_m_s`` unless given)."""
         x = np.zeros((_DIM_X, 1))

@@ -168,7 +168,7 @@ class Odometry:
             if self._good is None:
                 return None
             return self._failed(frame, "too_few_features", len(tracks.ids))
-        fc_yaw = frame.yaw_rad if math.isfinite(frame.yaw_rad) else float("nan")
+        fc_yaw = frame.yaw_rad
         if self._good is None:
             p, yaw, v = np.zeros(3), (fc_yaw if math.isfinite(fc_yaw) else 0.0), None
         else:
@@ -283,6 +283,8 @@ class Odometry:
         tau = self.options.heading_correction_time_s
         if tau > 0 and math.isfinite(frame.yaw_rad):
             yaw = wrap_angle(yaw + min(1.0, (frame.t_exposure_s - kf.t_s) / tau) * wrap_angle(frame.yaw_rad - yaw))
+        # Without a measured translation (mostly a turn on the spot) the keyframe stays where the old
+        # one was: taking the filter's coasted position instead let its velocity noise into the chain.
         self.chain.push(Keyframe(frame.seq, frame.t_exposure_s, tracks.ids, f_lvl, depth, m.p_ned_m, yaw, frame.yaw_rad), self.reset_counter)
         self._last_yaw_2_1 = 0.0
         known = np.isfinite(depth)
@@ -291,8 +293,7 @@ class Odometry:
             self._scene_depth_m = float(np.median(depth[known]))
 
     def _failed(self, frame: PairedFrame, reason: str, tracks: int) -> PoseEstimate:
-        if self.filter.initialised:
-            self.filter.predict(frame.t_exposure_s)
+        self.filter.predict(frame.t_exposure_s)  # the filter runs from the first keyframe on
         return self._estimate(frame, VoDiagnostics(state="failed", reason=reason, tracks=tracks), quality=-1)
 
     def _trusted(self, scale: ScaleEstimate) -> bool:

@@ -62,7 +62,8 @@ class VoDiagnostics:
         parallax_px: median rotation-compensated parallax against the keyframe.
         residual_rms_px: RMS reprojection (Sampson) error of the inliers, pixels.
         tilt_residual_rad: how far vision moves the given roll/pitch (norm of the correction).
-        scale_source: ``rangefinder``, ``altitude``, ``fixed``, ``carried`` or ``none``.
+        scale_source: ``rangefinder``, ``altitude``, ``fixed``, ``carried``, ``held``, ``assumed`` (see
+            :mod:`mavvo.scale`) or ``none`` (no translation measured).
         keyframe: a new keyframe was made from this frame.
         gated: the filter rejected this frame's vision position as a jump.
     """

@@ -41,7 +41,7 @@ def test_tracks_follow_the_true_projection(renderer: Renderer) -> None:
                 ground[int(i)] = p - p[2] / ray[2] * ray  # where the track was first seen, on z = 0
                 continue
             x = (ground[int(i)] - p) @ R
-            errors.append(np.degrees(np.arccos(np.clip(f @ (x / np.linalg.norm(x)), -1, 1))) * CAMERA.fx_px * np.pi / 180)
+            errors.append(np.arccos(np.clip(f @ (x / np.linalg.norm(x)), -1, 1)) * CAMERA.fx_px)  # pixels
     errors = np.array(errors)
     assert len(errors) > 1000
     assert np.median(errors) < 0.15 and np.percentile(errors, 99) < 1.0
