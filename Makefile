@@ -1,4 +1,4 @@
-# The two commands a newcomer needs: `make test` and (once the service lands) `make sim`.
+# The two commands a newcomer needs: `make sim` and `make test`.
 # Each sets up .venv on first use; later runs reuse it until pyproject.toml changes.
 
 PYTHON ?= python3
@@ -6,7 +6,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup test soak bench clean
+.PHONY: setup sim test soak bench clean
 
 setup: $(STAMP)
 
@@ -15,6 +15,11 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test,bench]'
 	@touch $(STAMP)
+
+# The service against the simulated flight controller and camera (lockstep, default scenario); prints
+# the trajectory error and where the plot is.
+sim: $(STAMP)
+	$(BIN)/mavvo sim
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow"
@@ -33,4 +38,4 @@ bench: $(STAMP)
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/pipeline.py --markdown docs/benchmarks.md
 
 clean:
-	rm -rf $(VENV) .pytest_cache build *.egg-info
+	rm -rf $(VENV) .pytest_cache build *.egg-info mavvo-sim-out

@@ -1,11 +1,13 @@
 """The ``mavvo`` command line: the only place that parses argv, maps errors to exit codes and exits.
 
-Exit codes: 0 done (also after SIGINT/SIGTERM), 1 a runtime failure, 2 bad arguments or configuration.
+Exit codes: 0 a clean stop (also after SIGINT/SIGTERM), 2 bad arguments or configuration, 1 anything
+else, always with one readable line on stderr (the traceback only with ``--log-level debug``).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
 import signal
@@ -13,59 +15,111 @@ import sys
 import threading
 from collections import Counter
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
+from mavvo import __version__
 from mavvo.errors import ConfigError, LinkError, MavvoError
 
 log = logging.getLogger("mavvo")
 
 _PROGRESS_EVERY_S = 5.0
+_DEFAULT_SCENARIO = "figure_eight"
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="mavvo", description="Visual odometry for drones over MAVLink.")
-    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    p = argparse.ArgumentParser(prog="mavvo", description="Visual odometry for drones over MAVLink: roll/pitch from the flight controller, pose back to it.")
+    p.add_argument("--version", action="version", version=f"mavvo {__version__}")
+    p.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"), help="log detail on stderr (default info)")
+    p.add_argument("-v", "--verbose", action="store_true", help="same as --log-level debug")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    r = sub.add_parser(
+        "run", help="run the service (what systemd starts)",
+        description="Run the visual-odometry service: read ATTITUDE from the flight controller, frames from the camera, "
+        "send VISION_POSITION_ESTIMATE back. Stops cleanly on SIGTERM or Ctrl-C.",
+    )
+    r.add_argument("--config", required=True, type=Path, metavar="FILE", help="the YAML settings (see config/default.yaml for every key)")
+
+    c = sub.add_parser("check-config", help="check a settings file and exit", description="Load a settings file strictly and report the first problem, with its key path.")
+    c.add_argument("file", type=Path, metavar="FILE")
 
     s = sub.add_parser(
         "sim",
-        help="run the simulated drone (flight controller and camera)",
+        help="run the service against the simulated drone and print how close it came to the truth",
         description=(
-            "Run a simulated drone. With --fc-only, the simulated flight controller alone speaks MAVLink 2 on "
-            "--mavlink in real time, flying its scenario until stopped (Ctrl-C), for any MAVLink client: a "
-            "ground station, a script, or mavvo run on another machine. It streams nothing but HEARTBEAT until "
-            "asked with MAV_CMD_SET_MESSAGE_INTERVAL, like a freshly booted ArduPilot."
+            "Fly a simulated drone: the mavvo service talks MAVLink 2 over UDP on 127.0.0.1 to a simulated flight "
+            "controller and reads frames rendered by a simulated camera, then the estimates the flight controller "
+            "received are compared with the truth. Lockstep (as fast as the computer allows, the same on every run) "
+            "unless --realtime. With --fc-only, only the simulated flight controller runs, in real time, on --mavlink, "
+            "for any MAVLink client (a ground station, a script, or mavvo run with camera.source sim:SCENARIO)."
         ),
     )
-    s.add_argument("--scenario", default="hover", help="a shipped scenario name or a .yaml path (see --list); default hover")
+    s.add_argument("--scenario", default=_DEFAULT_SCENARIO, help=f"a shipped scenario name or a .yaml path (see --list); default {_DEFAULT_SCENARIO}")
     s.add_argument("--list", action="store_true", help="list the shipped scenarios and exit")
+    s.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds of flight (default: the scenario's length; --fc-only: until stopped)")
+    s.add_argument("--realtime", action="store_true", help="run at wall-clock speed instead of lockstep")
+    s.add_argument("--config", type=Path, default=None, metavar="FILE", help="service settings to use (the scenario sets camera, mounting and link); default: the built-in defaults")
+    s.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout")
+    s.add_argument("--out", type=Path, default=None, metavar="DIR", help="where the report goes (default mavvo-sim-out/SCENARIO; with --fc-only: none)")
     s.add_argument("--fc-only", action="store_true", help="run only the simulated flight controller")
     s.add_argument(
         "--mavlink", default="udpin:127.0.0.1:14550",
-        help="where the flight controller listens: udpin:HOST:PORT or tcpin:HOST:PORT (udpout:/tcp: connect out); default udpin:127.0.0.1:14550",
+        help="--fc-only: where the flight controller listens: udpin:HOST:PORT or tcpin:HOST:PORT (udpout:/tcp: connect out); default udpin:127.0.0.1:14550",
     )
-    s.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: until stopped)")
-    s.add_argument("--out", type=Path, default=None, metavar="DIR", help="on stop, write received.tlog and, given vision estimates, an evaluation")
     s.add_argument(
         "--time-source", choices=("arrival", "usec"), default="arrival",
-        help="evaluate estimates at their arrival time (default; clients on their own clock) or at their usec stamp read as simulation time",
+        help="--fc-only: evaluate estimates at their arrival time (default; clients on their own clock) or at their usec stamp read as simulation time",
     )
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    level = logging.DEBUG if args.verbose else getattr(logging, args.log_level.upper())
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
-        if args.command == "sim":
-            return _sim(args)
+        if args.command == "run":
+            return _run(args)
+        if args.command == "check-config":
+            return _check_config(args)
+        return _sim(args)
     except ConfigError as e:
         print(f"mavvo: {e}", file=sys.stderr)
         return 2
     except MavvoError as e:
         print(f"mavvo: {e}", file=sys.stderr)
         return 1
-    return 2
+    except KeyboardInterrupt:  # Ctrl-C before the service installed its handler
+        return 0
+    except Exception as e:  # a bug: one line for the operator, the traceback for the developer
+        log.debug("unexpected error", exc_info=True)
+        print(f"mavvo: unexpected {type(e).__name__}: {e} (--log-level debug shows where)", file=sys.stderr)
+        return 1
+
+
+def _sim_camera(argument: str, options: Any, clock: Any) -> Any:
+    """``camera.source: sim:SCENARIO``: the simulator's rendered camera, in real time on the host clock."""
+    from sim.camera_source import scenario_camera  # sim is loaded only when asked for
+
+    return scenario_camera(argument, clock)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from mavvo.daemon import Daemon
+    from mavvo.settings import load_config
+
+    config = load_config(args.config)
+    daemon = Daemon(config, schemes={"sim": _sim_camera})
+    daemon.run()
+    return 0
+
+
+def _check_config(args: argparse.Namespace) -> int:
+    from mavvo.settings import load_config
+
+    cfg = load_config(args.file)
+    print(f"{args.file}: ok (link {cfg.link.url}, camera {cfg.camera.source} {cfg.camera.width_px}x{cfg.camera.height_px}, scale from {cfg.odometry.scale.source})")
+    return 0
 
 
 def _sim(args: argparse.Namespace) -> int:
@@ -75,19 +129,44 @@ def _sim(args: argparse.Namespace) -> int:
         for name in scenario_names():
             print(f"{name:18s} {load_scenario(name).description}")
         return 0
-    if not args.fc_only:
-        print(
-            "mavvo sim: running the daemon against the simulator arrives with the service; "
-            "use --fc-only to run the simulated flight controller for another MAVLink client",
-            file=sys.stderr,
-        )
-        return 2
     if args.duration is not None and not (args.duration > 0 and math.isfinite(args.duration)):
         raise ConfigError(f"--duration: expected a positive number of seconds, got {args.duration}")
-    return _fc_only(load_scenario(args.scenario), args)
+    scenario = load_scenario(args.scenario)
+    if args.fc_only:
+        return _fc_only(scenario, args)
+    return _sim_service(scenario, args)
 
 
-def _fc_only(scenario, args: argparse.Namespace) -> int:
+def _sim_service(scenario: Any, args: argparse.Namespace) -> int:
+    from mavvo.settings import ServiceConfig, load_config
+    from sim.service import run_daemon_in_sim
+
+    base = load_config(args.config) if args.config is not None else ServiceConfig()
+    out = args.out if args.out is not None else Path("mavvo-sim-out") / scenario.name
+    run = run_daemon_in_sim(scenario, base, realtime=args.realtime, duration_s=args.duration, out_dir=out)
+    summary = run.summary()
+    summary["report_dir"] = str(out) if run.evaluation is not None else None
+    summary["plot"] = str(out / "evaluation.png") if run.evaluation is not None else None
+    if args.json:
+        print(json.dumps(summary))
+        return 0
+    print(
+        f"{scenario.name}: {summary['frames']} frames, {summary['estimates_received']} estimates received by the flight controller, "
+        f"{run.resets} resets; {run.duration_s:.1f} s flown in {run.wall_s:.1f} s"
+    )
+    if run.evaluation is None:
+        print("too few estimates to evaluate")
+        return 0
+    ev = run.evaluation
+    print(
+        f"ATE {ev.ate_se3_m['rmse']:.3f} m RMSE ({ev.ate_se3_rmse_percent_of_path:.2f}% of {ev.path_length_m:.1f} m), "
+        f"Sim(3) {ev.ate_sim3_m['rmse']:.3f} m at scale {ev.sim3_scale:.3f}"
+    )
+    print(f"plot: {summary['plot']}")
+    return 0
+
+
+def _fc_only(scenario: Any, args: argparse.Namespace) -> int:
     from sim.report import vision_estimates, write_report
     from sim.simulation import Simulation
 
@@ -126,7 +205,7 @@ def _fc_only(scenario, args: argparse.Namespace) -> int:
     return 0
 
 
-def _received(sim) -> dict[str, int]:
+def _received(sim: Any) -> dict[str, int]:
     return Counter(r.type for r in sim.fc.received)
 
 

@@ -15,3 +15,7 @@ class LinkError(MavvoError):
 
 class CameraError(MavvoError):
     """A frame source failed or was misconfigured."""
+
+
+class CameraEnded(CameraError):
+    """A finite frame source (file, folder, simulation) has no more frames: a normal end."""

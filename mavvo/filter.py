@@ -127,6 +127,11 @@ class PoseFilter:
         return self._kf.P[0:3, 0:3].copy()
 
     @property
+    def velocity_covariance(self) -> np.ndarray:
+        """(3,3) (m/s)^2."""
+        return self._kf.P[3:6, 3:6].copy()
+
+    @property
     def yaw_variance(self) -> float:
         """rad^2."""
         return float(self._kf.P[6, 6])

@@ -324,6 +324,7 @@ class Odometry:
             rpy_rad=np.array([frame.roll_rad, frame.pitch_rad, f.yaw_rad]),
             v_ned_m_s=f.velocity_ned_m_s,
             covariance=cov,
+            v_covariance=f.velocity_covariance,
             quality=quality,
             reset_counter=self.reset_counter,
             diagnostics=diag,

@@ -96,6 +96,7 @@ class PoseEstimate:
         rpy_rad: (3,) body roll, pitch (from the flight controller, vision-corrected) and yaw (vision).
         v_ned_m_s: (3,) velocity of the camera centre in NED.
         covariance: (6,6) of (x, y, z, roll, pitch, yaw), m^2 and rad^2.
+        v_covariance: (3,3) of the velocity, (m/s)^2.
         quality: 1..100 (higher is better), -1 when failed (then the position is the filter's
             prediction and must not be sent as a measurement).
         reset_counter: bumped once per discontinuity of the world frame (re-initialisation), mod 256.
@@ -108,6 +109,7 @@ class PoseEstimate:
     rpy_rad: np.ndarray
     v_ned_m_s: np.ndarray
     covariance: np.ndarray
+    v_covariance: np.ndarray
     quality: int
     reset_counter: int
     diagnostics: VoDiagnostics

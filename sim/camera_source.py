@@ -10,13 +10,13 @@ a real camera driver does.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Literal
+from typing import Callable, Literal, Protocol
 
 import numpy as np
 
 from mavvo.camera_model import CameraModel
 from mavvo.config import bounded
-from mavvo.errors import CameraError
+from mavvo.errors import CameraEnded, CameraError
 from mavvo.types import Frame
 from sim.clock import Clock
 from sim.faults import FaultSchedule
@@ -26,6 +26,11 @@ from sim.twoview import mount_rotation
 from sim.world import World
 
 _DARK_GAIN = 0.05
+
+
+class HostClock(Protocol):
+    def now_s(self) -> float: ...
+
 _TEXTURELESS_LEVEL = 120
 
 
@@ -68,7 +73,7 @@ class SimCamera:
     Args:
         advance: called with a simulation time before each frame in lockstep (the simulation's
             ``advance_to``); None in real time, where another thread drives the flight controller.
-        duration_s: no frames after this time; ``read`` then raises CameraError.
+        duration_s: no frames after this time; ``read`` then raises CameraEnded.
     """
 
     def __init__(
@@ -106,14 +111,14 @@ class SimCamera:
         return R @ self._R_body_cam, p + R @ self._lever
 
     def read(self, timeout_s: float) -> Frame | None:
-        """The next frame (see the module docstring); CameraError after the scenario's end."""
+        """The next frame (see the module docstring); CameraEnded after the scenario's end."""
         if self._closed:
             raise CameraError("simulated camera: read after close")
         while True:
             k = self._next
             t_exp = k * self._period_s
             if t_exp > self._duration_s:
-                raise CameraError(f"simulated camera: the scenario ended at {self._duration_s:.1f} s")
+                raise CameraEnded(f"simulated camera: the scenario ended at {self._duration_s:.1f} s")
             t_ready = t_exp + self._latency_s
             if self.clock.realtime:
                 now = self.clock.now_s()
@@ -164,3 +169,37 @@ class SimCamera:
 
     def close(self) -> None:
         self._closed = True
+
+
+class _HostTimed:
+    """A simulated camera on its own real-time clock, its frames restamped on the host clock."""
+
+    def __init__(self, camera: SimCamera, offset_s: float) -> None:
+        self.camera = camera
+        self.offset_s = offset_s
+
+    def read(self, timeout_s: float) -> Frame | None:
+        f = self.camera.read(timeout_s)
+        return None if f is None else Frame(f.image, f.t_exposure_s + self.offset_s, f.seq)
+
+    def close(self) -> None:
+        self.camera.close()
+
+
+def scenario_camera(name_or_path: str, host_clock: HostClock) -> _HostTimed:
+    """The camera of a scenario, rendering in real time from now, frames stamped on ``host_clock``
+    (``camera.source: sim:SCENARIO`` in ``mavvo run``, e.g. beside ArduPilot's SITL). It flies the
+    scenario's trajectory whatever the flight controller does, and ends with the scenario."""
+    from sim.clock import RealClock
+    from sim.scenario import load_scenario
+    from sim.trajectories import make_trajectory
+
+    scenario = load_scenario(name_or_path)
+    clock = RealClock()
+    offset = host_clock.now_s() - clock.now_s()
+    trajectory = make_trajectory(scenario.trajectory)
+    camera = SimCamera(
+        scenario.camera, World.build(scenario.world), trajectory, clock,
+        faults=FaultSchedule(scenario.faults), seed=scenario.seed, duration_s=scenario.duration_s,
+    )
+    return _HostTimed(camera, offset)

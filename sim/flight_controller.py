@@ -141,6 +141,13 @@ class SimFlightController:
         if not spec.rangefinder:
             del self._senders[self._mav.MAVLINK_MSG_ID_DISTANCE_SENSOR]
 
+    @property
+    def address(self) -> tuple[str, int]:
+        """(host, port) of the local socket: the port the system chose for ``udpin:127.0.0.1:0``."""
+        sock = getattr(self._conn, "listen", None) or self._conn.port
+        host, port = sock.getsockname()[:2]
+        return host, port
+
     # ------------------------------------------------------------------ time
 
     def boot_time_ms(self, t_s: float) -> int:
@@ -168,6 +175,7 @@ class SimFlightController:
             if due > t_s:
                 break
             self._t_s = due
+            self.clock.advance_to(due)  # lockstep: nothing arrives before it was sent (a no-op in real time)
             if due == self._next_heartbeat_s:
                 self._next_heartbeat_s += 1.0
                 self._send(self._heartbeat())

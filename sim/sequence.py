@@ -69,8 +69,4 @@ class PairedSequence:
     def camera_truth(self, times_s: np.ndarray) -> PoseSeries:
         """True camera-centre positions and body orientations at ``times_s``: what a
         :class:`mavvo.types.PoseEstimate` estimates."""
-        times = np.asarray(times_s, dtype=float)
-        lever = np.asarray(self.scenario.camera.lever_arm_m, dtype=float)
-        poses = [self.trajectory.pose(t) for t in times]
-        p = np.array([p + R @ lever for p, R in poses])
-        return PoseSeries.from_rotations(times, p, np.array([R for _, R in poses]))
+        return self.trajectory.truth_series(times_s, self.scenario.camera.lever_arm_m)

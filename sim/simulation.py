@@ -63,10 +63,9 @@ class Simulation:
             stop.wait(_SERVE_TICK_S)
 
     def truth_at(self, times_s: np.ndarray) -> PoseSeries:
-        """The true body poses at ``times_s`` (simulation seconds)."""
-        times = np.asarray(times_s, dtype=float)
-        poses = [self.trajectory.pose(t) for t in times]
-        return PoseSeries.from_rotations(times, np.array([p for p, _ in poses]), np.array([R for _, R in poses]))
+        """True camera-centre positions and body orientations at ``times_s`` (simulation seconds): what
+        a vision estimate estimates."""
+        return self.trajectory.truth_series(times_s, self.scenario.camera.lever_arm_m)
 
     def close(self) -> None:
         self.camera.close()

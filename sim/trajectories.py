@@ -22,6 +22,7 @@ import numpy as np
 
 from mavvo.config import bounded
 from mavvo.frames import euler321_from_R
+from sim.metrics import PoseSeries
 
 GRAVITY_M_S2 = 9.80665
 _G_NED = np.array([0.0, 0.0, GRAVITY_M_S2])
@@ -75,6 +76,16 @@ class Trajectory(ABC):
         omega = np.array([W[2, 1] - W[1, 2], W[0, 2] - W[2, 0], W[1, 0] - W[0, 1]]) / 2
         roll, pitch, yaw_ = euler321_from_R(R)
         return TruthState(t, p, v, a, R, roll, pitch, yaw_, omega)
+
+    def truth_series(self, times_s: np.ndarray, lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> PoseSeries:
+        """Positions of the point ``lever_arm_m`` (body FRD, metres; the camera centre) and the body's
+        orientations at ``times_s``: what a vision estimate estimates."""
+        times = np.asarray(times_s, dtype=float)
+        lever = np.asarray(lever_arm_m, dtype=float)
+        poses = [self.pose(t) for t in times]
+        p = np.array([p + R @ lever for p, R in poses]).reshape(-1, 3)
+        R = np.array([R for _, R in poses]).reshape(-1, 3, 3)
+        return PoseSeries.from_rotations(times, p, R)
 
     def path_length_m(self, step_s: float = 0.05) -> float:
         """Length of the flown path (3D), by summing small steps."""

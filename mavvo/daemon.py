@@ -1,0 +1,283 @@
+"""The service: link, camera and worker threads wired together, with a clean stop.
+
+- The link thread (:class:`mavvo.link.Link`) owns the MAVLink connection and fills the flight
+  controller's state (:class:`mavvo.timing.FlightControllerState`).
+- The camera thread reads the frame source into a :class:`mavvo.camera.FrameQueue` (real time: the
+  newest frames, older ones dropped and counted; lockstep simulation: every frame, in order).
+- The worker pairs each frame with roll/pitch at its exposure, runs :meth:`mavvo.odometry.Odometry.step`
+  and sends the estimate: VISION_POSITION_ESTIMATE (capped at ``output.max_rate_hz``), optionally
+  VISION_SPEED_ESTIMATE and ODOMETRY, nothing while failed; STATUSTEXT on state changes;
+  NAMED_VALUE_FLOAT health.
+- The calling thread supervises: SIGTERM/SIGINT set the stop flag (handlers restored afterwards),
+  systemd READY/WATCHDOG/STOPPING, health counters in the log every ``service.health_log_interval_s``.
+
+Bad input from the flight controller or the camera never stops the service: it is logged, counted,
+reported over MAVLink and skipped. The stop is bounded: the worker finishes its frame, the link sends
+what is queued, and every thread is joined within ``service.shutdown_drain_s``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import signal
+import threading
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+from mavvo import messages, sdnotify
+from mavvo.camera import FrameQueue, FrameSource, SourceFactory, open_source
+from mavvo.errors import CameraEnded
+from mavvo.link import Link, SystemStatus
+from mavvo.odometry import Odometry
+from mavvo.settings import ServiceConfig
+from mavvo.timing import Clock, FlightControllerState, MonotonicClock, wait_for_pairing
+from mavvo.types import Frame, PairedFrame, PoseEstimate
+
+__all__ = ["Daemon", "DaemonSummary"]
+
+log = logging.getLogger(__name__)
+
+_SUPERVISE_TICK_S = 0.1
+_ERROR_LOG_EVERY = 100  # after the first few, log one repeated error in this many
+
+
+@dataclass(frozen=True)
+class DaemonSummary:
+    """How a run went: every counter, the last state, and the capture-to-send latency."""
+
+    counters: dict[str, int]
+    state: str
+    latency_ms: float | None
+
+
+class Daemon:
+    """mavvo's service (see the module docstring).
+
+    Args:
+        config: the service's settings.
+        clock: the host clock (``time.monotonic`` by default; the simulator passes its own).
+        source: the frame source; default: opened from ``config.camera.source``.
+        schemes: extra ``camera.source`` schemes (the CLI registers ``sim:``).
+    """
+
+    def __init__(
+        self,
+        config: ServiceConfig,
+        *,
+        clock: Clock | None = None,
+        source: FrameSource | None = None,
+        schemes: dict[str, SourceFactory] | None = None,
+    ) -> None:
+        self.config = config
+        self.clock = clock or MonotonicClock()
+        self.fc = FlightControllerState(self.clock, config.timing)
+        self.link = Link(config.link, self.clock, self.fc, self._system_status)
+        self.source = source if source is not None else open_source(config.camera, self.clock, schemes)
+        self.frames = FrameQueue(config.camera.queue_size, drop_oldest=self.clock.realtime)
+        self.odometry = Odometry(config.camera.camera_model(), config.mounting.rotation(), config.odometry)
+        self.counters: Counter[str] = Counter()
+        self.stop_event = threading.Event()
+        self.state = "standby"
+        self.last_estimate: PoseEstimate | None = None
+        self._camera_done = threading.Event()
+        self._worker_done = threading.Event()
+        self._worker_beat_s = 0.0
+        self._wall = MonotonicClock()
+        self._last_sent_t_s = -math.inf
+        self._last_text_s = -math.inf
+        self._pending_text: dict[str, Any] | None = None
+        self._next_health_s = -math.inf
+        self._reset_counter: int | None = None
+        self._errors_logged: Counter[str] = Counter()
+
+    # ------------------------------------------------------------------ running
+
+    def request_stop(self) -> None:
+        """Ask the service to stop (thread- and signal-safe)."""
+        self.stop_event.set()
+
+    def run(self) -> DaemonSummary:
+        """Run until stopped (signal, :meth:`request_stop`) or until a finite source ends and its
+        frames are processed. Installs SIGTERM/SIGINT handlers when called from the main thread."""
+        previous = {}
+        if threading.current_thread() is threading.main_thread():
+            previous = {s: signal.signal(s, lambda *_: self.stop_event.set()) for s in (signal.SIGTERM, signal.SIGINT)}
+        link_stop = threading.Event()
+        threads = [
+            threading.Thread(target=self.link.run, args=(link_stop,), name="mavvo-link", daemon=True),
+            threading.Thread(target=self._camera_loop, name="mavvo-camera", daemon=True),
+            threading.Thread(target=self._worker_loop, name="mavvo-worker", daemon=True),
+        ]
+        try:
+            for t in threads:
+                t.start()
+            m = self.config.mounting
+            log.info(
+                "mavvo running: link %s, camera %s; camera lever arm %s m: set VISO_POS_X/Y/Z (ArduPilot) or EKF2_EV_POS_X/Y/Z (PX4) to it",
+                self.config.link.url, self.config.camera.source, list(m.lever_arm_m),
+            )
+            sdnotify.notify("READY=1")
+            self._supervise()
+        finally:
+            sdnotify.notify("STOPPING=1")
+            self.stop_event.set()
+            deadline = self._wall.now_s() + self.config.service.shutdown_drain_s
+            for t in threads[1:]:
+                t.join(max(deadline - self._wall.now_s(), 0.0))
+            link_stop.set()  # after the worker: its last messages go out in the link's drain
+            threads[0].join(max(deadline - self._wall.now_s(), 0.1))
+            self.source.close()
+            for s, h in previous.items():
+                signal.signal(s, h)
+        summary = self.summary()
+        self._log_health(final=True)
+        return summary
+
+    def _supervise(self) -> None:
+        watchdog_s = sdnotify.watchdog_interval_s()
+        next_ping = self._wall.now_s()
+        next_log = self.clock.now_s() + self.config.service.health_log_interval_s
+        while not self.stop_event.wait(_SUPERVISE_TICK_S):
+            if self._worker_done.is_set():
+                break  # the source ended and every frame was processed
+            if watchdog_s is not None and self._wall.now_s() >= next_ping:
+                # Only a worker that is making progress (or idling on an empty queue) keeps systemd happy.
+                if self._wall.now_s() - self._worker_beat_s < 2 * watchdog_s:
+                    sdnotify.notify("WATCHDOG=1")
+                next_ping = self._wall.now_s() + watchdog_s
+            if self.clock.now_s() >= next_log:
+                self._log_health()
+                next_log = self.clock.now_s() + self.config.service.health_log_interval_s
+
+    def _camera_loop(self) -> None:
+        backoff = 0.1
+        try:
+            while not self.stop_event.is_set():
+                try:
+                    frame = self.source.read(0.2)
+                except CameraEnded as e:
+                    log.info("%s", e)
+                    return
+                except Exception as e:  # a source that failed for good, or a broken driver: wait and retry
+                    self.counters["camera_errors"] += 1
+                    self._log_error("camera", e)
+                    self.stop_event.wait(backoff)
+                    backoff = min(2 * backoff, self.config.camera.reconnect_max_s)
+                    continue
+                backoff = 0.1
+                if frame is not None:
+                    self.frames.put(frame, self.stop_event)
+        finally:
+            self._camera_done.set()
+
+    def _worker_loop(self) -> None:
+        try:
+            while not self.stop_event.is_set():
+                self._worker_beat_s = self._wall.now_s()
+                frame = self.frames.get(0.1)
+                if frame is None:
+                    if self._camera_done.is_set() and self.frames.empty():
+                        return
+                    continue
+                try:
+                    self._process(frame)
+                except Exception as e:  # a bug must not take the service down; it is counted and logged
+                    self.counters["errors"] += 1
+                    self._log_error("worker", e, traceback=True)
+        finally:
+            self._worker_done.set()
+
+    # ------------------------------------------------------------------ one frame
+
+    def _process(self, frame: Frame) -> None:
+        self.counters["frames"] += 1
+        p = wait_for_pairing(self.fc, frame.t_exposure_s)
+        if p.status != "paired":
+            self.counters[f"skipped_attitude_{p.status}"] += 1
+            return
+        paired = PairedFrame(frame.image, frame.t_exposure_s, frame.seq, p.roll_rad, p.pitch_rad, p.yaw_rad, p.range_m, p.height_m)
+        try:
+            est = self.odometry.step(paired)
+        except ValueError as e:  # a malformed image (wrong size, not grey 8-bit)
+            self.counters["bad_frames"] += 1
+            self._log_error("frame", e)
+            return
+        self.counters["paired"] += 1
+        if est is not None:
+            self._publish(est)
+
+    def _publish(self, est: PoseEstimate) -> None:
+        now = self.clock.now_s()
+        self.last_estimate = est
+        diag = est.diagnostics
+        if diag.state != self.state:
+            log.info("state %s -> %s%s", self.state, diag.state, f" ({diag.reason})" if diag.reason else "")
+            self.state = diag.state
+            self._pending_text = messages.statustext(diag.state, diag.reason)
+        if self._pending_text is not None and now - self._last_text_s >= self.config.output.statustext_min_interval_s:
+            self.link.send("STATUSTEXT", self._pending_text)
+            self._pending_text, self._last_text_s = None, now
+        if self._reset_counter is not None and est.reset_counter != self._reset_counter:
+            self.counters["resets"] += 1
+        self._reset_counter = est.reset_counter
+        out = self.config.output
+        if est.quality < 0:
+            self.counters["not_sent_failed"] += 1
+        elif est.t_exposure_s - self._last_sent_t_s < 1.0 / out.max_rate_hz - 1e-6:
+            self.counters["not_sent_rate"] += 1
+        else:
+            self._last_sent_t_s = est.t_exposure_s
+            self.link.send("VISION_POSITION_ESTIMATE", messages.vision_position_estimate(est), t_capture_s=est.t_exposure_s)
+            if out.speed_estimate:
+                self.link.send("VISION_SPEED_ESTIMATE", messages.vision_speed_estimate(est))
+            if out.odometry:
+                self.link.send("ODOMETRY", messages.odometry(est))
+            self.counters["estimates_sent"] += 1
+        if now >= self._next_health_s:
+            self._next_health_s = now + 1.0 / out.health_rate_hz
+            latency = self.link.latency_s()
+            t_ms = int(now * 1000)
+            for name, value in (
+                ("VO_QUAL", est.quality), ("VO_INLIER", diag.inliers), ("VO_STATE", messages.STATE_CODES.get(diag.state, -1)),
+                ("VO_LAT_MS", latency * 1e3 if latency is not None else math.nan),
+            ):
+                self.link.send("NAMED_VALUE_FLOAT", messages.named_value_float(t_ms, name, value))
+
+    # ------------------------------------------------------------------ health
+
+    def _system_status(self) -> SystemStatus:
+        return {"tracking": "active", "initialising": "active", "degraded": "critical", "failed": "flight_termination"}.get(self.state, "standby")
+
+    def health(self) -> dict[str, int]:
+        """Every counter of the service and its parts."""
+        c: Counter[str] = Counter(self.counters)
+        c.update({f"link_{k}": v for k, v in self.link.counters.items()})
+        c.update({f"fc_{k}": v for k, v in self.fc.counters.items()})
+        c["frames_dropped"] = self.frames.dropped
+        c["camera_reconnects"] = getattr(self.source, "reconnects", 0)
+        return dict(sorted(c.items()))
+
+    def summary(self) -> DaemonSummary:
+        latency = self.link.latency_s()
+        return DaemonSummary(self.health(), self.state, None if latency is None else latency * 1e3)
+
+    def _log_health(self, final: bool = False) -> None:
+        h = self.health()
+        latency = self.link.latency_s()
+        lat = "" if latency is None else (
+            f"; capture-to-send {latency * 1e3:.0f} ms: set VISO_DELAY_MS={round(latency * 1e3)} (ArduPilot) "
+            f"or EKF2_EV_DELAY={round(latency * 1e3)} (PX4)"
+        )
+        keys = ("frames", "paired", "estimates_sent", "not_sent_failed", "resets", "frames_dropped", "bad_frames",
+                "skipped_attitude_wait", "skipped_attitude_stale", "skipped_attitude_missing", "fc_attitude_rejected",
+                "link_bad_data", "link_reconnects", "link_reboots", "camera_errors", "camera_reconnects", "errors")
+        counts = ", ".join(f"{k} {h[k]}" for k in keys if h.get(k))
+        log.info("%s: state %s; %s%s", "final" if final else "health", self.state, counts or "nothing yet", lat)
+
+    def _log_error(self, where: str, e: BaseException, traceback: bool = False) -> None:
+        self._errors_logged[where] += 1
+        n = self._errors_logged[where]
+        if n <= 3 or n % _ERROR_LOG_EVERY == 0:
+            log.warning("%s: %s (occurrence %d)", where, e, n, exc_info=traceback)
