@@ -207,6 +207,7 @@ class _PacedSource:
         self._t0_rec = 0.0
         self._seq = 0
         self._closed = False
+        self._pending: tuple[np.ndarray, float] | None = None
 
     def _next(self) -> tuple[np.ndarray, float] | None:
         raise NotImplementedError
@@ -214,16 +215,21 @@ class _PacedSource:
     def read(self, timeout_s: float) -> Frame | None:
         if self._closed:
             raise CameraError(f"camera.source {self.name}: read after close")
-        item = self._next()
-        if item is None:
-            raise CameraEnded(f"camera.source {self.name}: end after {self._seq} frames")
-        img, t_rec = item
+        if self._pending is None:
+            self._pending = self._next()
+            if self._pending is None:
+                raise CameraEnded(f"camera.source {self.name}: end after {self._seq} frames")
+        img, t_rec = self._pending
         now = self.clock.now_s()
         if self._t0_host is None:
             self._t0_host, self._t0_rec = now, t_rec
         t_host = self._t0_host + (t_rec - self._t0_rec)
         if self.clock.realtime and t_host > now:
+            if t_host - now > timeout_s:  # not due yet: the caller gets control back in time
+                time.sleep(timeout_s)
+                return None
             time.sleep(t_host - now)
+        self._pending = None
         frame = Frame(_grey(img), t_host, self._seq)
         self._seq += 1
         return frame

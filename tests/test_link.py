@@ -1,0 +1,212 @@
+"""The MAVLink link against the simulated flight controller over real sockets on 127.0.0.1 (and a
+pseudo-terminal for serial): identity, streams, TIMESYNC, and surviving reboots, corrupt bytes,
+silence and an unplugged serial port."""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+import time
+
+import pytest
+
+from mavvo.errors import ConfigError
+from mavvo.link import Link, LinkOptions, parse_url, read_signing_key
+from mavvo.timing import MonotonicClock
+from sim.clock import RealClock
+from sim.faults import FaultSchedule, FaultSpec
+from sim.flight_controller import FlightControllerSpec, SimFlightController
+from sim.trajectories import HoverSpec, make_trajectory
+
+
+class Recorder:
+    """A LinkListener that keeps what it is told."""
+
+    def __init__(self) -> None:
+        self.attitude: list[tuple[float, int]] = []  # (arrival monotonic, time_boot_ms)
+        self.ranges: list[float | None] = []
+        self.heights: list[float] = []
+        self.timesync: list[tuple[float, float]] = []
+        self.reboots = 0
+
+    def on_attitude(self, t_fc_ms, roll_rad, pitch_rad, yaw_rad):
+        self.attitude.append((time.monotonic(), t_fc_ms))
+
+    def on_range(self, t_fc_ms, range_m):
+        self.ranges.append(range_m)
+
+    def on_height(self, t_fc_ms, height_m):
+        self.heights.append(height_m)
+
+    def on_timesync(self, t_sent_host_s, t_fc_s):
+        self.timesync.append((t_sent_host_s, t_fc_s))
+
+    def on_reboot(self):
+        self.reboots += 1
+
+
+class Running:
+    """A real-time simulated flight controller on a UDP port and a Link to it, each in a thread."""
+
+    def __init__(self, faults=(), **link_options) -> None:
+        self.clock = RealClock()
+        self.fc = SimFlightController("udpin:127.0.0.1:0", make_trajectory(HoverSpec()), self.clock, FlightControllerSpec(), FaultSchedule(tuple(faults)))
+        host, port = self.fc.address
+        self.listener = Recorder()
+        self.link = Link(LinkOptions(url=f"udpout:{host}:{port}", **link_options), MonotonicClock(), self.listener, lambda: "active")
+        self.stop = threading.Event()
+        self.threads = [threading.Thread(target=self._serve, daemon=True), threading.Thread(target=self.link.run, args=(self.stop,), daemon=True)]
+        for t in self.threads:
+            t.start()
+
+    def _serve(self) -> None:
+        while not self.stop.is_set():
+            self.fc.advance_to(self.clock.now_s())
+            time.sleep(0.002)
+
+    def sim_time(self) -> float:
+        return self.clock.now_s()
+
+    def wait_until(self, t_sim_s: float) -> None:
+        while self.sim_time() < t_sim_s:
+            time.sleep(0.02)
+
+    def close(self) -> None:
+        self.stop.set()
+        for t in self.threads:
+            t.join(5)
+        self.fc.close()
+
+
+@pytest.fixture
+def running():
+    made = []
+
+    def make(**kw):
+        made.append(Running(**kw))
+        return made[-1]
+
+    yield make
+    for r in made:
+        r.close()
+
+
+def test_identity_streams_and_clock(running):
+    r = running()
+    r.wait_until(2.5)
+    hb = [m for m in r.fc.received if m.type == "HEARTBEAT"]
+    assert hb, "the flight controller heard no HEARTBEAT"
+    m = hb[-1]
+    assert (m.msg.get_srcSystem(), m.msg.get_srcComponent()) == (1, 197)
+    assert (m.msg.type, m.msg.autopilot, m.msg.system_status) == (18, 8, 4)  # ONBOARD_CONTROLLER, INVALID, ACTIVE
+    assert m.raw[0] == 0xFD  # MAVLink 2
+    att = r.listener.attitude
+    assert len(att) > 50 and r.listener.ranges and r.listener.heights
+    span_ms = att[-1][1] - att[-51][1]
+    assert 450 <= span_ms <= 550, "50 ATTITUDE intervals at the requested 100 Hz on the boot clock"
+    assert r.listener.heights[-1] == pytest.approx(10.0, abs=2.0)  # the hover's height above home
+    # TIMESYNC: the flight controller's boot clock is 30 s ahead of the simulation clock.
+    assert r.listener.timesync
+    sent, fc = r.listener.timesync[-1]
+    true_offset = 30.0 + (0.0 - r.clock._t0)  # boot = 30 + (monotonic - t0)
+    assert fc - sent == pytest.approx(true_offset, abs=0.02)
+
+
+def test_reboot_corrupt_bytes_and_silence_are_survived(running):
+    faults = (
+        FaultSpec("reboot", 1.5, 0.5),
+        FaultSpec("corrupt_bytes", 3.0, 0.5),
+        FaultSpec("link_silence", 4.5, 2.0),
+    )
+    r = running(faults=faults, silence_timeout_s=1.0, request_retry_s=0.5)
+    r.wait_until(3.0)
+    assert r.listener.reboots == 1 and r.link.counters["reboots"] == 1
+    after_reboot = [ms for _, ms in r.listener.attitude if ms < 2000]
+    assert after_reboot, "streams were requested again after the reboot"
+    r.wait_until(4.4)
+    assert r.link.counters["bad_data"] > 0
+    n_before_silence = len(r.listener.attitude)
+    r.wait_until(8.5)
+    assert r.link.counters["reconnects"] >= 1
+    assert len(r.listener.attitude) > n_before_silence + 50, "attitude flows again after the silence"
+    assert r.link.connected.is_set()
+
+
+def test_signed_link_signs_what_it_sends(tmp_path):
+    key = tmp_path / "mavlink.key"
+    key.write_text("my passphrase\n")
+    os.chmod(key, 0o600)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        s.settimeout(5)
+        link = Link(LinkOptions(url=f"udpout:127.0.0.1:{s.getsockname()[1]}", signing_key_file=str(key)), MonotonicClock(), Recorder())
+        stop = threading.Event()
+        t = threading.Thread(target=link.run, args=(stop,), daemon=True)
+        t.start()
+        try:
+            data, _ = s.recvfrom(300)
+        finally:
+            stop.set()
+            t.join(5)
+    assert data[0] == 0xFD and data[2] & 0x01, "MAVLink 2 with the signed flag"
+    assert len(data) == 10 + data[1] + 2 + 13  # header, payload, checksum, 13-byte signature
+
+
+def test_signing_key_forms_and_permissions(tmp_path):
+    hexkey = tmp_path / "hex"
+    hexkey.write_text("ab" * 32 + "\n")
+    os.chmod(hexkey, 0o600)
+    assert read_signing_key(hexkey) == bytes([0xAB]) * 32
+    loose = tmp_path / "loose"
+    loose.write_text("secret")
+    os.chmod(loose, 0o640)
+    with pytest.raises(ConfigError, match="expected mode 0600 or stricter.*got 0640"):
+        read_signing_key(loose)
+    with pytest.raises(ConfigError, match="cannot read"):
+        read_signing_key(tmp_path / "absent")
+
+
+def test_connection_strings():
+    assert parse_url("/dev/ttyAMA0:921600") == ("/dev/ttyAMA0", 921600)
+    assert parse_url("serial:/dev/ttyACM0:115200") == ("/dev/ttyACM0", 115200)
+    assert parse_url("udpin:0.0.0.0:14550") == ("udpin:0.0.0.0:14550", None)
+    assert parse_url("tcp:127.0.0.1:5760") == ("tcp:127.0.0.1:5760", None)
+    for bad in ("/dev/ttyAMA0", "COM3", "udp:1.2.3.4:5", "tcp:host:port"):
+        with pytest.raises(ConfigError, match="link.url"):
+            parse_url(bad)
+
+
+def test_serial_port_unplugged_and_back(mavutil):
+    """A pseudo-terminal stands in for the flight controller's UART: closing its other end is an
+    unplugged cable; the link reconnects when a new one appears at the same path."""
+    master, slave = os.openpty()
+    path = os.ttyname(slave)
+    listener = Recorder()
+    link = Link(LinkOptions(url=f"{path}:115200", silence_timeout_s=1.0), MonotonicClock(), listener)
+    stop = threading.Event()
+    t = threading.Thread(target=link.run, args=(stop,), daemon=True)
+    t.start()
+    fc = mavutil.mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    try:
+        assert link.connected.wait(5)
+        os.write(master, fc.heartbeat_encode(2, 3, 0, 0, 4).pack(fc))
+        for i in range(20):
+            os.write(master, fc.attitude_encode(1000 + 10 * i, 0.1, 0.0, 0.0, 0, 0, 0).pack(fc))
+            time.sleep(0.005)
+        deadline = time.monotonic() + 5
+        while len(listener.attitude) < 20 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert len(listener.attitude) == 20
+        got = os.read(master, 1000)  # what mavvo wrote: its HEARTBEAT, at least
+        assert b"\xfd" in got
+        os.close(master)  # unplugged
+        deadline = time.monotonic() + 10
+        while link.counters["reconnects"] == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert link.counters["reconnects"] >= 1
+    finally:
+        stop.set()
+        t.join(10)
+        os.close(slave)
+    assert not t.is_alive()

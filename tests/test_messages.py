@@ -1,0 +1,58 @@
+"""The fields mavvo sends: covariance layout, frames of ODOMETRY, text limits."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mavvo import messages
+from mavvo.frames import R_from_euler321
+from mavvo.types import PoseEstimate, VoDiagnostics
+
+
+def estimate(yaw_rad=0.0, v=(1.0, 0.0, 0.0), quality=80, reset=3):
+    cov = np.zeros((6, 6))
+    cov[np.triu_indices(6)] = np.arange(1, 22)  # entry k+1 at the k-th upper-triangle place, row-major
+    cov = cov + np.triu(cov, 1).T
+    return PoseEstimate(
+        t_exposure_s=12.3456789, seq=7, p_ned_m=np.array([1.0, 2.0, -3.0]), rpy_rad=np.array([0.1, -0.05, yaw_rad]),
+        v_ned_m_s=np.array(v), covariance=cov, v_covariance=np.diag([0.01, 0.02, 0.03]), quality=quality,
+        reset_counter=reset, diagnostics=VoDiagnostics("tracking"),
+    )
+
+
+def test_vision_position_estimate_carries_the_upper_triangle_row_major():
+    f = messages.vision_position_estimate(estimate())
+    assert f["usec"] == 12345679 and (f["x"], f["y"], f["z"]) == (1.0, 2.0, -3.0)
+    assert f["covariance"] == [float(k) for k in range(1, 22)]
+    # The diagonal (x y z roll pitch yaw variances) sits at 0, 6, 11, 15, 18, 20, where ArduPilot reads it.
+    cov = estimate().covariance
+    assert [f["covariance"][i] for i in (0, 6, 11, 15, 18, 20)] == list(np.diag(cov))
+    assert f["reset_counter"] == 3 and messages.vision_position_estimate(estimate(reset=259))["reset_counter"] == 3
+
+
+def test_odometry_velocity_is_in_the_body_frame():
+    est = estimate(yaw_rad=math.pi / 2, v=(0.0, 2.0, 0.0))  # flying east, nose east: forward in the body
+    f = messages.odometry(est)
+    R = R_from_euler321(*est.rpy_rad)
+    assert np.allclose([f["vx"], f["vy"], f["vz"]], R.T @ est.v_ned_m_s)
+    assert f["vx"] == pytest.approx(2.0 * math.cos(0.05) * math.cos(0.0), rel=0.01)
+    assert (f["frame_id"], f["child_frame_id"], f["estimator_type"], f["quality"]) == (20, 12, 2, 80)
+    w, x, y, z = f["q"]
+    assert w == pytest.approx(math.cos(0.5 * math.acos((np.trace(R) - 1) / 2)), abs=1e-9)
+    assert all(math.isnan(v) for v in (f["rollspeed"], f["pitchspeed"], f["yawspeed"]))
+
+
+def test_statustext_is_prefixed_and_fits_mavlink():
+    t = messages.statustext("failed", "tracking_lost because of a very long explanation of what went wrong")
+    assert t["text"].startswith(b"mavvo: failed (") and len(t["text"]) == 50
+    assert t["severity"] == messages.MAV_SEVERITY_WARNING
+    assert messages.statustext("tracking", "")["text"] == b"mavvo: tracking"
+
+
+def test_named_value_names_are_checked():
+    assert messages.named_value_float(5, "VO_QUAL", 80)["name"] == b"VO_QUAL"
+    with pytest.raises(ValueError, match="longer than 10"):
+        messages.named_value_float(5, "VO_QUALITY_X", 1.0)

@@ -1,0 +1,148 @@
+"""Pairing frames with attitude: the clock offset filters, interpolation at exposure, and the refusals
+(stale, missing, spoiled, rebooted) that keep a frame from a wrong attitude."""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+import pytest
+
+from mavvo.timing import ClockSync, FlightControllerState, TimingOptions, wait_for_pairing
+
+OFFSET_S = 30.0  # boot clock minus host clock
+
+
+class FakeClock:
+    def __init__(self, realtime: bool = False) -> None:
+        self.t = 0.0
+        self.realtime = realtime
+
+    def now_s(self) -> float:
+        return self.t
+
+
+def feed(state: FlightControllerState, clock: FakeClock, times_host_s, roll=lambda t: 0.1 * t, latency_s=0.004, yaw=lambda t: 0.0):
+    """ATTITUDE measured at each host time, arriving ``latency_s`` later."""
+    for t in times_host_s:
+        clock.t = t + latency_s
+        state.on_attitude(int(round((t + OFFSET_S) * 1000)), roll(t), -0.5 * roll(t), yaw(t))
+
+
+def test_arrivals_alone_bound_the_offset_by_the_fastest_message():
+    sync = ClockSync(window_s=10.0)
+    rng = np.random.default_rng(1)
+    for t in np.arange(0.0, 5.0, 0.01):
+        sync.add_arrival(t + OFFSET_S, t + 0.003 + rng.exponential(0.01))
+    assert sync.offset_s() == pytest.approx(OFFSET_S - 0.003, abs=5e-4)
+    assert sync.offset_s() <= OFFSET_S - 0.003  # a lower bound, reached by the fastest
+
+
+def test_timesync_picks_the_shortest_round_trip_and_arrivals_clamp_it():
+    sync = ClockSync(window_s=10.0)
+    # Asymmetric slow exchanges are off by half their round trip; the fast one is nearly exact.
+    for sent, rtt, there in ((1.0, 0.2, 0.19), (2.0, 0.002, 0.001), (3.0, 0.1, 0.0)):
+        sync.add_timesync(sent, sent + there + OFFSET_S, sent + rtt)
+    assert sync.round_trip_s() == pytest.approx(0.002)
+    assert sync.offset_s() == pytest.approx(OFFSET_S, abs=1e-3)
+    # A message that arrived 1 ms after it was measured proves the offset is at least OFFSET_S + 0.01 - 0.001.
+    sync.add_arrival(4.0 + OFFSET_S + 0.01, 4.001)
+    assert sync.offset_s() == pytest.approx(OFFSET_S + 0.009, abs=1e-9)
+
+
+def test_old_measurements_leave_the_window_so_drift_is_followed():
+    sync = ClockSync(window_s=2.0)
+    sync.add_arrival(0.0 + OFFSET_S + 0.5, 0.0)  # an old offset, larger
+    for t in np.arange(0.1, 5.0, 0.1):
+        sync.add_arrival(t + OFFSET_S, t)
+    assert sync.offset_s() == pytest.approx(OFFSET_S, abs=1e-9)
+
+
+def test_roll_and_pitch_are_interpolated_at_the_exposure():
+    clock = FakeClock()
+    state = FlightControllerState(clock)
+    feed(state, clock, np.arange(0.0, 1.0, 0.01), latency_s=0.0)
+    p = state.pair(0.5337)
+    assert p.status == "paired"
+    # Boot-clock milliseconds quantise the sample times; linear motion is interpolated exactly between them.
+    assert p.roll_rad == pytest.approx(0.05337, abs=1e-9)
+    assert p.pitch_rad == pytest.approx(-0.5 * 0.05337, abs=1e-9)
+
+
+def test_yaw_is_interpolated_the_short_way_across_pi():
+    clock = FakeClock()
+    state = FlightControllerState(clock)
+    yaw = lambda t: math.remainder(math.pi - 0.02 + 0.4 * t, math.tau)  # crosses +pi at t = 0.05
+    feed(state, clock, np.arange(0.0, 0.2, 0.01), latency_s=0.0, yaw=yaw)
+    p = state.pair(0.055)
+    assert p.status == "paired" and abs(math.remainder(p.yaw_rad - yaw(0.055), math.tau)) < 1e-9
+
+
+def test_a_frame_waits_for_the_attitude_after_its_exposure_and_refuses_a_gap():
+    clock = FakeClock()
+    state = FlightControllerState(clock, TimingOptions(max_attitude_gap_s=0.05))
+    feed(state, clock, [0.0, 0.01, 0.02], latency_s=0.0)
+    assert state.pair(0.025).status == "wait"
+    feed(state, clock, [0.2], latency_s=0.0)  # the stream stalled for 180 ms
+    assert state.pair(0.025).status == "stale"
+    assert state.pair(0.015).status == "paired"
+
+
+def test_spoiled_and_repeated_attitude_is_never_interpolated():
+    clock = FakeClock()
+    state = FlightControllerState(clock)
+    feed(state, clock, [0.0, 0.01, 0.02], latency_s=0.0)
+    feed(state, clock, [0.03, 0.04, 0.05], latency_s=0.0, roll=lambda t: float("nan"))
+    feed(state, clock, [0.02, 0.02], latency_s=0.0)  # a stream repeating its last sample
+    assert state.counters["attitude_rejected"] == 5
+    feed(state, clock, [0.08], latency_s=0.0)
+    assert state.pair(0.04).status == "stale"  # 60 ms between the valid samples around it
+    assert state.pair(0.015).status == "paired"
+
+
+def test_nothing_is_paired_before_the_flight_controller_is_heard_or_after_it_rebooted():
+    clock = FakeClock()
+    state = FlightControllerState(clock)
+    assert state.pair(0.0).status == "missing"
+    feed(state, clock, np.arange(0.0, 1.0, 0.01))
+    assert state.pair(0.5).status == "paired"
+    state.on_reboot()
+    assert state.pair(0.5).status == "missing" and state.counters["reboots"] == 1
+    # After the reboot the boot clock restarts at zero: the new offset is learnt from the new samples.
+    for t in np.arange(1.0, 1.5, 0.01):
+        clock.t = t
+        state.on_attitude(int(round((t - 1.0) * 1000)), 0.2, 0.0, 0.0)
+    p = state.pair(1.25)
+    assert p.status == "paired" and p.roll_rad == pytest.approx(0.2)
+
+
+def test_range_and_height_are_given_only_when_fresh():
+    clock = FakeClock()
+    state = FlightControllerState(clock, TimingOptions(range_max_age_s=0.2, height_max_age_s=0.5))
+    feed(state, clock, np.arange(0.0, 2.0, 0.01))
+    state.on_range(int((1.0 + OFFSET_S) * 1000), 12.5)
+    state.on_height(int((1.0 + OFFSET_S) * 1000), 11.0)
+    p = state.pair(1.1)
+    assert (p.range_m, p.height_m) == (12.5, 11.0)
+    p = state.pair(1.4)
+    assert p.range_m is None and p.height_m == 11.0
+    assert state.pair(1.6).height_m is None
+    state.on_range(int((1.5 + OFFSET_S) * 1000), None)  # out of range: no reading, not the old one
+    assert state.pair(1.5).range_m is None
+
+
+def test_lockstep_wait_is_bounded_by_the_data_and_real_time_by_the_clock():
+    clock = FakeClock(realtime=False)
+    state = FlightControllerState(clock)
+    feed(state, clock, [0.0, 0.01])
+    assert wait_for_pairing(state, 0.05, lockstep_wait_s=0.05).status == "stale"
+    # The sample arriving from another thread ends the wait with a pairing.
+    threading.Timer(0.01, lambda: feed(state, clock, [0.04, 0.055])).start()
+    assert wait_for_pairing(state, 0.05, lockstep_wait_s=1.0).status == "paired"
+
+    rt = FakeClock(realtime=True)
+    state_rt = FlightControllerState(rt, TimingOptions(attitude_wait_s=0.1))
+    feed(state_rt, rt, [0.0, 0.01])
+    rt.t = 0.3  # the host clock is past the exposure plus the wait: give up at once
+    assert wait_for_pairing(state_rt, 0.05).status == "stale"
