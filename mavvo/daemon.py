@@ -6,10 +6,11 @@
   newest frames, older ones dropped and counted; lockstep simulation: every frame, in order).
 - The worker pairs each frame with roll/pitch at its exposure, runs :meth:`mavvo.odometry.Odometry.step`
   and sends the estimate: VISION_POSITION_ESTIMATE (capped at ``output.max_rate_hz``), optionally
-  VISION_SPEED_ESTIMATE and ODOMETRY, nothing while failed; STATUSTEXT on state changes;
-  NAMED_VALUE_FLOAT health.
+  VISION_SPEED_ESTIMATE and ODOMETRY, nothing while failed.
 - The calling thread supervises: SIGTERM/SIGINT set the stop flag (handlers restored afterwards),
-  systemd READY/WATCHDOG/STOPPING, health counters in the log every ``service.health_log_interval_s``.
+  systemd READY/WATCHDOG/STOPPING, STATUSTEXT on state changes (also "failed" when estimates stop
+  coming: no attitude, no frames), NAMED_VALUE_FLOAT health, counters in the log every
+  ``service.health_log_interval_s``.
 
 Bad input from the flight controller or the camera never stops the service: it is logged, counted,
 reported over MAVLink and skipped. The stop is bounded: the worker finishes its frame, the link sends
@@ -40,6 +41,7 @@ __all__ = ["Daemon", "DaemonSummary"]
 log = logging.getLogger(__name__)
 
 _SUPERVISE_TICK_S = 0.1
+_NO_ESTIMATE_S = 1.0  # no estimate for this long (host clock): the operator is told vision failed
 _ERROR_LOG_EVERY = 100  # after the first few, log one repeated error in this many
 
 
@@ -91,6 +93,8 @@ class Daemon:
         self._next_health_s = -math.inf
         self._reset_counter: int | None = None
         self._errors_logged: Counter[str] = Counter()
+        self._state_lock = threading.Lock()
+        self._skipped_at_last_report = 0
 
     # ------------------------------------------------------------------ running
 
@@ -147,6 +151,7 @@ class Daemon:
                 if self._wall.now_s() - self._worker_beat_s < 2 * watchdog_s:
                     sdnotify.notify("WATCHDOG=1")
                 next_ping = self._wall.now_s() + watchdog_s
+            self._report(self.clock.now_s())
             if self.clock.now_s() >= next_log:
                 self._log_health()
                 next_log = self.clock.now_s() + self.config.service.health_log_interval_s
@@ -209,16 +214,8 @@ class Daemon:
             self._publish(est)
 
     def _publish(self, est: PoseEstimate) -> None:
-        now = self.clock.now_s()
         self.last_estimate = est
-        diag = est.diagnostics
-        if diag.state != self.state:
-            log.info("state %s -> %s%s", self.state, diag.state, f" ({diag.reason})" if diag.reason else "")
-            self.state = diag.state
-            self._pending_text = messages.statustext(diag.state, diag.reason)
-        if self._pending_text is not None and now - self._last_text_s >= self.config.output.statustext_min_interval_s:
-            self.link.send("STATUSTEXT", self._pending_text)
-            self._pending_text, self._last_text_s = None, now
+        self._set_state(est.diagnostics.state, est.diagnostics.reason)
         if self._reset_counter is not None and est.reset_counter != self._reset_counter:
             self.counters["resets"] += 1
         self._reset_counter = est.reset_counter
@@ -235,14 +232,45 @@ class Daemon:
             if out.odometry:
                 self.link.send("ODOMETRY", messages.odometry(est))
             self.counters["estimates_sent"] += 1
+
+    # ------------------------------------------------------------------ the operator's view
+
+    def _set_state(self, state: str, reason: str) -> None:
+        with self._state_lock:
+            if state == self.state:
+                return
+            log.info("state %s -> %s%s", self.state, state, f" ({reason})" if reason else "")
+            self.state = state
+            self._pending_text = messages.statustext(state, reason)
+
+    def _report(self, now: float) -> None:
+        """From the supervisor: notice when estimates stop coming, send the pending STATUSTEXT (rate
+        limited) and the health values."""
+        est = self.last_estimate
+        if est is not None and self.state != "failed" and now - est.t_exposure_s > _NO_ESTIMATE_S:
+            skipped = sum(v for k, v in self.counters.items() if k.startswith("skipped_attitude"))
+            reason = "no_attitude" if skipped > self._skipped_at_last_report else "no_frames"
+            self._set_state("failed", reason)
+        self._skipped_at_last_report = sum(v for k, v in self.counters.items() if k.startswith("skipped_attitude"))
+        with self._state_lock:
+            text = self._pending_text
+            if text is not None and now - self._last_text_s >= self.config.output.statustext_min_interval_s:
+                self._pending_text, self._last_text_s = None, now
+            else:
+                text = None
+        if text is not None:
+            self.link.send("STATUSTEXT", text)
         if now >= self._next_health_s:
-            self._next_health_s = now + 1.0 / out.health_rate_hz
+            self._next_health_s = now + 1.0 / self.config.output.health_rate_hz
             latency = self.link.latency_s()
-            t_ms = int(now * 1000)
-            for name, value in (
-                ("VO_QUAL", est.quality), ("VO_INLIER", diag.inliers), ("VO_STATE", messages.STATE_CODES.get(diag.state, -1)),
+            fresh = est is not None and now - est.t_exposure_s <= _NO_ESTIMATE_S
+            values = (
+                ("VO_QUAL", est.quality if fresh else -1), ("VO_INLIER", est.diagnostics.inliers if fresh else 0),
+                ("VO_STATE", messages.STATE_CODES.get(self.state, -1)),
                 ("VO_LAT_MS", latency * 1e3 if latency is not None else math.nan),
-            ):
+            )
+            t_ms = int(now * 1000)
+            for name, value in values:
                 self.link.send("NAMED_VALUE_FLOAT", messages.named_value_float(t_ms, name, value))
 
     # ------------------------------------------------------------------ health

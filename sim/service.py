@@ -65,6 +65,7 @@ class SimRun:
     evaluation: Evaluation | None
     resets: int
     vision_messages: list[Any]  # the VISION_POSITION_ESTIMATEs received, in order (pymavlink messages)
+    statustexts: list[tuple[float, str]]  # (simulation time received, text)
 
     def summary(self) -> dict[str, Any]:
         """A flat JSON-ready summary (what ``mavvo sim --json`` prints)."""
@@ -137,4 +138,5 @@ def run_daemon_in_sim(
     return SimRun(
         scenario.name, realtime, sim.clock.now_s(), wall, summary, dict(sorted(received.items())), est, truth, ev,
         int(np.count_nonzero(np.diff(counters))) if len(counters) else 0, [r.msg for r in vpe],
+        [(r.t_s, r.msg.text) for r in sim.fc.received if r.type == "STATUSTEXT"],
     )

@@ -97,6 +97,10 @@ def test_faults_are_survived_and_recovered_from():
     assert len(p) > 200 and not np.any(np.all(np.diff(p, axis=0) == 0, axis=1))
     assert run.evaluation is not None and run.evaluation.ate_se3_m["rmse"] < 0.5
     assert run.daemon.state == "tracking"
+    # The operator is told: vision failed for want of attitude during the silence, and tracking came back.
+    texts = run.statustexts
+    assert any(3.0 < t < 7.5 and text == "mavvo: failed (no_attitude)" for t, text in texts), texts
+    assert any(t > 7.0 and text == "mavvo: tracking" for t, text in texts), texts
 
 
 class FixedClock:
