@@ -65,3 +65,16 @@ def test_sim_arguments_are_checked(capsys):
     with pytest.raises(SystemExit) as e:
         main(["sim", "--help"])
     assert e.value.code == 0
+
+
+def test_sim_realtime_json_summary(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "mavvo", "sim", "--scenario", "hover", "--duration", "3", "--realtime", "--json", "--out", str(tmp_path)],
+        capture_output=True, text=True, timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout)  # stdout holds the one JSON object and nothing else
+    assert summary["realtime"] is True and summary["scenario"] == "hover"
+    assert summary["estimates_received"] > 10 and summary["frames"] >= summary["estimates_received"]
+    assert summary["ate_rmse_m"] < 0.1 and summary["latency_ms"] > 0
+    assert (tmp_path / "evaluation.png").stat().st_size > 0 and summary["plot"] == str(tmp_path / "evaluation.png")

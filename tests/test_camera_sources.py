@@ -1,0 +1,79 @@
+"""Frame sources: the newest-frame queue, a video file, and the ``sim:`` scheme the CLI registers."""
+
+from __future__ import annotations
+
+import threading
+
+import cv2
+import numpy as np
+import pytest
+
+from mavvo.camera import CameraOptions, FrameQueue, VideoFileSource, open_source
+from mavvo.errors import CameraEnded, CameraError
+from mavvo.timing import MonotonicClock
+from mavvo.types import Frame
+
+
+class StillClock:
+    realtime = False
+
+    def now_s(self) -> float:
+        return 100.0
+
+
+def test_queue_keeps_the_newest_frames_and_counts_drops():
+    q = FrameQueue(2, drop_oldest=True)
+    stop = threading.Event()
+    for i in range(5):
+        q.put(Frame(np.zeros((2, 2), np.uint8), i * 0.05, i), stop)
+    assert q.dropped == 3 and [q.get(0.01).seq for _ in range(2)] == [3, 4] and q.get(0.01) is None
+
+
+def test_lockstep_queue_waits_instead_of_dropping():
+    q = FrameQueue(1, drop_oldest=False)
+    stop = threading.Event()
+    q.put(Frame(np.zeros((2, 2), np.uint8), 0.0, 0), stop)
+    t = threading.Thread(target=q.put, args=(Frame(np.zeros((2, 2), np.uint8), 0.05, 1), stop))
+    t.start()
+    t.join(0.2)
+    assert t.is_alive(), "put waits while the queue is full"
+    assert q.get(1.0).seq == 0
+    t.join(5)
+    assert q.get(1.0).seq == 1 and q.dropped == 0
+
+
+def test_video_file_frames_are_grey_and_stamped_from_the_container(tmp_path):
+    path = tmp_path / "flight.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 20.0, (64, 48))
+    rng = np.random.default_rng(3)
+    for _ in range(6):
+        writer.write(rng.integers(0, 255, (48, 64, 3), dtype=np.uint8))
+    writer.release()
+    src = open_source(CameraOptions(source=str(path), width_px=64, height_px=48, cx_px=31.5, cy_px=23.5), StillClock())
+    assert isinstance(src, VideoFileSource)
+    frames = [src.read(1.0) for _ in range(6)]
+    assert all(f.image.shape == (48, 64) and f.image.dtype == np.uint8 for f in frames)
+    assert np.allclose(np.diff([f.t_exposure_s for f in frames]), 0.05, atol=1e-3)
+    assert frames[0].t_exposure_s == 100.0  # the first frame at the moment the file was opened
+    with pytest.raises(CameraEnded):
+        src.read(1.0)
+
+
+def test_unknown_source_names_itself():
+    with pytest.raises(CameraError, match=r"camera.source 'nowhere/video.mp4': expected /dev/videoN, a video file, an image folder or sim:ARGUMENT"):
+        open_source(CameraOptions(source="nowhere/video.mp4"), StillClock(), {"sim": lambda *a: None})
+
+
+def test_sim_scheme_renders_the_scenario_on_the_host_clock():
+    from mavvo.cli import _sim_camera
+
+    clock = MonotonicClock()
+    src = open_source(CameraOptions(source="sim:hover"), clock, {"sim": _sim_camera})
+    try:
+        f = None
+        while f is None:
+            f = src.read(0.5)
+        assert f.image.shape == (480, 640) and f.image.std() > 10  # a textured ground
+        assert abs(f.t_exposure_s - clock.now_s()) < 1.0  # on the host's monotonic clock
+    finally:
+        src.close()
