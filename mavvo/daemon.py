@@ -261,7 +261,9 @@ class Daemon:
         if text is not None:
             self.link.send("STATUSTEXT", text)
         if now >= self._next_health_s:
-            self._next_health_s = now + 1.0 / self.config.output.health_rate_hz
+            period = 1.0 / self.config.output.health_rate_hz
+            # On the period's grid, so the rate holds however coarse the supervisor's ticks are.
+            self._next_health_s = self._next_health_s + period if now < self._next_health_s + period else now + period
             latency = self.link.latency_s()
             fresh = est is not None and now - est.t_exposure_s <= _NO_ESTIMATE_S
             values = (
