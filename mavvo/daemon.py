@@ -45,6 +45,12 @@ _NO_ESTIMATE_S = 1.0  # no estimate for this long (host clock): the operator is 
 _ERROR_LOG_EVERY = 100  # after the first few, log one repeated error in this many
 
 
+def _snapshot(counter: Counter[str]) -> dict[str, int]:
+    """A copy of a counter that another thread adds keys to. ``dict(counter)`` copies in one C call
+    under the GIL; iterating the live counter could meet a new key and raise."""
+    return dict(counter)
+
+
 @dataclass(frozen=True)
 class DaemonSummary:
     """How a run went: every counter, the last state, and the capture-to-send latency."""
@@ -75,8 +81,8 @@ class Daemon:
         self.config = config
         self.clock = clock or MonotonicClock()
         self.fc = FlightControllerState(self.clock, config.timing)
-        self.link = Link(config.link, self.clock, self.fc, self._system_status)
         self.source = source if source is not None else open_source(config.camera, self.clock, schemes)
+        self.link = Link(config.link, self.clock, self.fc, self._system_status)
         self.frames = FrameQueue(config.camera.queue_size, drop_oldest=self.clock.realtime)
         self.odometry = Odometry(config.camera.camera_model(), config.mounting.rotation(), config.odometry)
         self.counters: Counter[str] = Counter()
@@ -107,7 +113,7 @@ class Daemon:
         frames are processed. Installs SIGTERM/SIGINT handlers when called from the main thread."""
         previous = {}
         if threading.current_thread() is threading.main_thread():
-            previous = {s: signal.signal(s, lambda *_: self.stop_event.set()) for s in (signal.SIGTERM, signal.SIGINT)}
+            previous = {s: signal.signal(s, lambda *_: self.request_stop()) for s in (signal.SIGTERM, signal.SIGINT)}
         link_stop = threading.Event()
         threads = [
             threading.Thread(target=self.link.run, args=(link_stop,), name="mavvo-link", daemon=True),
@@ -247,11 +253,10 @@ class Daemon:
         """From the supervisor: notice when estimates stop coming, send the pending STATUSTEXT (rate
         limited) and the health values."""
         est = self.last_estimate
+        skipped = sum(v for k, v in _snapshot(self.counters).items() if k.startswith("skipped_attitude"))
         if est is not None and self.state != "failed" and now - est.t_exposure_s > _NO_ESTIMATE_S:
-            skipped = sum(v for k, v in self.counters.items() if k.startswith("skipped_attitude"))
-            reason = "no_attitude" if skipped > self._skipped_at_last_report else "no_frames"
-            self._set_state("failed", reason)
-        self._skipped_at_last_report = sum(v for k, v in self.counters.items() if k.startswith("skipped_attitude"))
+            self._set_state("failed", "no_attitude" if skipped > self._skipped_at_last_report else "no_frames")
+        self._skipped_at_last_report = skipped
         with self._state_lock:
             text = self._pending_text
             if text is not None and now - self._last_text_s >= self.config.output.statustext_min_interval_s:
@@ -282,9 +287,9 @@ class Daemon:
 
     def health(self) -> dict[str, int]:
         """Every counter of the service and its parts."""
-        c: Counter[str] = Counter(self.counters)
-        c.update({f"link_{k}": v for k, v in self.link.counters.items()})
-        c.update({f"fc_{k}": v for k, v in self.fc.counters.items()})
+        c = _snapshot(self.counters)
+        c.update({f"link_{k}": v for k, v in _snapshot(self.link.counters).items()})
+        c.update({f"fc_{k}": v for k, v in _snapshot(self.fc.counters).items()})
         c["frames_dropped"] = self.frames.dropped
         c["camera_reconnects"] = getattr(self.source, "reconnects", 0)
         return dict(sorted(c.items()))

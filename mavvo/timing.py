@@ -216,11 +216,6 @@ class FlightControllerState:
 
     # ------------------------------------------------------------------ the worker's side
 
-    def offset_s(self) -> float | None:
-        """``t_fc_s - t_host_s``, or None before the flight controller has been heard."""
-        with self._lock:
-            return self._sync.offset_s()
-
     def pair(self, t_exposure_host_s: float) -> Pairing:
         """The flight controller's state at an exposure (see :class:`Pairing`)."""
         with self._lock:

@@ -98,12 +98,10 @@ def run_daemon_in_sim(
     realtime: bool = False,
     duration_s: float | None = None,
     out_dir: str | Path | None = None,
-    on_daemon: Any = None,
 ) -> SimRun:
     """Fly ``scenario`` with the daemon (see the module docstring) until the scenario ends or the
-    daemon is stopped (a signal in the main thread, or ``daemon.request_stop()``); evaluate, and with
-    ``out_dir`` write the report (estimate.tum, truth.tum, summary.json, evaluation.png).
-    ``on_daemon(daemon)`` is called before the run starts (tests use it to stop or inspect)."""
+    daemon is stopped (SIGTERM or SIGINT when called from the main thread); evaluate, and with
+    ``out_dir`` write the report (estimate.tum, truth.tum, summary.json, evaluation.png)."""
     sim = Simulation(scenario, "udpin:127.0.0.1:0", realtime=realtime, duration_s=duration_s)
     host, port = sim.fc.address
     config = config_for(scenario, base or ServiceConfig(), f"udpout:{host}:{port}")
@@ -112,8 +110,6 @@ def run_daemon_in_sim(
     wall0 = time.perf_counter()
     try:
         daemon = Daemon(config, clock=sim.clock, source=sim.camera)
-        if on_daemon is not None:
-            on_daemon(daemon)
         if realtime:
             fc_thread = threading.Thread(target=sim.serve, args=(stop_fc,), kwargs={"until_s": float("inf")}, name="sim-fc", daemon=True)
             fc_thread.start()
