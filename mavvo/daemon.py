@@ -25,14 +25,15 @@ import signal
 import threading
 from collections import Counter
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 from mavvo import messages, sdnotify
 from mavvo.camera import FrameQueue, FrameSource, SourceFactory, open_source
 from mavvo.errors import CameraEnded
 from mavvo.link import Link, SystemStatus
 from mavvo.odometry import Odometry
-from mavvo.settings import ServiceConfig
+from mavvo.recorder import Recorder
+from mavvo.settings import ServiceConfig, config_yaml
 from mavvo.timing import Clock, FlightControllerState, MonotonicClock, wait_for_pairing
 from mavvo.types import Frame, PairedFrame, PoseEstimate
 
@@ -68,6 +69,10 @@ class Daemon:
         clock: the host clock (``time.monotonic`` by default; the simulator passes its own).
         source: the frame source; default: opened from ``config.camera.source``.
         schemes: extra ``camera.source`` schemes (the CLI registers ``sim:``).
+        on_estimate: called on the worker thread with every estimate (replay's quality timeline); it
+            must be quick.
+
+    With ``config.record.dir`` set, the run is recorded (:mod:`mavvo.recorder`).
     """
 
     def __init__(
@@ -77,12 +82,21 @@ class Daemon:
         clock: Clock | None = None,
         source: FrameSource | None = None,
         schemes: dict[str, SourceFactory] | None = None,
+        on_estimate: Callable[[PoseEstimate], None] | None = None,
     ) -> None:
         self.config = config
         self.clock = clock or MonotonicClock()
+        self.on_estimate = on_estimate
         self.fc = FlightControllerState(self.clock, config.timing)
         self.source = source if source is not None else open_source(config.camera, self.clock, schemes)
-        self.link = Link(config.link, self.clock, self.fc, self._system_status)
+        try:
+            self.recorder = Recorder(config.record, config_yaml(config), self.clock) if config.record.dir else None
+            self.link = Link(config.link, self.clock, self.fc, self._system_status, tap=self.recorder.mavlink if self.recorder else None)
+        except BaseException:
+            self.source.close()
+            if getattr(self, "recorder", None) is not None:
+                self.recorder.close()
+            raise
         self.frames = FrameQueue(config.camera.queue_size, drop_oldest=self.clock.realtime)
         self.odometry = Odometry(config.camera.camera_model(), config.mounting.rotation(), config.odometry)
         self.counters: Counter[str] = Counter()
@@ -139,6 +153,8 @@ class Daemon:
             link_stop.set()  # after the worker: its last messages go out in the link's drain
             threads[0].join(max(deadline - self._wall.now_s(), 0.1))
             self.source.close()
+            if self.recorder is not None:
+                self.recorder.close()
             for s, h in previous.items():
                 signal.signal(s, h)
         summary = self.summary()
@@ -197,6 +213,8 @@ class Daemon:
                 except Exception as e:  # a bug must not take the service down; it is counted and logged
                     self.counters["errors"] += 1
                     self._log_error("worker", e, traceback=True)
+                finally:
+                    self.counters["frames_done"] += 1
         finally:
             self._worker_done.set()
 
@@ -205,6 +223,8 @@ class Daemon:
     def _process(self, frame: Frame) -> None:
         self.counters["frames"] += 1
         p = wait_for_pairing(self.fc, frame.t_exposure_s)
+        if self.recorder is not None:
+            self.recorder.frame(frame, p, self.clock.now_s())
         if p.status != "paired":
             self.counters[f"skipped_attitude_{p.status}"] += 1
             return
@@ -221,6 +241,8 @@ class Daemon:
 
     def _publish(self, est: PoseEstimate) -> None:
         self.last_estimate = est
+        if self.on_estimate is not None:
+            self.on_estimate(est)
         self._set_state(est.diagnostics.state, est.diagnostics.reason)
         if self._reset_counter is not None and est.reset_counter != self._reset_counter:
             self.counters["resets"] += 1
@@ -292,6 +314,8 @@ class Daemon:
         c.update({f"fc_{k}": v for k, v in _snapshot(self.fc.counters).items()})
         c["frames_dropped"] = self.frames.dropped
         c["camera_reconnects"] = getattr(self.source, "reconnects", 0)
+        if self.recorder is not None:
+            c.update({f"record_{k}": v for k, v in _snapshot(self.recorder.counters).items()})
         return dict(sorted(c.items()))
 
     def summary(self) -> DaemonSummary:
@@ -307,7 +331,8 @@ class Daemon:
         )
         keys = ("frames", "paired", "estimates_sent", "not_sent_failed", "resets", "frames_dropped", "bad_frames",
                 "skipped_attitude_wait", "skipped_attitude_stale", "skipped_attitude_missing", "fc_attitude_rejected",
-                "link_bad_data", "link_reconnects", "link_reboots", "camera_errors", "camera_reconnects", "errors")
+                "link_bad_data", "link_reconnects", "link_reboots", "camera_errors", "camera_reconnects", "errors",
+                "record_frames", "record_dropped_frames", "record_dropped_messages")
         counts = ", ".join(f"{k} {h[k]}" for k in keys if h.get(k))
         log.info("%s: state %s; %s%s", "final" if final else "health", self.state, counts or "nothing yet", lat)
 

@@ -43,7 +43,7 @@ from mavvo.timing import Clock
 os.environ["MAVLINK20"] = "1"  # before pymavlink is imported: covariance and reset_counter are MAVLink 2 only
 from pymavlink import mavutil  # noqa: E402
 
-__all__ = ["LinkOptions", "LinkListener", "Link", "SystemStatus", "parse_url", "read_signing_key"]
+__all__ = ["LinkOptions", "LinkListener", "Link", "SystemStatus", "Tap", "parse_url", "read_signing_key", "stamp_us", "us_to_s"]
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +54,10 @@ _SOCKET_SCHEMES = ("udpin:", "udpout:", "tcp:", "tcpin:")
 _REBOOT_STEP_S = 1.0  # time_boot_ms going back by more than this is a reboot, not a reordered packet
 _SEND_QUEUE = 128
 _MAX_REQUEST_BACKOFF_S = 30.0
+# A TIMESYNC answer is ours when its ts1 reads as a moment of our own clock at most this long ago: it
+# then measures our clock whoever asked. (No dictionary of requests: a replayed answer must count as it
+# did in flight, and pymavlink's TIMESYNC has no target fields to tell requesters apart.)
+_TIMESYNC_MAX_RTT_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -75,11 +79,27 @@ class LinkOptions:
 class LinkListener(Protocol):
     """Receives the flight controller's state from the link thread (see :mod:`mavvo.timing`)."""
 
-    def on_attitude(self, t_fc_ms: int, roll_rad: float, pitch_rad: float, yaw_rad: float) -> None: ...
-    def on_range(self, t_fc_ms: int, range_m: float | None) -> None: ...
-    def on_height(self, t_fc_ms: int, height_m: float) -> None: ...
-    def on_timesync(self, t_sent_host_s: float, t_fc_s: float) -> None: ...
+    def on_attitude(self, t_fc_ms: int, roll_rad: float, pitch_rad: float, yaw_rad: float, t_arrival_host_s: float | None = None) -> None: ...
+    def on_range(self, t_fc_ms: int, range_m: float | None, t_arrival_host_s: float | None = None) -> None: ...
+    def on_height(self, t_fc_ms: int, height_m: float, t_arrival_host_s: float | None = None) -> None: ...
+    def on_timesync(self, t_sent_host_s: float, t_fc_s: float, t_arrival_host_s: float | None = None) -> None: ...
     def on_reboot(self) -> None: ...
+
+
+Tap = Callable[[int, bytes, bool], None]
+"""Sees every message the link reads or writes: (host clock in whole microseconds, the message's bytes,
+True when it came in). It must not block: it runs on the link thread."""
+
+
+def stamp_us(clock: Clock) -> int:
+    """Now on ``clock`` in whole microseconds: the one arrival stamp a message gets. Whole microseconds
+    (what a .tlog stores) so that a recorded flight replays with exactly the stamps it had."""
+    return round(clock.now_s() * 1e6)
+
+
+def us_to_s(t_us: int) -> float:
+    """Microseconds to seconds, the one way both recording and replay convert."""
+    return t_us / 1_000_000
 
 
 def parse_url(url: str) -> tuple[str, int | None]:
@@ -145,11 +165,16 @@ class Link:
         system_status: called once a second for the HEARTBEAT's ``system_status``.
 
     Counters (``counters``): ``rx`` messages, ``bad_data`` (corrupt bytes), ``sent``, ``send_dropped``
-    (queue full), ``connects``, ``reconnects``, ``reboots``, ``stream_requests``, ``denied``.
+    (queue full), ``connects``, ``reconnects``, ``reboots``, ``stream_requests``, ``denied``. ``rx``
+    counts a message once the listener has absorbed it.
     """
 
-    def __init__(self, options: LinkOptions, clock: Clock, listener: LinkListener, system_status: Callable[[], SystemStatus] = lambda: "standby") -> None:
+    def __init__(
+        self, options: LinkOptions, clock: Clock, listener: LinkListener,
+        system_status: Callable[[], SystemStatus] = lambda: "standby", tap: Tap | None = None,
+    ) -> None:
         self.options = options
+        self.tap = tap
         self.clock = clock
         self.listener = listener
         self.system_status = system_status
@@ -167,7 +192,6 @@ class Link:
         os.set_blocking(self._wake_w, False)
         self._latencies_s: deque[float] = deque(maxlen=200)
         self._latency_lock = threading.Lock()
-        self._timesync_sent: dict[int, float] = {}
         self._last_boot_ms: int | None = None
         mav = self._mav
         self._streams = [
@@ -304,6 +328,8 @@ class Link:
         msg = getattr(self._conn.mav, f"{name.lower()}_encode")(**fields)
         self._conn.mav.send(msg)
         self.counters["sent"] += 1
+        if self.tap is not None:
+            self.tap(stamp_us(self.clock), bytes(msg.get_msgbuf()), False)
 
     def _drain(self) -> None:
         """Send what is still queued (the stop's bounded drain: one pass, no waiting)."""
@@ -326,11 +352,7 @@ class Link:
             return  # requests go to a flight controller we have heard
         if now >= self._next_timesync_s:
             self._next_timesync_s = now + self.options.timesync_interval_s
-            ts1 = int(now * 1e9)
-            self._timesync_sent[ts1] = now
-            if len(self._timesync_sent) > 16:
-                del self._timesync_sent[min(self._timesync_sent)]
-            self._write("TIMESYNC", {"tc1": 0, "ts1": ts1})
+            self._write("TIMESYNC", {"tc1": 0, "ts1": stamp_us(self.clock) * 1000})  # whole microseconds, like arrivals
         for s in self._streams:
             quiet = now - s.last_rx_s > max(3.0 / s.rate_hz, self.options.request_retry_s)
             if quiet and now >= s.next_request_s:
@@ -350,8 +372,15 @@ class Link:
         if kind == "BAD_DATA":
             self.counters["bad_data"] += 1
             return
-        self.counters["rx"] += 1
-        now = self.clock.now_s()
+        t_us = stamp_us(self.clock)
+        if self.tap is not None:
+            self.tap(t_us, bytes(msg.get_msgbuf()), True)
+        try:
+            self._dispatch(msg, kind, us_to_s(t_us))
+        finally:
+            self.counters["rx"] += 1
+
+    def _dispatch(self, msg: Any, kind: str, now: float) -> None:
         self._last_rx_s = now
         src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
         if kind == "HEARTBEAT":
@@ -371,18 +400,18 @@ class Link:
             if s.msg_id == msg.get_msgId():
                 s.last_rx_s, s.backoff_s = now, 0.0
         if kind == "ATTITUDE":
-            self.listener.on_attitude(msg.time_boot_ms, msg.roll, msg.pitch, msg.yaw)
+            self.listener.on_attitude(msg.time_boot_ms, msg.roll, msg.pitch, msg.yaw, now)
         elif kind == "DISTANCE_SENSOR":
             if msg.orientation == self._mav.MAV_SENSOR_ROTATION_PITCH_270:
                 ok = msg.min_distance <= msg.current_distance <= msg.max_distance
-                self.listener.on_range(msg.time_boot_ms, msg.current_distance * 0.01 if ok else None)
+                self.listener.on_range(msg.time_boot_ms, msg.current_distance * 0.01 if ok else None, now)
         elif kind == "GLOBAL_POSITION_INT":
-            self.listener.on_height(msg.time_boot_ms, msg.relative_alt * 1e-3)
+            self.listener.on_height(msg.time_boot_ms, msg.relative_alt * 1e-3, now)
         elif kind == "TIMESYNC":
             if msg.tc1 == 0:  # the flight controller asks for our clock: the one estimates are stamped with
                 self._write("TIMESYNC", {"tc1": int(now * 1e9), "ts1": msg.ts1})
-            elif msg.ts1 in self._timesync_sent:
-                self.listener.on_timesync(self._timesync_sent.pop(msg.ts1), msg.tc1 * 1e-9)
+            elif 0.0 <= now - msg.ts1 * 1e-9 <= _TIMESYNC_MAX_RTT_S:
+                self.listener.on_timesync(msg.ts1 * 1e-9, msg.tc1 * 1e-9, now)
         elif kind == "COMMAND_ACK" and msg.command == self._mav.MAV_CMD_SET_MESSAGE_INTERVAL and msg.result != self._mav.MAV_RESULT_ACCEPTED:
             self.counters["denied"] += 1
             if self.counters["denied"] <= 3:
@@ -392,6 +421,5 @@ class Link:
         log.warning("flight controller rebooted (time_boot_ms went back); re-requesting streams")
         self.counters["reboots"] += 1
         self.listener.on_reboot()
-        self._timesync_sent.clear()
         for s in self._streams:
             s.last_rx_s, s.next_request_s, s.backoff_s = -math.inf, now, 0.0

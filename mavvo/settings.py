@@ -2,7 +2,8 @@
 
 Each section is the options dataclass of the module it configures, so the defaults and help live next
 to the code that uses them: ``camera`` (:mod:`mavvo.camera`), ``link`` (:mod:`mavvo.link`),
-``timing`` (:mod:`mavvo.timing`), ``odometry`` (:mod:`mavvo.odometry`); ``mounting``, ``output`` and
+``timing`` (:mod:`mavvo.timing`), ``odometry`` (:mod:`mavvo.odometry`), ``record``
+(:mod:`mavvo.recorder`); ``mounting``, ``output`` and
 ``service`` are defined here. ``config/default.yaml`` lists every key with its default and help;
 :func:`default_yaml` writes it (a test keeps the file current). Any key left out takes its default.
 """
@@ -11,7 +12,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,9 +23,10 @@ from mavvo.config import bounded, build, load_yaml
 from mavvo.errors import ConfigError
 from mavvo.link import LinkOptions, parse_url
 from mavvo.odometry import OdometryOptions
+from mavvo.recorder import RecordOptions
 from mavvo.timing import TimingOptions
 
-__all__ = ["MountingOptions", "OutputOptions", "ServiceOptions", "ServiceConfig", "load_config", "parse_config", "default_yaml"]
+__all__ = ["MountingOptions", "OutputOptions", "ServiceOptions", "ServiceConfig", "load_config", "parse_config", "config_yaml", "default_yaml"]
 
 Matrix3 = tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
 # Nadir camera, image top toward the nose: camera x = body right, camera y = body back, camera z = down.
@@ -80,6 +81,7 @@ class ServiceConfig:
     output: OutputOptions = field(default_factory=OutputOptions)
     service: ServiceOptions = field(default_factory=ServiceOptions)
     odometry: OdometryOptions = field(default_factory=OdometryOptions)
+    record: RecordOptions = field(default_factory=RecordOptions)
 
 
 def parse_config(data: Any, source: str) -> ServiceConfig:
@@ -100,31 +102,38 @@ def load_config(path: str | Path) -> ServiceConfig:
 def _yaml_value(v: Any) -> str:
     if isinstance(v, tuple):
         return "[" + ", ".join(_yaml_value(x) for x in v) + "]"
-    return json.dumps(v)  # JSON scalars are YAML scalars
+    return json.dumps(v)  # JSON scalars are YAML scalars; repr-exact for floats
+
+
+def config_yaml(config: ServiceConfig | None = None, header: tuple[str, ...] = ()) -> str:
+    """Every key of ``config`` (default: the defaults) with its value and help, as a YAML file that
+    :func:`load_config` reads back to an equal config."""
+    lines = list(header)
+
+    def section(obj: Any, indent: int) -> None:
+        pad = "  " * indent
+        for f in dataclasses.fields(obj):
+            value = getattr(obj, f.name)
+            if dataclasses.is_dataclass(value):
+                doc = (type(value).__doc__ or "").strip().splitlines()[0]
+                lines.append(f"{pad}{f.name}:  # {doc}")
+                section(value, indent + 1)
+            else:
+                lines.append(f"{pad}{f.name}: {_yaml_value(value)}  # {f.metadata.get('help', '')}")
+
+    config = config or ServiceConfig()
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        lines += ["", f"{f.name}:  # {(type(value).__doc__ or '').strip().splitlines()[0]}"]
+        section(value, 1)
+    return "\n".join(lines) + "\n"
 
 
 def default_yaml() -> str:
-    """Every key of :class:`ServiceConfig` with its default and help, as a YAML file."""
-    lines = [
+    """Every key of :class:`ServiceConfig` with its default and help: ``config/default.yaml``."""
+    return config_yaml(header=(
         "# mavvo configuration: every key, its default and what it means. Units are in the key names",
         "# (_px pixels, _m metres, _s seconds, _ms milliseconds, _hz per second, _deg degrees).",
         "# Any key may be left out and takes the default shown. Check a file with: mavvo check-config FILE",
         "# (this file is written by mavvo.settings.default_yaml; a test keeps it current).",
-    ]
-
-    def section(cls: type, indent: int) -> None:
-        hints = typing.get_type_hints(cls)
-        pad = "  " * indent
-        for f in dataclasses.fields(cls):
-            if dataclasses.is_dataclass(hints[f.name]):
-                doc = (hints[f.name].__doc__ or "").strip().splitlines()[0]
-                lines.append(f"{pad}{f.name}:  # {doc}")
-                section(hints[f.name], indent + 1)
-            else:
-                lines.append(f"{pad}{f.name}: {_yaml_value(f.default)}  # {f.metadata.get('help', '')}")
-
-    for f in dataclasses.fields(ServiceConfig):
-        cls = typing.get_type_hints(ServiceConfig)[f.name]
-        lines += ["", f"{f.name}:  # {(cls.__doc__ or '').strip().splitlines()[0]}"]
-        section(cls, 1)
-    return "\n".join(lines) + "\n"
+    ))

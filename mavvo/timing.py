@@ -143,6 +143,7 @@ class Pairing:
     """
 
     status: Literal["paired", "wait", "stale", "missing"]
+    fc_version: int = 0  # how many flight-controller updates the state had absorbed (a replay resumes here)
     roll_rad: float = math.nan
     pitch_rad: float = math.nan
     yaw_rad: float = math.nan
@@ -153,7 +154,13 @@ class Pairing:
 class FlightControllerState:
     """What the flight controller said recently, on both clocks; thread-safe (the link thread writes,
     the worker reads). Counters: ``attitude``, ``attitude_rejected`` (non-finite or not newer),
-    ``reboots``."""
+    ``reboots``.
+
+    Each update carries the arrival time the link stamped once for its message (``t_arrival_host_s``;
+    None: now on the clock), so a recorded flight replays with the same stamps. ``version`` counts the
+    updates absorbed; each :class:`Pairing` says which version it saw, so a replay can pair a frame after
+    exactly the same updates as the flight did.
+    """
 
     def __init__(self, clock: Clock, options: TimingOptions = TimingOptions()) -> None:
         self.clock = clock
@@ -166,15 +173,20 @@ class FlightControllerState:
         self._rpy: list[tuple[float, float, float]] = []
         self._range: tuple[float, float | None] | None = None  # (t_fc_s, metres or None for no reading)
         self._height: tuple[float, float] | None = None
+        self.version = 0
+
+    def _arrival(self, t_arrival_host_s: float | None) -> float:
+        return self.clock.now_s() if t_arrival_host_s is None else t_arrival_host_s
 
     # ------------------------------------------------------------------ the link's side
 
-    def on_attitude(self, t_fc_ms: int, roll_rad: float, pitch_rad: float, yaw_rad: float) -> None:
+    def on_attitude(self, t_fc_ms: int, roll_rad: float, pitch_rad: float, yaw_rad: float, t_arrival_host_s: float | None = None) -> None:
         """An ATTITUDE message, just arrived. Non-finite roll/pitch and samples not newer than the last
         are dropped (counted): a repeated or spoiled stream must not be interpolated."""
-        now = self.clock.now_s()
+        now = self._arrival(t_arrival_host_s)
         t = t_fc_ms * 1e-3
         with self._new_data:
+            self.version += 1
             self._sync.add_arrival(t, now)
             if not (math.isfinite(roll_rad) and math.isfinite(pitch_rad)) or (self._t_fc and t <= self._t_fc[-1]):
                 self.counters["attitude_rejected"] += 1
@@ -187,26 +199,30 @@ class FlightControllerState:
                 del self._t_fc[:cut], self._rpy[:cut]
             self._new_data.notify_all()
 
-    def on_range(self, t_fc_ms: int, range_m: float | None) -> None:
+    def on_range(self, t_fc_ms: int, range_m: float | None, t_arrival_host_s: float | None = None) -> None:
         """A downward rangefinder reading (None: out of range or no target)."""
         with self._lock:
+            self.version += 1
             self._range = (t_fc_ms * 1e-3, range_m if range_m is not None and math.isfinite(range_m) else None)
 
-    def on_height(self, t_fc_ms: int, height_m: float) -> None:
+    def on_height(self, t_fc_ms: int, height_m: float, t_arrival_host_s: float | None = None) -> None:
         """The vehicle's height above home (take-off), metres, positive up."""
-        if math.isfinite(height_m):
-            with self._lock:
+        with self._lock:
+            self.version += 1
+            if math.isfinite(height_m):
                 self._height = (t_fc_ms * 1e-3, height_m)
 
-    def on_timesync(self, t_sent_host_s: float, t_fc_s: float) -> None:
+    def on_timesync(self, t_sent_host_s: float, t_fc_s: float, t_arrival_host_s: float | None = None) -> None:
         """The answer to a TIMESYNC request that was sent at ``t_sent_host_s``."""
-        now = self.clock.now_s()
+        now = self._arrival(t_arrival_host_s)
         with self._lock:
+            self.version += 1
             self._sync.add_timesync(t_sent_host_s, t_fc_s, now)
 
     def on_reboot(self) -> None:
         """The boot clock went back: the flight controller restarted; forget its old clock and samples."""
         with self._lock:
+            self.version += 1
             self.counters["reboots"] += 1
             self._sync.reset()
             self._t_fc.clear()
@@ -222,18 +238,19 @@ class FlightControllerState:
             return self._pair_locked(t_exposure_host_s)
 
     def _pair_locked(self, t_exposure_host_s: float) -> Pairing:
+        v = self.version
         offset = self._sync.offset_s()
         if offset is None or not self._t_fc:
-            return Pairing("missing")
+            return Pairing("missing", v)
         t = t_exposure_host_s + offset
         i = bisect.bisect_left(self._t_fc, t)
         if i == len(self._t_fc):
-            return Pairing("wait")
+            return Pairing("wait", v)
         if self._t_fc[i] == t:
             roll, pitch, yaw = self._rpy[i]
         else:
             if i == 0 or self._t_fc[i] - self._t_fc[i - 1] > self.options.max_attitude_gap_s:
-                return Pairing("stale")
+                return Pairing("stale", v)
             t0, t1 = self._t_fc[i - 1], self._t_fc[i]
             w = (t - t0) / (t1 - t0)
             (r0, p0, y0), (r1, p1, y1) = self._rpy[i - 1], self._rpy[i]
@@ -246,7 +263,7 @@ class FlightControllerState:
             range_m = self._range[1]
         if self._height is not None and abs(t - self._height[0]) <= self.options.height_max_age_s:
             height_m = self._height[1]
-        return Pairing("paired", roll, pitch, yaw, range_m, height_m)
+        return Pairing("paired", v, roll, pitch, yaw, range_m, height_m)
 
     def wait_for_new_data(self, timeout_s: float) -> None:
         """Block until the next ATTITUDE arrives or ``timeout_s`` of real time passes."""
@@ -273,10 +290,10 @@ def wait_for_pairing(state: FlightControllerState, t_exposure_host_s: float, *, 
         if state.clock.realtime:
             left = deadline - state.clock.now_s()
             if left <= 0:
-                return Pairing("stale")
+                return Pairing("stale", p.fc_version)
             state.wait_for_new_data(min(left, step * 4))
         else:
             if waited >= lockstep_wait_s:
-                return Pairing("stale")
+                return Pairing("stale", p.fc_version)
             state.wait_for_new_data(step)
             waited += step

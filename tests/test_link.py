@@ -30,16 +30,16 @@ class Recorder:
         self.timesync: list[tuple[float, float]] = []
         self.reboots = 0
 
-    def on_attitude(self, t_fc_ms, roll_rad, pitch_rad, yaw_rad):
+    def on_attitude(self, t_fc_ms, roll_rad, pitch_rad, yaw_rad, t_arrival_host_s=None):
         self.attitude.append((time.monotonic(), t_fc_ms))
 
-    def on_range(self, t_fc_ms, range_m):
+    def on_range(self, t_fc_ms, range_m, t_arrival_host_s=None):
         self.ranges.append(range_m)
 
-    def on_height(self, t_fc_ms, height_m):
+    def on_height(self, t_fc_ms, height_m, t_arrival_host_s=None):
         self.heights.append(height_m)
 
-    def on_timesync(self, t_sent_host_s, t_fc_s):
+    def on_timesync(self, t_sent_host_s, t_fc_s, t_arrival_host_s=None):
         self.timesync.append((t_sent_host_s, t_fc_s))
 
     def on_reboot(self):
