@@ -137,7 +137,9 @@ class InjectedSource:
         self._seq = 0
         self._ended = False
 
-    def push(self, image: np.ndarray, t_exposure_s: float) -> None:
+    def push(self, image: np.ndarray, t_exposure_s: float, seq: int | None = None) -> None:
+        """Queue one frame; ``seq`` defaults to one more than the last."""
+        self._seq = self._seq if seq is None else seq
         self._q.put(Frame(image, float(t_exposure_s), self._seq))
         self._seq += 1
 

@@ -16,7 +16,7 @@ from typing import BinaryIO, Iterator
 
 from mavvo.errors import ConfigError
 
-__all__ = ["write_record", "frame_length", "read_tlog"]
+__all__ = ["write_record", "frame_length", "read_tlog", "source_component", "message_id", "payload"]
 
 _STAMP = struct.Struct(">Q")
 
@@ -61,3 +61,20 @@ def read_tlog(path: str | Path) -> Iterator[tuple[int, bytes]]:
             raise ConfigError(f"{p}: truncated: the record at offset {i} needs {n} bytes, {len(data) - i - 8} left (the log was cut off)")
         yield t_us, data[i + 8:i + 8 + n]
         i += 8 + n
+
+
+def source_component(frame: bytes) -> int:
+    """The sender's component id of a MAVLink 1 or 2 frame."""
+    return frame[6] if frame[0] == 0xFD else frame[4]
+
+
+def message_id(frame: bytes) -> int:
+    """The message id of a MAVLink 1 or 2 frame."""
+    return frame[7] | frame[8] << 8 | frame[9] << 16 if frame[0] == 0xFD else frame[5]
+
+
+def payload(frame: bytes) -> bytes:
+    """The payload of a MAVLink 1 or 2 frame as sent (MAVLink 2 trims trailing zero bytes): what two
+    equal messages share whatever their sequence numbers and signatures."""
+    start = 10 if frame[0] == 0xFD else 6
+    return frame[start:start + frame[1]]

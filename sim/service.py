@@ -26,7 +26,8 @@ from mavvo.daemon import Daemon, DaemonSummary
 from mavvo.settings import MountingOptions, ServiceConfig
 from sim.camera_source import CameraSpec
 from sim.metrics import Evaluation, PoseSeries, evaluate
-from sim.report import vision_estimates, write_report
+from sim.recording import GROUND_TRUTH_FILE
+from sim.report import vision_estimates, write_report, write_tum
 from sim.scenario import Scenario
 from sim.simulation import Simulation
 
@@ -66,6 +67,7 @@ class SimRun:
     resets: int
     vision_messages: list[Any]  # the VISION_POSITION_ESTIMATEs received, in order (pymavlink messages)
     statustexts: list[tuple[float, str]]  # (simulation time received, text)
+    recording: Path | None = None  # with record.dir: the recording (with ground_truth.tum beside it)
 
     def summary(self) -> dict[str, Any]:
         """A flat JSON-ready summary (what ``mavvo sim --json`` prints)."""
@@ -88,6 +90,7 @@ class SimRun:
             "latency_ms": self.daemon.latency_ms,
             "received": self.received,
             "counters": self.daemon.counters,
+            "recording": None if self.recording is None else str(self.recording),
         }
 
 
@@ -101,7 +104,9 @@ def run_daemon_in_sim(
 ) -> SimRun:
     """Fly ``scenario`` with the daemon (see the module docstring) until the scenario ends or the
     daemon is stopped (SIGTERM or SIGINT when called from the main thread); evaluate, and with
-    ``out_dir`` write the report (estimate.tum, truth.tum, summary.json, evaluation.png)."""
+    ``out_dir`` write the report (estimate.tum, truth.tum, summary.json, evaluation.png). With
+    ``record.dir`` set in ``base`` the flight is recorded, and the truth (100 Hz) is written beside it as
+    ``ground_truth.tum`` for ``mavvo replay``."""
     sim = Simulation(scenario, "udpin:127.0.0.1:0", realtime=realtime, duration_s=duration_s)
     host, port = sim.fc.address
     config = config_for(scenario, base or ServiceConfig(), f"udpout:{host}:{port}")
@@ -127,6 +132,10 @@ def run_daemon_in_sim(
     ev = None
     if len(est) >= 3:
         ev = write_report(out_dir, est, truth, title=scenario.name) if out_dir is not None else evaluate(est, truth)[0]
+    recording = daemon.recorder.path if daemon.recorder is not None else None
+    if recording is not None:
+        times = np.arange(0.0, sim.clock.now_s(), 0.01)
+        write_tum(recording / GROUND_TRUTH_FILE, sim.truth_at(times))
     counters = np.array([r.msg.reset_counter for r in vpe])
     received: dict[str, int] = {}
     for r in sim.fc.received:
@@ -134,5 +143,5 @@ def run_daemon_in_sim(
     return SimRun(
         scenario.name, realtime, sim.clock.now_s(), wall, summary, dict(sorted(received.items())), est, truth, ev,
         int(np.count_nonzero(np.diff(counters))) if len(counters) else 0, [r.msg for r in vpe],
-        [(r.t_s, r.msg.text) for r in sim.fc.received if r.type == "STATUSTEXT"],
+        [(r.t_s, r.msg.text) for r in sim.fc.received if r.type == "STATUSTEXT"], recording,
     )
