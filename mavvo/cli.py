@@ -39,6 +39,7 @@ def _parser() -> argparse.ArgumentParser:
         "send VISION_POSITION_ESTIMATE back. Stops cleanly on SIGTERM or Ctrl-C.",
     )
     r.add_argument("--config", required=True, type=Path, metavar="FILE", help="the YAML settings (see config/default.yaml for every key)")
+    r.add_argument("--record", type=Path, default=None, metavar="DIR", help="record the flight for mavvo replay into a new folder under DIR (sets record.dir)")
 
     c = sub.add_parser("check-config", help="check a settings file and exit", description="Load a settings file strictly and report the first problem, with its key path.")
     c.add_argument("file", type=Path, metavar="FILE")
@@ -61,6 +62,7 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--config", type=Path, default=None, metavar="FILE", help="service settings to use (the scenario sets camera, mounting and link); default: the built-in defaults")
     s.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout")
     s.add_argument("--out", type=Path, default=None, metavar="DIR", help="where the report goes (default mavvo-sim-out/SCENARIO; with --fc-only: none)")
+    s.add_argument("--record", type=Path, default=None, metavar="DIR", help="record the flight (as mavvo run --record does) with its ground truth, for mavvo replay")
     s.add_argument("--fc-only", action="store_true", help="run only the simulated flight controller")
     s.add_argument(
         "--mavlink", default="udpin:127.0.0.1:14550",
@@ -70,7 +72,32 @@ def _parser() -> argparse.ArgumentParser:
         "--time-source", choices=("arrival", "usec"), default="arrival",
         help="--fc-only: evaluate estimates at their arrival time (default; clients on their own clock) or at their usec stamp read as simulation time",
     )
+    _replay_parser(sub)
     return p
+
+
+def _replay_parser(sub: Any) -> None:
+    rp = sub.add_parser(
+        "replay",
+        help="run a logged flight through the service, faster than real time, and evaluate it",
+        description=(
+            "Feed a logged flight to the mavvo service through the simulated flight controller and camera: the service runs "
+            "its normal code path on a lockstep clock, as fast as the computer allows, with the same result every time. "
+            "SOURCE is a mavvo recording (mavvo run --record), a flight-controller log (.tlog with ATTITUDE, or an ArduPilot "
+            "dataflash .bin with ATT) with --video and --config, or a EuRoC/ASL dataset folder (the one holding mav0/). "
+            "Writes estimate.tum, quality.csv/.png, summary.json and, with a reference, evaluation.png into --out."
+        ),
+    )
+    rp.add_argument("source", type=Path, metavar="SOURCE")
+    rp.add_argument("--config", type=Path, default=None, metavar="FILE", help="settings: for a recording or dataset, the keys given replace the recorded ones (tuning); for a log, the camera and mounting (required)")
+    rp.add_argument("--video", type=Path, default=None, metavar="PATH", help="log: the flight's video file or image folder (timestamps.txt 'T_S FILENAME', else the folder's frame rate from --fps)")
+    rp.add_argument("--fps", type=float, default=None, help="log with an image folder without timestamps.txt: its frame rate")
+    rp.add_argument("--offset-s", type=float, default=None, metavar="S", help="log: the log's time (s since boot) at the video's time zero; default: estimated from the rotation the camera sees")
+    rp.add_argument("--ground-truth", type=Path, default=None, metavar="FILE", help="reference trajectory: TUM file, or EuRoC state_groundtruth_estimate0/data.csv (default: ground_truth.tum in a recording, the dataset's own)")
+    rp.add_argument("--attitude", choices=("imu", "truth"), default="imu", help="EuRoC: roll/pitch from the IMU through an attitude filter (default) or from the ground truth plus --attitude-noise-deg")
+    rp.add_argument("--attitude-noise-deg", type=float, default=0.1, metavar="D", help="EuRoC --attitude truth: roll/pitch noise, 1 sigma (default 0.1)")
+    rp.add_argument("--out", type=Path, default=None, metavar="DIR", help="where the report goes (default mavvo-replay-out/NAME)")
+    rp.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -82,6 +109,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _run(args)
         if args.command == "check-config":
             return _check_config(args)
+        if args.command == "replay":
+            return _replay(args)
         return _sim(args)
     except ConfigError as e:
         print(f"mavvo: {e}", file=sys.stderr)
@@ -108,10 +137,17 @@ def _run(args: argparse.Namespace) -> int:
     from mavvo.daemon import Daemon
     from mavvo.settings import load_config
 
-    config = load_config(args.config)
+    config = _with_record(load_config(args.config), args.record)
     daemon = Daemon(config, schemes={"sim": _sim_camera})
     daemon.run()
     return 0
+
+
+def _with_record(config: Any, record: Path | None) -> Any:
+    """``config`` recording into ``record`` when given."""
+    import dataclasses
+
+    return config if record is None else dataclasses.replace(config, record=dataclasses.replace(config.record, dir=str(record)))
 
 
 def _check_config(args: argparse.Namespace) -> int:
@@ -141,7 +177,7 @@ def _sim_service(scenario: Any, args: argparse.Namespace) -> int:
     from mavvo.settings import ServiceConfig, load_config
     from sim.service import run_daemon_in_sim
 
-    base = load_config(args.config) if args.config is not None else ServiceConfig()
+    base = _with_record(load_config(args.config) if args.config is not None else ServiceConfig(), args.record)
     out = args.out if args.out is not None else Path("mavvo-sim-out") / scenario.name
     run = run_daemon_in_sim(scenario, base, realtime=args.realtime, duration_s=args.duration, out_dir=out)
     summary = run.summary()
@@ -163,6 +199,57 @@ def _sim_service(scenario: Any, args: argparse.Namespace) -> int:
         f"Sim(3) {ev.ate_sim3_m['rmse']:.3f} m at scale {ev.sim3_scale:.3f}"
     )
     print(f"plot: {summary['plot']}")
+    if run.recording is not None:
+        print(f"recording: {run.recording} (replay it: mavvo replay {run.recording})")
+    return 0
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from sim.replay import replay
+    from sim.replay_report import write_replay_report
+    from sim.replay_sources import open_replay_source
+
+    inp = open_replay_source(
+        args.source, config=args.config, video=args.video, fps=args.fps, offset_s=args.offset_s, ground_truth=args.ground_truth,
+        attitude=args.attitude, attitude_noise_deg=args.attitude_noise_deg,
+    )
+    out = args.out if args.out is not None else Path("mavvo-replay-out") / (args.source.resolve().name or "replay")
+    for note, value in inp.notes.items():
+        log.info("%s: %s", note, value)
+    for problem in inp.problems:
+        log.warning("%s", problem)
+    res = None
+    if inp.frames and inp.messages:
+        log.info("replaying %s (%s): %d frames, %d messages", inp.source, inp.kind, len(inp.frames), len(inp.messages))
+        res = replay(inp, progress=lambda k, n: log.info("replay: frame %d of %d (%.0f%%)", k, n, 100.0 * k / n))
+    if res is None:
+        from sim.replay import empty_result
+
+        res = empty_result()
+    summary = write_replay_report(out, inp, res)
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(
+            f"{inp.kind} {inp.source}: {summary['frames_replayed']} of {summary['frames']} frames, {summary['estimates_received']} estimates, "
+            f"{summary['resets']} resets; {summary['duration_s']:.1f} s replayed in {summary['wall_s']:.1f} s"
+        )
+        if summary["identical_to_recording"] is not None:
+            same = "identical to" if summary["identical_to_recording"] else "DIFFERENT from"
+            print(f"estimates {same} the recorded flight's ({summary['recorded_estimates']} recorded)")
+        ev = summary["evaluation"]
+        if ev is not None:
+            print(
+                f"vs {summary['reference']}: ATE {ev['ate_se3_m']['rmse']:.3f} m RMSE ({ev['ate_se3_rmse_percent_of_path']:.2f}% of "
+                f"{ev['path_length_m']:.1f} m), Sim(3) {ev['ate_sim3_m']['rmse']:.3f} m at scale {ev['sim3_scale']:.3f}"
+            )
+        print(f"report: {out} ({', '.join(summary['files'])})")
+    if inp.problems or (res.stopped and inp.frames):
+        for problem in inp.problems:
+            print(f"mavvo: {problem}", file=sys.stderr)
+        if not inp.problems:
+            print("mavvo: the replay was interrupted; the report covers what was replayed", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -143,6 +143,11 @@ class ReplayFlightController:
         self._conn.close()
 
 
+def empty_result() -> ReplayResult:
+    """The result of a replay that had nothing to replay (the input's problems say why)."""
+    return ReplayResult(DaemonSummary({}, "standby", None), PoseSeries(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4))), [], [], {}, [], 0, 0, 0, 0.0, 0.0, False)
+
+
 def _wait(pred: Callable[[], bool], timeout_s: float, stop: threading.Event) -> bool:
     deadline = time.monotonic() + timeout_s
     while not pred():

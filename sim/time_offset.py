@@ -1,0 +1,154 @@
+"""The time offset between a video and a flight-controller log, from the rotation both saw.
+
+The camera's rotation rate (the angle between consecutive frames, from tracked features and the
+essential matrix, over the frame interval) and the vehicle's (from the logged attitude over the same
+interval) are the same signal whatever the camera's mounting: the magnitude of an angular velocity
+does not depend on the frame it is written in. Both are put on a 10 ms grid, smoothed alike, and the
+offset is the lag of the best normalised cross-correlation (computed for every lag with FFTs).
+
+Confidence: the peak correlation, and the best correlation at least 1 s away from the peak (a
+repetitive flight, or one with too little rotation, has a runner-up close to the peak). An estimate
+with a peak below ``min_correlation`` or a runner-up above ``max_runner_up_ratio`` x the peak is
+refused: the caller must give the offset.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable
+
+import cv2
+import numpy as np
+
+from mavvo.camera_model import CameraModel
+from mavvo.errors import ConfigError
+from mavvo.frames import R_from_euler321
+
+__all__ = ["OffsetEstimate", "camera_rotation_rates", "attitude_rotation_rates", "estimate_offset"]
+
+GRID_S = 0.01
+_SMOOTH_S = 0.15
+_RUNNER_UP_AWAY_S = 1.0
+
+
+@dataclass(frozen=True)
+class OffsetEstimate:
+    """``offset_s``: the log's time at the video's time zero (t_log = t_video + offset_s)."""
+
+    offset_s: float
+    correlation: float
+    runner_up_correlation: float
+    runner_up_offset_s: float
+    overlap_s: float
+
+    def as_dict(self) -> dict[str, float]:
+        return {k: round(float(v), 4) for k, v in self.__dict__.items()}
+
+
+def camera_rotation_rates(frames: Iterable[tuple[float, np.ndarray]], camera: CameraModel, max_features: int = 300) -> tuple[np.ndarray, np.ndarray]:
+    """(t_mid_s, rate_rad_s): the rotation between consecutive frames (t_s, grey image) over their
+    interval, at the interval's middle; NaN where too few features were tracked."""
+    t_out, w_out = [], []
+    prev: tuple[float, np.ndarray] | None = None
+    for t, img in frames:
+        if prev is not None:
+            t0, img0 = prev
+            rate = np.nan
+            p0 = cv2.goodFeaturesToTrack(img0, max_features, 0.01, 8)
+            if p0 is not None and len(p0) >= 12:
+                p1, st, _ = cv2.calcOpticalFlowPyrLK(img0, img, p0, None, winSize=(21, 21), maxLevel=3)
+                ok = st.ravel() == 1
+                if ok.sum() >= 12:
+                    f0 = camera.pixels_to_bearings(p0.reshape(-1, 2)[ok].astype(float))
+                    f1 = camera.pixels_to_bearings(p1.reshape(-1, 2)[ok].astype(float))
+                    n0, n1 = f0[:, :2] / f0[:, 2:], f1[:, :2] / f1[:, 2:]
+                    E, mask = cv2.findEssentialMat(n0, n1, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=1.0 / camera.fx_px)
+                    if E is not None and E.shape == (3, 3):
+                        _, R, _, _ = cv2.recoverPose(E, n0, n1, np.eye(3), mask=mask)
+                        rate = float(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) / (t - t0)
+            t_out.append(0.5 * (t0 + t))
+            w_out.append(rate)
+        prev = (t, img)
+    return np.array(t_out), np.array(w_out)
+
+
+def attitude_rotation_rates(attitude: np.ndarray, interval_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(t_s, rate_rad_s) on a 10 ms grid from an (N,4) array of t_s, roll, pitch, yaw: the rotation over
+    ``interval_s`` centred on each grid time (the camera's frame interval, so both see the same)."""
+    t = attitude[:, 0]
+    grid = np.arange(t[0] + interval_s, t[-1] - interval_s, GRID_S)
+    unwrapped = np.column_stack([attitude[:, 1], attitude[:, 2], np.unwrap(attitude[:, 3])])
+
+    def at(times: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.interp(times, t, unwrapped[:, k]) for k in range(3)])
+
+    a, b = at(grid - interval_s / 2), at(grid + interval_s / 2)
+    rates = np.empty(len(grid))
+    for i in range(len(grid)):
+        R = R_from_euler321(*a[i]).T @ R_from_euler321(*b[i])
+        rates[i] = np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)) / interval_s
+    return grid, rates
+
+
+def _on_grid(t: np.ndarray, x: np.ndarray, start: float, n: int) -> np.ndarray:
+    ok = np.isfinite(x)
+    g = start + GRID_S * np.arange(n)
+    y = np.interp(g, t[ok], x[ok]) if ok.sum() >= 2 else np.zeros(n)
+    k = max(int(round(_SMOOTH_S / GRID_S)), 1)
+    return np.convolve(y, np.ones(k) / k, mode="same")
+
+
+def _ncc_valid(long: np.ndarray, short: np.ndarray) -> np.ndarray:
+    """Normalised cross-correlation of ``short`` at every lag fully inside ``long``."""
+    n, m = len(short), len(long)
+    s = short - short.mean()
+    s_norm = np.sqrt(np.sum(s * s))
+    size = 1 << int(np.ceil(np.log2(n + m)))
+    num = np.fft.irfft(np.fft.rfft(long, size) * np.conj(np.fft.rfft(s, size)), size)[: m - n + 1]
+    c1 = np.concatenate([[0.0], np.cumsum(long)])
+    c2 = np.concatenate([[0.0], np.cumsum(long * long)])
+    win_sum = c1[n:] - c1[:-n]
+    win_var = np.maximum(c2[n:] - c2[:-n] - win_sum * win_sum / n, 1e-12)
+    return num / (np.sqrt(win_var) * max(s_norm, 1e-12))
+
+
+def estimate_offset(
+    cam_t: np.ndarray, cam_rate: np.ndarray, fc_t: np.ndarray, fc_rate: np.ndarray, *,
+    min_correlation: float = 0.5, max_runner_up_ratio: float = 0.9, source: str = "video",
+) -> OffsetEstimate:
+    """The offset (see :class:`OffsetEstimate`); ConfigError naming ``source`` when it cannot be
+    estimated with confidence (too little overlap or rotation, an ambiguous peak)."""
+    ok = np.isfinite(cam_rate)
+    if ok.sum() < 20 or len(fc_t) < 20:
+        raise ConfigError(f"{source}: cannot estimate the time offset: only {int(ok.sum())} frame pairs with a measured rotation; give --offset-s")
+    n_cam = int((cam_t[-1] - cam_t[0]) / GRID_S) + 1
+    n_fc = int((fc_t[-1] - fc_t[0]) / GRID_S) + 1
+    cam = _on_grid(cam_t, cam_rate, cam_t[0], n_cam)
+    fc = _on_grid(fc_t, fc_rate, fc_t[0], n_fc)
+    if n_cam <= n_fc:
+        ncc = _ncc_valid(fc, cam)
+        offsets = fc_t[0] - cam_t[0] + GRID_S * np.arange(len(ncc))
+    else:
+        ncc = _ncc_valid(cam, fc)
+        offsets = fc_t[0] - cam_t[0] - GRID_S * np.arange(len(ncc))
+    if float(np.std(cam)) < 0.02:
+        raise ConfigError(f"{source}: cannot estimate the time offset: the camera barely rotated (rate spread {np.std(cam):.3f} rad/s); give --offset-s")
+    i = int(np.argmax(ncc))
+    peak = float(ncc[i])
+    away = np.abs(offsets - offsets[i]) > _RUNNER_UP_AWAY_S
+    j = int(np.argmax(np.where(away, ncc, -np.inf))) if away.any() else i
+    runner = float(ncc[j]) if away.any() else float("nan")
+    shift = 0.0
+    if 0 < i < len(ncc) - 1:  # parabola through the peak: sub-grid offset
+        den = ncc[i - 1] - 2 * ncc[i] + ncc[i + 1]
+        shift = 0.5 * (ncc[i - 1] - ncc[i + 1]) / den if den < 0 else 0.0
+    step = offsets[1] - offsets[0] if len(offsets) > 1 else GRID_S
+    est = OffsetEstimate(float(offsets[i] + shift * step), peak, runner, float(offsets[j]), min(n_cam, n_fc) * GRID_S)
+    if peak < min_correlation:
+        raise ConfigError(f"{source}: cannot estimate the time offset: best correlation {peak:.2f} at {est.offset_s:.2f} s is below {min_correlation}; give --offset-s")
+    if np.isfinite(runner) and runner > max_runner_up_ratio * peak:
+        raise ConfigError(
+            f"{source}: cannot estimate the time offset: ambiguous, correlation {peak:.2f} at {est.offset_s:.2f} s and {runner:.2f} at "
+            f"{est.runner_up_offset_s:.2f} s; give --offset-s"
+        )
+    return est
