@@ -175,9 +175,10 @@ def _from_log(log_path: Path, config_path: Path | None, video: Path | None, fps:
     problems = s.problems + frames_src.problems
     notes: dict[str, Any] = {"log": f"{s.kind}, {len(s.attitude)} attitude samples over {s.attitude[-1, 0] - s.attitude[0, 0]:.1f} s"}
     if offset_s is None:
-        cam_t, cam_w = camera_rotation_rates(frames_src, config.camera.camera_model())
-        interval = float(np.median(np.diff(frames_src.times_s)))
-        fc_t, fc_w = attitude_rotation_rates(s.attitude, interval)
+        step = 2
+        cam_t, cam_w = camera_rotation_rates(frames_src, config.camera.camera_model(), step=step)
+        interval = step * float(np.median(np.diff(frames_src.times_s)))
+        fc_t, fc_w = attitude_rotation_rates(s.attitude, config.mounting.rotation()[:, 2], interval)
         est = estimate_offset(cam_t, cam_w, fc_t, fc_w, source=f"--video {video}")
         offset_s = est.offset_s
         notes["time_offset"] = {"estimated": True, **est.as_dict()}

@@ -1,13 +1,16 @@
 """The time offset between a video and a flight-controller log, from the rotation both saw.
 
-The camera's rotation rate (the angle between consecutive frames, from tracked features and the
-essential matrix, over the frame interval) and the vehicle's (from the logged attitude over the same
-interval) are the same signal whatever the camera's mounting: the magnitude of an angular velocity
-does not depend on the frame it is written in. Both are put on a 10 ms grid, smoothed alike, and the
-offset is the lag of the best normalised cross-correlation (computed for every lag with FFTs).
+The camera's rotation rate about its optical axis (the rotation of the best similarity between the
+features of frames a few apart) and the vehicle's about the same axis (from the logged attitude over
+the same interval and the camera's mounting) are the same signed signal. The rotation about the
+optical axis is the part of the camera's motion the image measures robustly: a nadir camera over flat
+ground (the drone's usual view) leaves the full rotation ambiguous in the essential matrix, but its
+image turns with every yaw. Both are put on a 10 ms grid, smoothed alike, and the offset is the lag
+of the best normalised cross-correlation (computed for every lag with FFTs).
 
-Confidence: the peak correlation, and the best correlation at least 1 s away from the peak (a
-repetitive flight, or one with too little rotation, has a runner-up close to the peak). An estimate
+Confidence: the peak correlation, and the runner-up: the best other local maximum of the correlation
+outside the peak's lobe (a repetitive flight, or one with too little rotation, has one close to the
+peak). An estimate
 with a peak below ``min_correlation`` or a runner-up above ``max_runner_up_ratio`` x the peak is
 refused: the caller must give the offset.
 """
@@ -28,7 +31,7 @@ __all__ = ["OffsetEstimate", "camera_rotation_rates", "attitude_rotation_rates",
 
 GRID_S = 0.01
 _SMOOTH_S = 0.15
-_RUNNER_UP_AWAY_S = 1.0
+_PEAK_LOBE_S = 0.25
 
 
 @dataclass(frozen=True)
@@ -45,36 +48,46 @@ class OffsetEstimate:
         return {k: round(float(v), 4) for k, v in self.__dict__.items()}
 
 
-def camera_rotation_rates(frames: Iterable[tuple[float, np.ndarray]], camera: CameraModel, max_features: int = 300) -> tuple[np.ndarray, np.ndarray]:
-    """(t_mid_s, rate_rad_s): the rotation between consecutive frames (t_s, grey image) over their
-    interval, at the interval's middle; NaN where too few features were tracked."""
+def _roll_about_axis_rad(img0: np.ndarray, img1: np.ndarray, camera: CameraModel, max_features: int) -> float:
+    """The camera's rotation about its optical axis from ``img0`` to ``img1``, radians (positive:
+    clockwise as seen along the axis, the right-hand sense about camera z), NaN when unknown: the
+    rotation of the best similarity between the undistorted feature positions."""
+    p0 = cv2.goodFeaturesToTrack(img0, max_features, 0.01, 8)
+    if p0 is None or len(p0) < 12:
+        return np.nan
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(img0, img1, p0, None, winSize=(21, 21), maxLevel=3)
+    ok = st.ravel() == 1
+    if ok.sum() < 12:
+        return np.nan
+    f0 = camera.pixels_to_bearings(p0.reshape(-1, 2)[ok].astype(float))
+    f1 = camera.pixels_to_bearings(p1.reshape(-1, 2)[ok].astype(float))
+    n0, n1 = f0[:, :2] / f0[:, 2:], f1[:, :2] / f1[:, 2:]
+    M, _ = cv2.estimateAffinePartial2D(n0, n1, method=cv2.RANSAC, ransacReprojThreshold=2.0 / camera.fx_px)
+    if M is None:
+        return np.nan
+    return -float(np.arctan2(M[1, 0], M[0, 0]))  # the scene turns the other way
+
+
+def camera_rotation_rates(
+    frames: Iterable[tuple[float, np.ndarray]], camera: CameraModel, *, step: int = 2, max_features: int = 300,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(t_mid_s, rate_rad_s): the camera's rotation rate about its optical axis between frames ``step``
+    apart, at the middle of their interval; NaN where it could not be measured."""
     t_out, w_out = [], []
-    prev: tuple[float, np.ndarray] | None = None
+    recent: list[tuple[float, np.ndarray]] = []
     for t, img in frames:
-        if prev is not None:
-            t0, img0 = prev
-            rate = np.nan
-            p0 = cv2.goodFeaturesToTrack(img0, max_features, 0.01, 8)
-            if p0 is not None and len(p0) >= 12:
-                p1, st, _ = cv2.calcOpticalFlowPyrLK(img0, img, p0, None, winSize=(21, 21), maxLevel=3)
-                ok = st.ravel() == 1
-                if ok.sum() >= 12:
-                    f0 = camera.pixels_to_bearings(p0.reshape(-1, 2)[ok].astype(float))
-                    f1 = camera.pixels_to_bearings(p1.reshape(-1, 2)[ok].astype(float))
-                    n0, n1 = f0[:, :2] / f0[:, 2:], f1[:, :2] / f1[:, 2:]
-                    E, mask = cv2.findEssentialMat(n0, n1, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=1.0 / camera.fx_px)
-                    if E is not None and E.shape == (3, 3):
-                        _, R, _, _ = cv2.recoverPose(E, n0, n1, np.eye(3), mask=mask)
-                        rate = float(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) / (t - t0)
+        recent.append((t, img))
+        if len(recent) > step:
+            t0, img0 = recent.pop(0)
             t_out.append(0.5 * (t0 + t))
-            w_out.append(rate)
-        prev = (t, img)
+            w_out.append(_roll_about_axis_rad(img0, img, camera, max_features) / (t - t0))
     return np.array(t_out), np.array(w_out)
 
 
-def attitude_rotation_rates(attitude: np.ndarray, interval_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """(t_s, rate_rad_s) on a 10 ms grid from an (N,4) array of t_s, roll, pitch, yaw: the rotation over
-    ``interval_s`` centred on each grid time (the camera's frame interval, so both see the same)."""
+def attitude_rotation_rates(attitude: np.ndarray, axis_body: np.ndarray, interval_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(t_s, rate_rad_s) on a 10 ms grid from an (N,4) array of t_s, roll, pitch, yaw: the body's
+    rotation rate about ``axis_body`` (a unit vector in the body frame: the camera's optical axis),
+    over ``interval_s`` centred on each grid time."""
     t = attitude[:, 0]
     grid = np.arange(t[0] + interval_s, t[-1] - interval_s, GRID_S)
     unwrapped = np.column_stack([attitude[:, 1], attitude[:, 2], np.unwrap(attitude[:, 3])])
@@ -83,10 +96,12 @@ def attitude_rotation_rates(attitude: np.ndarray, interval_s: float) -> tuple[np
         return np.column_stack([np.interp(times, t, unwrapped[:, k]) for k in range(3)])
 
     a, b = at(grid - interval_s / 2), at(grid + interval_s / 2)
+    axis = np.asarray(axis_body, dtype=float)
     rates = np.empty(len(grid))
     for i in range(len(grid)):
-        R = R_from_euler321(*a[i]).T @ R_from_euler321(*b[i])
-        rates[i] = np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)) / interval_s
+        dR = R_from_euler321(*a[i]).T @ R_from_euler321(*b[i])  # body at the start to body at the end
+        w = 0.5 * np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]])  # small-angle rotation vector
+        rates[i] = float(w @ axis) / interval_s
     return grid, rates
 
 
@@ -132,12 +147,14 @@ def estimate_offset(
         ncc = _ncc_valid(cam, fc)
         offsets = fc_t[0] - cam_t[0] - GRID_S * np.arange(len(ncc))
     if float(np.std(cam)) < 0.02:
-        raise ConfigError(f"{source}: cannot estimate the time offset: the camera barely rotated (rate spread {np.std(cam):.3f} rad/s); give --offset-s")
+        raise ConfigError(f"{source}: cannot estimate the time offset: the camera barely turned about its axis (rate spread {np.std(cam):.3f} rad/s); give --offset-s")
     i = int(np.argmax(ncc))
     peak = float(ncc[i])
-    away = np.abs(offsets - offsets[i]) > _RUNNER_UP_AWAY_S
-    j = int(np.argmax(np.where(away, ncc, -np.inf))) if away.any() else i
-    runner = float(ncc[j]) if away.any() else float("nan")
+    # The runner-up: the best other local maximum outside the peak's own lobe.
+    peaks = np.flatnonzero((ncc[1:-1] >= ncc[:-2]) & (ncc[1:-1] >= ncc[2:])) + 1
+    peaks = peaks[np.abs(offsets[peaks] - offsets[i]) > _PEAK_LOBE_S]
+    j = int(peaks[np.argmax(ncc[peaks])]) if len(peaks) else i
+    runner = float(ncc[j]) if len(peaks) else float("nan")
     shift = 0.0
     if 0 < i < len(ncc) - 1:  # parabola through the peak: sub-grid offset
         den = ncc[i - 1] - 2 * ncc[i] + ncc[i + 1]

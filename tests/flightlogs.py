@@ -1,0 +1,113 @@
+"""Small flight-controller logs and videos made from a simulated flight, for the replay tests.
+
+The flight controller booted ``BOOT_S`` before the simulation started; the video starts ``video_start_s``
+into the flight, so the offset ``mavvo replay`` must find is ``BOOT_S + video_start_s``.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from mavvo.settings import ServiceConfig, config_yaml
+from sim.camera_source import SimCamera
+from sim.clock import LockstepClock
+from sim.fc_logs import write_dataflash
+from sim.flight_controller import import_mavutil
+from sim.metrics import PoseSeries
+from sim.report import write_tum
+from sim.scenario import load_scenario
+from sim.service import config_for
+from sim.trajectories import make_trajectory
+from sim.world import World
+
+BOOT_S = 100.0
+UNIX_AT_BOOT_US = 1_790_000_000_000_000
+
+
+@dataclass(frozen=True)
+class LogFlight:
+    log: Path
+    video: Path
+    config: Path
+    true_offset_s: float
+    duration_s: float
+    truth: Path  # TUM on the flight controller's clock
+
+
+def _samples(trajectory, duration_s: float, rate_hz: float, rng: np.random.Generator, noise_deg: float):
+    for t in np.arange(0.0, duration_s, 1.0 / rate_hz):
+        s = trajectory.state(float(t))
+        n = np.radians(noise_deg) * rng.standard_normal(3)
+        yield float(t), s.roll_rad + n[0], s.pitch_rad + n[1], s.yaw_rad + n[2], float(-s.p_ned_m[2])
+
+
+def make_log_flight(
+    tmp: Path, *, kind: str = "tlog", video: str = "folder", scenario: str = "figure_eight", duration_s: float = 16.0,
+    video_start_s: float = 1.5, video_end_s: float | None = None, with_attitude: bool = True, with_local_position: bool = False,
+) -> LogFlight:
+    """Write a log (``tlog`` or ``bin``), a video (``folder`` with timestamps.txt or ``avi``) and the
+    camera's config into ``tmp``."""
+    sc = load_scenario(scenario)
+    traj = make_trajectory(sc.trajectory)
+    rng = np.random.default_rng(7)
+    cfg = config_for(sc, ServiceConfig(), "udpout:127.0.0.1:14550")
+    config = tmp / "camera.yaml"
+    config.write_text(config_yaml(cfg), encoding="utf-8")
+
+    att = list(_samples(traj, duration_s, 50.0, rng, 0.02)) if with_attitude else []
+    heights = [(t, h) for t, *_, h in _samples(traj, duration_s, 10.0, rng, 0.0)]
+    ranges = [(float(t), -traj.pose(float(t))[0][2] / traj.pose(float(t))[1][2, 2]) for t in np.arange(0.0, duration_s, 0.05)]
+    if kind == "tlog":
+        log = tmp / "flight.tlog"
+        mav = import_mavutil().mavlink
+        enc = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+        events = [(t, mav.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3)) for t in np.arange(0.0, duration_s, 1.0)]
+        events += [(t, mav.MAVLink_attitude_message(int(round((t + BOOT_S) * 1e3)), r, p, y, 0, 0, 0)) for t, r, p, y, _ in att]
+        events += [(t, mav.MAVLink_global_position_int_message(int(round((t + BOOT_S) * 1e3)), 0, 0, 0, int(h * 1e3), 0, 0, 0, 0)) for t, h in heights]
+        events += [(t, mav.MAVLink_distance_sensor_message(int(round((t + BOOT_S) * 1e3)), 20, 4000, int(round(r * 100)), 0, 0, 25, 255)) for t, r in ranges]
+        if with_local_position:
+            events += [(t, mav.MAVLink_local_position_ned_message(int(round((t + BOOT_S) * 1e3)), *traj.state(t).p_ned_m, 0, 0, 0)) for t, _ in heights]
+        events.sort(key=lambda e: e[0])
+        with log.open("wb") as f:
+            for t, msg in events:
+                f.write(struct.pack(">Q", UNIX_AT_BOOT_US + int((t + BOOT_S) * 1e6)) + msg.pack(enc))
+    else:
+        log = tmp / "flight.bin"
+        formats = {
+            "ATT": (60, "Qffffff", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw"), "BARO": (61, "QBf", "TimeUS,I,Alt"),
+            "RFND": (62, "QBfBB", "TimeUS,Instance,Dist,Stat,Orient"),
+        }
+        recs = [("ATT", (int((t + BOOT_S) * 1e6), 0.0, np.degrees(r), 0.0, np.degrees(p), 0.0, np.degrees(y) % 360)) for t, r, p, y, _ in att]
+        recs += [("BARO", (int((t + BOOT_S) * 1e6), 0, h)) for t, h in heights]
+        recs += [("RFND", (int((t + BOOT_S) * 1e6), 0, r, 4, 25)) for t, r in ranges]
+        recs.sort(key=lambda r: r[1][0])
+        write_dataflash(log, formats, recs)
+
+    cam = SimCamera(sc.camera, World.build(sc.world), traj, LockstepClock(), seed=sc.seed)
+    end = duration_s - 0.3 if video_end_s is None else video_end_s
+    times = np.arange(video_start_s, end, 1.0 / sc.camera.rate_hz)
+    if video == "folder":
+        out = tmp / "frames"
+        out.mkdir()
+        lines = []
+        for k, t in enumerate(times):
+            cv2.imwrite(str(out / f"{k:05d}.png"), cam.render_at(float(t)))
+            lines.append(f"{float(t) - video_start_s + 5.0!r} {k:05d}.png")  # the video's own clock starts at 5 s
+        (out / "timestamps.txt").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    else:
+        out = tmp / "flight.avi"
+        w = cv2.VideoWriter(str(out), cv2.VideoWriter_fourcc(*"MJPG"), float(sc.camera.rate_hz), (sc.camera.width_px, sc.camera.height_px), False)
+        for t in times:
+            w.write(cam.render_at(float(t)))
+        w.release()
+    truth = tmp / "truth.tum"
+    times = np.arange(0.0, duration_s, 0.01)
+    ts = traj.truth_series(times, sc.camera.lever_arm_m)
+    write_tum(truth, PoseSeries(times + BOOT_S, ts.positions_xyz_m, ts.orientations_quat_wxyz))
+    return LogFlight(log, out, config, BOOT_S + video_start_s, duration_s, truth)
+
