@@ -163,10 +163,11 @@ def write_dataflash(path: str | Path, formats: dict[str, tuple[int, str, str]], 
 
 # ---------------------------------------------------------------------- back to MAVLink
 
-def series_messages(s: FcSeries, *, heartbeat_hz: float = 1.0) -> list[tuple[int, bytes]]:
+def series_messages(s: FcSeries, *, heartbeat_hz: float = 1.0, boot_epoch_s: float = 0.0) -> list[tuple[int, bytes]]:
     """The log as the MAVLink 2 messages a flight controller (system 1, component 1) would have sent,
-    each arriving on the host clock at its own boot time: ``(t_host_us, frame)`` in time order. The
-    host clock of a log replay is the flight controller's boot clock. A HEARTBEAT opens the stream."""
+    each arriving on the host clock at its own time: ``(t_host_us, frame)`` in time order. The series'
+    times are the host clock of the replay; ``time_boot_ms`` counts from ``boot_epoch_s`` (a dataset's
+    Unix-time stamps do not fit its 32 bits). A HEARTBEAT opens the stream."""
     mavutil = import_mavutil()
     m = mavutil.mavlink
     mav = m.MAVLink(None, srcSystem=1, srcComponent=1)
@@ -175,11 +176,11 @@ def series_messages(s: FcSeries, *, heartbeat_hz: float = 1.0) -> list[tuple[int
     for t in np.arange(t0, t1 + 1e-9, 1.0 / heartbeat_hz):
         events.append((round(t * 1e6), 0, m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, m.MAV_STATE_ACTIVE, 3)))
     for t, r, pch, y in s.attitude:
-        events.append((round(t * 1e6), 1, m.MAVLink_attitude_message(int(round(t * 1e3)), r, pch, y, 0.0, 0.0, 0.0)))
+        events.append((round(t * 1e6), 1, m.MAVLink_attitude_message(int(round((t - boot_epoch_s) * 1e3)), r, pch, y, 0.0, 0.0, 0.0)))
     for t, d in s.range_m:
         cm = 4001 if not np.isfinite(d) else int(round(d * 100))
-        events.append((round(t * 1e6), 2, m.MAVLink_distance_sensor_message(int(round(t * 1e3)), 20, 4000, cm, m.MAV_DISTANCE_SENSOR_LASER, 0, m.MAV_SENSOR_ROTATION_PITCH_270, 255)))
+        events.append((round(t * 1e6), 2, m.MAVLink_distance_sensor_message(int(round((t - boot_epoch_s) * 1e3)), 20, 4000, cm, m.MAV_DISTANCE_SENSOR_LASER, 0, m.MAV_SENSOR_ROTATION_PITCH_270, 255)))
     for t, h in s.height_m:
-        events.append((round(t * 1e6), 3, m.MAVLink_global_position_int_message(int(round(t * 1e3)), 0, 0, 0, int(round(h * 1e3)), 0, 0, 0, 65535)))
+        events.append((round(t * 1e6), 3, m.MAVLink_global_position_int_message(int(round((t - boot_epoch_s) * 1e3)), 0, 0, 0, int(round(h * 1e3)), 0, 0, 0, 65535)))
     events.sort(key=lambda e: (e[0], e[1]))
     return [(t_us, bytes(msg.pack(mav))) for t_us, _, msg in events]

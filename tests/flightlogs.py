@@ -111,3 +111,53 @@ def make_log_flight(
     write_tum(truth, PoseSeries(times + BOOT_S, ts.positions_xyz_m, ts.orientations_quat_wxyz))
     return LogFlight(log, out, config, BOOT_S + video_start_s, duration_s, truth)
 
+
+
+EUROC_T0_NS = 1_403_636_579_763_555_584
+
+
+def make_euroc(tmp: Path, *, scenario: str = "figure_eight", duration_s: float = 12.0) -> Path:
+    """A small EuRoC/ASL folder (mav0/cam0, imu0, state_groundtruth_estimate0) of a simulated flight.
+    The IMU frame is the body's turned to x forward, y left, z up (as a z-up IMU often is)."""
+    from mavvo.frames import quat_wxyz_from_R, rot_x
+
+    sc = load_scenario(scenario)
+    traj = make_trajectory(sc.trajectory)
+    R_body_imu = rot_x(np.pi)
+    D = np.diag([1.0, -1.0, -1.0])
+    mav0 = tmp / "dataset" / "mav0"
+    for d in ("cam0/data", "imu0", "state_groundtruth_estimate0"):
+        (mav0 / d).mkdir(parents=True)
+    ns = lambda t: EUROC_T0_NS + int(round(t * 1e9))  # noqa: E731
+    rows = []
+    for t in np.arange(0.0, duration_s, 1 / 200.0):
+        st = traj.state(float(t))
+        f_body = st.R_ned_body.T @ (st.a_ned_m_s2 - np.array([0.0, 0.0, 9.81]))
+        rows.append(f"{ns(t)},{','.join(repr(float(x)) for x in R_body_imu.T @ st.omega_body_rad_s)},{','.join(repr(float(x)) for x in R_body_imu.T @ f_body)}")
+    (mav0 / "imu0" / "data.csv").write_text("#timestamp [ns],w_x,w_y,w_z,a_x,a_y,a_z\n" + "\n".join(rows) + "\n", encoding="utf-8")
+    gt = []
+    for t in np.arange(0.0, duration_s, 1 / 200.0):
+        st = traj.state(float(t))
+        q = quat_wxyz_from_R(D @ st.R_ned_body @ R_body_imu)
+        gt.append(f"{ns(t)},{','.join(repr(float(x)) for x in D @ st.p_ned_m)},{','.join(repr(float(x)) for x in q)},0,0,0,0,0,0,0,0,0")
+    (mav0 / "state_groundtruth_estimate0" / "data.csv").write_text("#timestamp,p_x,p_y,p_z,q_w,q_x,q_y,q_z,v,v,v,bw,bw,bw,ba,ba,ba\n" + "\n".join(gt) + "\n", encoding="utf-8")
+    c = sc.camera
+    R_imu_cam = R_body_imu.T @ c.R_body_cam()
+    T = np.eye(4)
+    T[:3, :3] = R_imu_cam
+    T[:3, 3] = R_body_imu.T @ np.asarray(c.lever_arm_m)
+    (mav0 / "cam0" / "sensor.yaml").write_text(
+        "%YAML:1.0\nsensor_type: camera\nT_BS:\n  cols: 4\n  rows: 4\n  data: [" + ", ".join(repr(float(x)) for x in T.ravel()) + "]\n"
+        f"rate_hz: {c.rate_hz}\nresolution: [{c.width_px}, {c.height_px}]\ncamera_model: pinhole\n"
+        f"intrinsics: [{c.fx_px}, {c.fy_px}, {c.cx_px}, {c.cy_px}]\ndistortion_model: radial-tangential\n"
+        f"distortion_coefficients: [{', '.join(str(float(x)) for x in (tuple(c.distortion) + (0.0,) * 4)[:4])}]\n",
+        encoding="utf-8",
+    )
+    cam = SimCamera(sc.camera, World.build(sc.world), traj, LockstepClock(), seed=sc.seed)
+    lines = []
+    for t in np.arange(0.5, duration_s - 0.3, 1.0 / c.rate_hz):
+        name = f"{ns(t)}.png"
+        cv2.imwrite(str(mav0 / "cam0" / "data" / name), cam.render_at(float(t)))
+        lines.append(f"{ns(t)},{name}")
+    (mav0 / "cam0" / "data.csv").write_text("#timestamp [ns],filename\n" + "\n".join(lines) + "\n", encoding="utf-8")
+    return tmp / "dataset"
