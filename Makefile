@@ -38,4 +38,4 @@ bench: $(STAMP)
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/pipeline.py --markdown docs/benchmarks.md
 
 clean:
-	rm -rf $(VENV) .pytest_cache build *.egg-info mavvo-sim-out
+	rm -rf $(VENV) .pytest_cache build *.egg-info mavvo-sim-out mavvo-replay-out
