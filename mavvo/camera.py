@@ -267,32 +267,40 @@ class VideoFileSource(_PacedSource):
             self._cap = None
 
 
+def read_frame_index(folder: Path) -> list[tuple[int, float, Path]]:
+    """The frames listed in ``folder/timestamps.txt``: (line number, time in seconds, image path), one
+    ``TIMESTAMP_S FILENAME`` per line, ``#`` comments, increasing times; CameraError naming the file and
+    line otherwise."""
+    index = folder / "timestamps.txt"
+    try:
+        lines = index.read_text(encoding="utf-8").splitlines()
+    except OSError as e:
+        raise CameraError(f"camera.source {index}: cannot read: {e.strerror or e}") from e
+    items: list[tuple[int, float, Path]] = []
+    for n, line in enumerate(lines, 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.split(maxsplit=1)
+        try:
+            t = float(parts[0])
+        except ValueError:
+            t = math.nan
+        if len(parts) != 2 or not math.isfinite(t) or (items and t <= items[-1][1]):
+            raise CameraError(f"{index}:{n}: expected 'TIMESTAMP_S FILENAME' with increasing times, got {line!r}")
+        items.append((n, t, folder / parts[1]))
+    if not items:
+        raise CameraError(f"{index}: no frames listed")
+    return items
+
+
 class ImageFolderSource(_PacedSource):
     """A folder of images listed in its ``timestamps.txt``: ``TIMESTAMP_S FILENAME`` per line, ``#``
     comments; timestamps must increase."""
 
     def __init__(self, folder: Path, clock: Clock) -> None:
         super().__init__(str(folder), clock)
-        index = folder / "timestamps.txt"
-        try:
-            lines = index.read_text(encoding="utf-8").splitlines()
-        except OSError as e:
-            raise CameraError(f"camera.source {index}: cannot read: {e.strerror or e}") from e
-        self._items: list[tuple[float, Path]] = []
-        for n, line in enumerate(lines, 1):
-            line = line.strip()
-            if not line or line.startswith("#"):
-                continue
-            parts = line.split(maxsplit=1)
-            try:
-                t = float(parts[0])
-            except ValueError:
-                t = math.nan
-            if len(parts) != 2 or not math.isfinite(t) or (self._items and t <= self._items[-1][0]):
-                raise CameraError(f"{index}:{n}: expected 'TIMESTAMP_S FILENAME' with increasing times, got {line!r}")
-            self._items.append((t, folder / parts[1]))
-        if not self._items:
-            raise CameraError(f"{index}: no frames listed")
+        self._items = [(t, path) for _, t, path in read_frame_index(folder)]
         self._i = 0
 
     def _next(self) -> tuple[np.ndarray, float] | None:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import csv
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 import yaml
@@ -30,7 +30,7 @@ from mavvo.settings import parse_config
 from sim.fc_logs import FcSeries, series_messages
 from sim.metrics import PoseSeries
 from sim.recording import merge
-from sim.replay import ReplayFrame, ReplayInput
+from sim.replay import ReplayFrame, ReplayInput, image_loader
 
 __all__ = ["load_euroc", "read_euroc_groundtruth"]
 
@@ -41,21 +41,36 @@ HEIGHT_NOISE_M = 0.1
 _D = np.diag([1.0, -1.0, -1.0])  # the datasets' z-up world to mavvo's level frame (z down)
 
 
-def _csv(path: Path, min_columns: int) -> np.ndarray:
+def _rows(path: Path) -> Iterator[tuple[int, list[str]]]:
+    """(line number, fields) of a dataset CSV, comments and blank lines skipped."""
     if not path.is_file():
         raise ConfigError(f"{path}: missing (expected a EuRoC/ASL dataset file)")
-    rows = []
     with path.open(newline="", encoding="utf-8") as f:
         for n, row in enumerate(csv.reader(f), 1):
-            if not row or row[0].startswith("#"):
-                continue
-            try:
-                rows.append([float(x) for x in row[:min_columns]])
-            except ValueError:
-                raise ConfigError(f"{path}:{n}: expected {min_columns} numbers, got {','.join(row)!r}") from None
-            if len(rows[-1]) < min_columns:
-                raise ConfigError(f"{path}:{n}: expected {min_columns} columns, got {len(row)}")
+            if row and not row[0].startswith("#"):
+                yield n, row
+
+
+def _csv(path: Path, min_columns: int) -> np.ndarray:
+    rows = []
+    for n, row in _rows(path):
+        try:
+            values = [float(x) for x in row[:min_columns]]
+        except ValueError:
+            raise ConfigError(f"{path}:{n}: expected {min_columns} numbers, got {','.join(row)!r}") from None
+        if len(values) < min_columns:
+            raise ConfigError(f"{path}:{n}: expected {min_columns} columns, got {len(row)}")
+        rows.append(values)
     return np.array(rows).reshape(-1, min_columns)
+
+
+def _frame_rows(path: Path) -> list[tuple[str, str]]:
+    out = []
+    for n, row in _rows(path):
+        if len(row) < 2 or not row[0].strip().isdigit():
+            raise ConfigError(f"{path}:{n}: expected 'timestamp_ns,filename', got {','.join(row)!r}")
+        out.append((row[0].strip(), row[1].strip()))
+    return out
 
 
 def _sensor_yaml(path: Path) -> dict[str, Any]:
@@ -171,7 +186,7 @@ def load_euroc(root: Path, overrides: dict[str, Any], *, attitude: str = "imu", 
         p_cam = gt[:, 1:4] @ _D.T + R_lvl_imu @ t_imu_cam  # the camera centre: what mavvo estimates
         reference = PoseSeries(t_gt, p_cam, np.array([quat_wxyz_from_R(R @ R_imu_body) for R in R_lvl_imu]))
     series = FcSeries(str(root), "euroc", attitude_rows, np.zeros((0, 2)), heights)
-    frames_csv = _csv_rows(mav0 / "cam0" / "data.csv")
+    frames_csv = _frame_rows(mav0 / "cam0" / "data.csv")
     problems: list[str] = []
     frames = []
     gap = config.timing.max_attitude_gap_s
@@ -181,32 +196,6 @@ def load_euroc(root: Path, overrides: dict[str, Any], *, attitude: str = "imu", 
             problems.append(f"{path}: missing; the frames after it are not replayed")
             break
         t = int(t_ns) * 1e-9
-        frames.append(ReplayFrame(k, t, t + gap, None, _loader(path)))
+        frames.append(ReplayFrame(k, t, t + gap, None, image_loader(path)))
     return ReplayInput("euroc", str(root), config, series_messages(series, boot_epoch_s=float(np.floor(imu[0, 0] * 1e-9))), frames, reference,
                        "ground truth" if reference is not None else "", notes=notes, problems=problems)
-
-
-def _csv_rows(path: Path) -> list[tuple[str, str]]:
-    if not path.is_file():
-        raise ConfigError(f"{path}: missing (expected a EuRoC/ASL dataset file)")
-    rows = []
-    with path.open(newline="", encoding="utf-8") as f:
-        for n, row in enumerate(csv.reader(f), 1):
-            if not row or row[0].startswith("#"):
-                continue
-            if len(row) < 2 or not row[0].strip().isdigit():
-                raise ConfigError(f"{path}:{n}: expected 'timestamp_ns,filename', got {','.join(row)!r}")
-            rows.append((row[0].strip(), row[1].strip()))
-    return rows
-
-
-def _loader(path: Path) -> Any:
-    import cv2
-
-    def load() -> np.ndarray:
-        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if img is None:
-            raise ConfigError(f"{path}: cannot read the image")
-        return img
-
-    return load

@@ -13,15 +13,12 @@ import json
 from pathlib import Path
 from typing import Any
 
-import cv2
-import numpy as np
-
 from mavvo.config import load_yaml
 from mavvo.errors import ConfigError
 from mavvo.recorder import FORMAT_VERSION, FRAME_COLUMNS
 from mavvo.settings import parse_config
 from mavvo.tlog import message_id, payload, read_tlog, source_component
-from sim.replay import ReplayFrame, ReplayInput
+from sim.replay import ReplayFrame, ReplayInput, image_loader
 
 __all__ = ["is_recording", "load_recording", "merge"]
 
@@ -38,20 +35,6 @@ def merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
     for k, v in override.items():
         out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
     return out
-
-
-def _load_png(path: Path) -> Any:
-    def load() -> np.ndarray:
-        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise ConfigError(f"{path}: cannot read the frame (missing or not an image)")
-        return img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-
-    return load
-
-
-def _opt_float(s: str) -> float | None:
-    return float(s) if s else None
 
 
 def load_recording(path: str | Path, overrides: dict[str, Any] | None = None) -> ReplayInput:
@@ -106,7 +89,7 @@ def load_recording(path: str | Path, overrides: dict[str, Any] | None = None) ->
                 try:
                     rec = dict(zip(FRAME_COLUMNS, row, strict=True))
                     t_paired = float(rec["t_paired_s"])
-                    fr = ReplayFrame(int(rec["seq"]), float(rec["t_exposure_s"]), t_paired, int(rec["fc_version"]), _load_png(p / "frames" / rec["file"]))
+                    fr = ReplayFrame(int(rec["seq"]), float(rec["t_exposure_s"]), t_paired, int(rec["fc_version"]), image_loader(p / "frames" / rec["file"]))
                 except ValueError as e:
                     problems.append(f"{index}:{n}: malformed row ({e}); stopped reading this index")
                     break

@@ -23,13 +23,15 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable
 
+import cv2
 import numpy as np
 
 from mavvo.camera import InjectedSource
 from mavvo.daemon import Daemon, DaemonSummary
-from mavvo.errors import MavvoError
+from mavvo.errors import ConfigError, MavvoError
 from mavvo.link import us_to_s
 from mavvo.settings import ServiceConfig
 from mavvo.tlog import payload
@@ -141,6 +143,18 @@ class ReplayFlightController:
 
     def close(self) -> None:
         self._conn.close()
+
+
+def image_loader(path: Path) -> Callable[[], np.ndarray]:
+    """Loads ``path`` as a grey 8-bit image when called (a frame is read only when it is handed over)."""
+
+    def load() -> np.ndarray:
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise ConfigError(f"{path}: cannot read the frame (missing or not an image)")
+        return img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+
+    return load
 
 
 def empty_result() -> ReplayResult:

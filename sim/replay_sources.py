@@ -11,7 +11,6 @@ at its own time stamp and a frame exposed at video time ``t`` is at ``t + offset
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -19,7 +18,8 @@ import cv2
 import numpy as np
 
 from mavvo.config import load_yaml
-from mavvo.errors import ConfigError
+from mavvo.camera import read_frame_index
+from mavvo.errors import CameraError, ConfigError
 from mavvo.frames import R_from_euler321
 from mavvo.settings import parse_config
 from sim.fc_logs import FcSeries, read_fc_log, series_messages
@@ -64,23 +64,17 @@ class VideoFrames:
     def _scan_folder(self, folder: Path, fps: float | None) -> tuple[np.ndarray, list[Path]]:
         index = folder / "timestamps.txt"
         if index.is_file():
+            try:
+                listed = read_frame_index(folder)
+            except CameraError as e:
+                raise ConfigError(str(e)) from e
             times, files = [], []
-            for n, line in enumerate(index.read_text(encoding="utf-8").splitlines(), 1):
-                line = line.strip()
-                if not line or line.startswith("#"):
-                    continue
-                parts = line.split(maxsplit=1)
-                try:
-                    t = float(parts[0])
-                except ValueError:
-                    t = math.nan
-                if len(parts) != 2 or not math.isfinite(t) or (times and t <= times[-1]):
-                    raise ConfigError(f"{index}:{n}: expected 'TIME_S FILENAME' with increasing times, got {line!r}")
-                if not (folder / parts[1]).is_file():
-                    self.problems.append(f"{index}:{n}: {parts[1]} is missing; the frames after it are not replayed")
+            for n, t, path in listed:
+                if not path.is_file():
+                    self.problems.append(f"{index}:{n}: {path.name} is missing; the frames after it are not replayed")
                     break
                 times.append(t)
-                files.append(folder / parts[1])
+                files.append(path)
             return np.array(times) - (times[0] if times else 0.0), files
         if fps is None or not fps > 0:
             raise ConfigError(f"--video {folder}: an image folder without timestamps.txt needs --fps")
