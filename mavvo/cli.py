@@ -205,7 +205,7 @@ def _sim_service(scenario: Any, args: argparse.Namespace) -> int:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from sim.replay import replay
+    from sim.replay import empty_result, replay
     from sim.replay_report import write_replay_report
     from sim.replay_sources import open_replay_source
 
@@ -218,13 +218,10 @@ def _replay(args: argparse.Namespace) -> int:
         log.info("%s: %s", note, value)
     for problem in inp.problems:
         log.warning("%s", problem)
-    res = None
     if inp.frames and inp.messages:
         log.info("replaying %s (%s): %d frames, %d messages", inp.source, inp.kind, len(inp.frames), len(inp.messages))
         res = replay(inp, progress=lambda k, n: log.info("replay: frame %d of %d (%.0f%%)", k, n, 100.0 * k / n))
-    if res is None:
-        from sim.replay import empty_result
-
+    else:
         res = empty_result()
     summary = write_replay_report(out, inp, res)
     if args.json:
@@ -244,13 +241,11 @@ def _replay(args: argparse.Namespace) -> int:
                 f"{ev['path_length_m']:.1f} m), Sim(3) {ev['ate_sim3_m']['rmse']:.3f} m at scale {ev['sim3_scale']:.3f}"
             )
         print(f"report: {out} ({', '.join(summary['files'])})")
-    if inp.problems or (res.stopped and inp.frames):
-        for problem in inp.problems:
-            print(f"mavvo: {problem}", file=sys.stderr)
-        if not inp.problems:
-            print("mavvo: the replay was interrupted; the report covers what was replayed", file=sys.stderr)
-        return 1
-    return 0
+    for problem in inp.problems:
+        print(f"mavvo: {problem}", file=sys.stderr)
+    if res.stopped and inp.frames:  # Ctrl-C: a clean stop, like the service's
+        print(f"mavvo: replay interrupted after {res.frames_replayed} of {len(inp.frames)} frames; the report covers those", file=sys.stderr)
+    return 1 if inp.problems else 0
 
 
 def _fc_only(scenario: Any, args: argparse.Namespace) -> int:

@@ -86,9 +86,9 @@ class LinkListener(Protocol):
     def on_reboot(self) -> None: ...
 
 
-Tap = Callable[[int, bytes, bool], None]
-"""Sees every message the link reads or writes: (host clock in whole microseconds, the message's bytes,
-True when it came in). It must not block: it runs on the link thread."""
+Tap = Callable[[int, bytes], None]
+"""Sees every message the link reads or writes: (host clock in whole microseconds, the message's bytes;
+mavvo's own are from component 197). It must not block: it runs on the link thread."""
 
 
 def stamp_us(clock: Clock) -> int:
@@ -329,7 +329,7 @@ class Link:
         self._conn.mav.send(msg)
         self.counters["sent"] += 1
         if self.tap is not None:
-            self.tap(stamp_us(self.clock), bytes(msg.get_msgbuf()), False)
+            self.tap(stamp_us(self.clock), bytes(msg.get_msgbuf()))
 
     def _drain(self) -> None:
         """Send what is still queued (the stop's bounded drain: one pass, no waiting)."""
@@ -374,7 +374,7 @@ class Link:
             return
         t_us = stamp_us(self.clock)
         if self.tap is not None:
-            self.tap(t_us, bytes(msg.get_msgbuf()), True)
+            self.tap(t_us, bytes(msg.get_msgbuf()))
         try:
             self._dispatch(msg, kind, us_to_s(t_us))
         finally:

@@ -124,7 +124,7 @@ class Recorder:
 
     # ------------------------------------------------------------------ producers (never block)
 
-    def mavlink(self, t_host_us: int, frame: bytes, inbound: bool) -> None:
+    def mavlink(self, t_host_us: int, frame: bytes) -> None:
         """The link's tap: one message with the host stamp the link gave it."""
         self._offer(self._mav_q, (t_host_us, frame), "dropped_messages")
 

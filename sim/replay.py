@@ -18,8 +18,8 @@ message list and a frame list and take the same path.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-import math
 import threading
 import time
 from dataclasses import dataclass, field
@@ -118,7 +118,6 @@ class ReplayFlightController:
         mavutil = import_mavutil()
         self._conn = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=1, source_component=1)
         self.received: list[Received] = []
-        self._clock: Any = None
 
     @property
     def url_for_client(self) -> str:
@@ -243,8 +242,6 @@ class _Driver:
 
 def replay_config(config: ServiceConfig, url: str) -> ServiceConfig:
     """``config`` as the replay runs it: the link to the replay flight controller, no recording."""
-    import dataclasses
-
     return dataclasses.replace(
         config,
         link=dataclasses.replace(config.link, url=url, signing_key_file=""),
@@ -279,7 +276,6 @@ def replay(inp: ReplayInput, progress: Callable[[int, int], None] | None = None)
         thread = threading.Thread(target=driver.run, name="mavvo-replay", daemon=True)
         thread.start()
         summary = daemon.run()
-        stopped = daemon.stop_event.is_set() and thread.is_alive()
         daemon.stop_event.set()
         thread.join(5.0)
         fc.poll(clock.now_s())
@@ -296,6 +292,5 @@ def replay(inp: ReplayInput, progress: Callable[[int, int], None] | None = None)
     return ReplayResult(
         summary, vision_estimates(fc.received, "usec"), [payload(r.raw) for r in vpe], quality,
         dict(sorted(received.items())), [r.msg.text for r in fc.received if r.type == "STATUSTEXT"],
-        driver.frames, driver.sent, driver.lost, wall, span if math.isfinite(span) else 0.0,
-        stopped or driver.frames < len(inp.frames),
+        driver.frames, driver.sent, driver.lost, wall, span, driver.frames < len(inp.frames),
     )

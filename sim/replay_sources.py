@@ -90,7 +90,9 @@ class VideoFrames:
         times = []
         while cap.grab():
             t = cap.get(cv2.CAP_PROP_POS_MSEC) * 1e-3
-            times.append(t if (t > 0 or not times) and not (times and t <= times[-1]) else len(times) / (fps or 20.0))
+            if times and not t > times[-1]:  # a container without frame times: index / rate
+                t = len(times) / (fps or 20.0)
+            times.append(t)
         cap.release()
         if declared > 0 and len(times) < declared:
             self.problems.append(f"--video {path}: the video ends after {len(times)} of the {declared} frames its header declares (cut off?)")

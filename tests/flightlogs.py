@@ -61,7 +61,8 @@ def make_log_flight(
 
     att = list(_samples(traj, duration_s, 50.0, rng, 0.02)) if with_attitude else []
     heights = [(t, h) for t, *_, h in _samples(traj, duration_s, 10.0, rng, 0.0)]
-    ranges = [(float(t), -traj.pose(float(t))[0][2] / traj.pose(float(t))[1][2, 2]) for t in np.arange(0.0, duration_s, 0.05)]
+    poses = [(float(t), *traj.pose(float(t))) for t in np.arange(0.0, duration_s, 0.05)]
+    ranges = [(t, -p[2] / R[2, 2]) for t, p, R in poses]  # the downward laser to flat ground
     if kind == "tlog":
         log = tmp / "flight.tlog"
         mav = import_mavutil().mavlink

@@ -85,7 +85,7 @@ def test_recorder_never_blocks_counts_drops_and_stops_at_its_budget(tmp_path):
     img = rng.integers(0, 255, (120, 160), dtype=np.uint8)  # noise: ~19 kB per PNG
     for k in range(40):  # a burst: the queue holds two, the rest are dropped at once
         rec.frame(Frame(img, k * 0.05, k), Pairing("paired", k, 0.0, 0.0, 0.0), k * 0.05)
-        rec.mavlink(k * 1000, bytes([0xFD, 1, 0, 0, k, 1, 1, 30, 0, 0, 7, 0, 0]), True)
+        rec.mavlink(k * 1000, bytes([0xFD, 1, 0, 0, k, 1, 1, 30, 0, 0, 7, 0, 0]))
     deadline = time.monotonic() + 10
     while rec.counters["frames"] < 2 and time.monotonic() < deadline:
         time.sleep(0.01)
