@@ -27,11 +27,9 @@ for malformed input (wrong shape, non-finite values, zero-length bearings, too f
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 
-from mavvo.frames import cross, rot_z, skew
+from mavvo.frames import rot_z, skew
 from mavvo.polyroots import cubic_real_roots, quartic_real_roots
 
 __all__ = [
@@ -63,12 +61,16 @@ _MIN_ROW_RANK_RATIO = 1e-9
 _MIN_TEMPLATE_NORM = 1e-9
 # Below this angle (rad) between the epipolar planes of the three points they count as one plane.
 _MIN_EPIPOLAR_PLANE_ANGLE = 1e-3
-# A solution whose constraint Jacobian has sigma_min / sigma_max below this lies on a continuum.
-_MIN_ISOLATION = 1e-6
-# Within this distance of E13 = E23 = E31 = E32 = 0 (motion nearly along gravity) the two roots
-# near the vertical point are solved sheet by sheet, with this many Newton steps.
+# Where the null space passes within this distance of E13 = E23 = E31 = E32 = 0 (motion nearly
+# along gravity) the two roots near the vertical point are solved sheet by sheet, with this many
+# steps, if they lie within the radius; a sheet's equations whose 2x2 system has sigma_min /
+# sigma_max below the isolation ratio hold on a continuum.
 _NEAR_VERTICAL = 1e-3
-_SHEET_NEWTON_STEPS = 4
+_SHEET_STEPS = 5
+_SHEET_RADIUS = 1e-2
+_MIN_ISOLATION = 1e-6
+# The two sheets' solutions closer than this (unit-norm e) are one: motion exactly along gravity.
+_SHEET_SAME_DISTANCE = 1e-8
 # The det cubic of the 4-point, or the 5th singular value of the linear 5-point, vanishes on a
 # horizontal plane (rank 4). Relative to the largest coefficient / singular value.
 _MIN_DEGENERACY_RATIO = 1e-9
@@ -111,16 +113,19 @@ def as_bearing_pair(
 
 
 def _as_sample_batch(name: str, F: object) -> np.ndarray:
+    """Validate (B, 3, 3) sample bearings; return them unit length and component-major, (3, 3, B):
+    component, point, sample."""
     arr = np.asarray(F, dtype=float)
     if arr.ndim != 3 or arr.shape[1:] != (3, 3):
         raise ValueError(f"{name}: expected a (B,3,3) array (B samples of 3 bearings), got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
+    X = np.ascontiguousarray(arr.transpose(2, 1, 0))
+    if not np.isfinite(X).all():
         raise ValueError(f"{name}: bearings must be finite, got NaN or inf")
-    norms = np.linalg.norm(arr, axis=2)
-    if np.any(norms < 1e-12):
-        b, i = np.unravel_index(int(np.argmin(norms)), norms.shape)
+    norms = np.sqrt(X[0] * X[0] + X[1] * X[1] + X[2] * X[2])  # (3 points, B)
+    if (norms < 1e-12).any():
+        i, b = np.unravel_index(int(np.argmin(norms)), norms.shape)
         raise ValueError(f"{name}: bearings must have non-zero length, sample {b} row {i} is zero")
-    return arr / norms[..., None]
+    return X / norms
 
 
 # --------------------------------------------------------------------------- the linear system
@@ -135,9 +140,14 @@ def epipolar_rows(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
     Returns:
         (..., N, 6) coefficients of e = (E13, E21, E22, E23, E31, E32).
     """
-    x, y, z = f1[..., 0], f1[..., 1], f1[..., 2]
-    xp, yp, zp = f2[..., 0], f2[..., 1], f2[..., 2]
-    return np.stack([xp * z, yp * x - xp * y, xp * x + yp * y, yp * z, zp * x, zp * y], axis=-1)
+    return np.moveaxis(_epipolar_coefficients(np.moveaxis(f1, -1, 0), np.moveaxis(f2, -1, 0)), 0, -1)
+
+
+def _epipolar_coefficients(X1: np.ndarray, X2: np.ndarray) -> np.ndarray:
+    """:func:`epipolar_rows` on component-major bearings X1, X2 (3, ...): returns (6, ...)."""
+    x, y, z = X1
+    xp, yp, zp = X2
+    return np.stack([xp * z, yp * x - xp * y, xp * x + yp * y, yp * z, zp * x, zp * y])
 
 
 def essential_from_vector(e: np.ndarray) -> np.ndarray:
@@ -159,9 +169,24 @@ def essential_to_vector(E: np.ndarray) -> np.ndarray:
     return e
 
 
+def _complex_entries(
+    e13: np.ndarray, e21: np.ndarray, e22: np.ndarray, e23: np.ndarray, e31: np.ndarray, e32: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return e22 + 1j * e21, e13 + 1j * e23, e31 + 1j * e32
+
+
 def alpha_beta_gamma(e: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """alpha = E22 + i E21, beta = E13 + i E23, gamma = E31 + i E32 from (..., 6) vectors e."""
-    return e[..., 2] + 1j * e[..., 1], e[..., 0] + 1j * e[..., 3], e[..., 4] + 1j * e[..., 5]
+    return _complex_entries(*np.moveaxis(e, -1, 0))
+
+
+def _constraint_values(al: np.ndarray, be: np.ndarray, ga: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Q (real), D (real) and T (complex) of the module docstring, elementwise."""
+    return (be * np.conj(be)).real - (ga * np.conj(ga)).real, (al * ga * np.conj(be)).real, be * be * np.conj(al) + al * ga * ga
+
+
+def _max_violation(q: np.ndarray, d: np.ndarray, t: np.ndarray) -> np.ndarray:
+    return np.maximum(np.maximum(np.abs(q), np.abs(d)), np.abs(t))
 
 
 def upright_constraint_residual(E: np.ndarray) -> np.ndarray:
@@ -171,97 +196,131 @@ def upright_constraint_residual(E: np.ndarray) -> np.ndarray:
     """
     E = np.asarray(E, dtype=float)
     n = np.linalg.norm(E, axis=(-2, -1))
-    al, be, ga = alpha_beta_gamma(essential_to_vector(E) / np.where(n > 0, n, 1.0)[..., None])
-    q = np.abs(be) ** 2 - np.abs(ga) ** 2
-    d = (al * ga * np.conj(be)).real
-    t = be * be * np.conj(al) + al * ga * ga
-    return np.maximum(np.maximum(np.abs(q), np.abs(d)), np.abs(t))
+    return _max_violation(*_constraint_values(*alpha_beta_gamma(essential_to_vector(E) / np.where(n > 0, n, 1.0)[..., None])))
 
 
 # --------------------------------------------------------------------------- 3-point
 
-# Linear forms over v = (a, b, 1); products of them are mapped to monomials by constant matrices.
-_V_DEG = ((1, 0), (0, 1), (0, 0))
-# Cubic monomials in the paper's elimination order: those with a first, (20)-(22).
+# Cubic monomials a^i b^j as (i, j), in the paper's elimination order: those with a first, (20)-(22).
 _CUBIC = ((3, 0), (2, 1), (2, 0), (1, 2), (1, 1), (1, 0), (0, 3), (0, 2), (0, 1), (0, 0))
-_QUADRATIC = ((2, 0), (1, 1), (1, 0), (0, 2), (0, 1), (0, 0))
-_IDX_AB, _IDX_A = 4, 5  # rows <h> (21) and <i> (22) after elimination
 
 
-def _product_map(n_factors: int, monomials: tuple[tuple[int, int], ...]) -> np.ndarray:
-    index = {m: i for i, m in enumerate(monomials)}
-    out = np.zeros((3**n_factors, len(monomials)))
-    for row, combo in enumerate(itertools.product(range(3), repeat=n_factors)):
-        out[row, index[(sum(_V_DEG[c][0] for c in combo), sum(_V_DEG[c][1] for c in combo))]] += 1.0
-    return out
+def _padua_points() -> np.ndarray:
+    """The ten Padua points of degree 3 in [-1, 1]^2, (10, 2): cubics in (a, b) are interpolated
+    there with a monomial Vandermonde matrix of condition number 11."""
+    return np.array([(np.cos(j * np.pi / 3), np.cos(k * np.pi / 4)) for j in range(4) for k in range(5) if (j + k) % 2 == 0])
 
 
 def _shift_map() -> np.ndarray:
-    """(6, 30): quadratic coefficients -> the cubic coefficients of q*a, q*b and q*1."""
+    """(3, 10, 10): the coefficients of a quadratic q (over _CUBIC, cubic terms zero) to those of
+    q*a, q*b and q*1."""
     index = {m: i for i, m in enumerate(_CUBIC)}
-    out = np.zeros((len(_QUADRATIC), 3, len(_CUBIC)))
-    for i, (da, db) in enumerate(_QUADRATIC):
-        for k, (va, vb) in enumerate(_V_DEG):
-            out[i, k, index[(da + va, db + vb)]] = 1.0
-    return out.reshape(len(_QUADRATIC), 3 * len(_CUBIC))
+    out = np.zeros((3, len(_CUBIC), len(_CUBIC)))
+    for i, (da, db) in enumerate(_CUBIC):
+        if da + db <= 2:
+            for k, (va, vb) in enumerate(((1, 0), (0, 1), (0, 0))):
+                out[k, index[(da + va, db + vb)], i] = 1.0
+    return out
 
 
-_MAP2 = _product_map(2, _QUADRATIC)
-_MAP3 = _product_map(3, _CUBIC)
-_SHIFT = _shift_map()
-# Three fixed directions projected onto each null space give its basis; any fixed set in general
-# position works (the projection is rank-deficient only on a measure-zero set of inputs).
-_NULL_SEEDS = np.linalg.qr(np.random.default_rng(2010).standard_normal((6, 3)))[0]
+def _template_map() -> np.ndarray:
+    """(60, 40): the values of Q, D, Re T, Im T at the Padua points -> the template, row-mixed.
 
-
-def _orthonormal_rows(M: np.ndarray, passes: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """Gram-Schmidt on the rows of (B, k, n) with re-orthogonalisation; returns rows and the
-    (B, k) norms each row had before it was normalised in the first pass."""
-    Q = M.copy()
-    k = M.shape[1]
-    first = np.empty(M.shape[:2])
-    for p in range(passes):
-        for i in range(k):
-            row = Q[:, i : i + 1]  # (B, 1, n)
-            if i:
-                done = Q[:, :i]  # (B, i, n), orthonormal
-                row = row - (row @ np.swapaxes(done, 1, 2)) @ done
-            nrm = np.sqrt((row @ np.swapaxes(row, 1, 2))[:, 0, 0])
-            if p == 0:
-                first[:, i] = nrm
-            Q[:, i] = row[:, 0] / np.where(nrm > 0.0, nrm, 1.0)[:, None]
-    return Q, first
-
-
-def _real_map(p: np.ndarray, M: np.ndarray) -> np.ndarray:
-    # Complex @ real in two real products: numpy has no fast mixed-type matmul.
-    return p.real @ M + 1j * (p.imag @ M)
-
-
-def _poly2(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    return _real_map((x[:, :, None] * y[:, None, :]).reshape(x.shape[0], 9), _MAP2)
-
-
-def _poly3(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
-    return _real_map((x[:, :, None, None] * y[:, None, :, None] * z[:, None, None, :]).reshape(x.shape[0], 27), _MAP3)
-
-
-def _solve_template(C: np.ndarray) -> np.ndarray:
-    """Gauss-Jordan on the (B, 6, 10) template: (B, 6, 4) with monomial_j + X_j . (b^3, b^2, b, 1) = 0.
-
-    Exactly singular templates (degenerate data) come back as NaN instead of failing the batch.
+    The template's six cubics Q a, Q b, Q, D, Re T, Im T over the ten monomials come from the
+    interpolated coefficients. Its rows are then mixed by a fixed orthogonal matrix, a row
+    operation that leaves the elimination's result unchanged and removes the structural zeros
+    (Q b and Q have no a^3) that would otherwise force row exchanges.
     """
-    left, right = C[:, :, :6], C[:, :, 6:]
+    from_values = np.linalg.inv(np.array([[a**i * b**j for i, j in _CUBIC] for a, b in _padua_points()]))
+    template = np.zeros((6, 10, 4, 10))  # (equation, monomial) per (kind of value, point)
+    template[:3, :, 0] = _shift_map() @ from_values
+    for kind in (1, 2, 3):
+        template[2 + kind, :, kind] = from_values
+    mix = np.linalg.qr(np.random.default_rng(1999).standard_normal((6, 6)))[0]
+    return np.einsum("rs,smkp->rmkp", mix, template).reshape(60, 40)
+
+
+# The batched 3-point works on component-major arrays: a (6, B) array holds one 6-vector per
+# sample in its columns, so every arithmetic step is one numpy call over contiguous rows of B values.
+# (Sample-major (B, 3, 6) arrays make numpy loop over tiny inner axes and cost several times more.)
+# The template is filled by evaluating Q, D and T on the null space at the Padua points, e(a, b) =
+# a N0 + b N1 + N2, and mapping those values to the row-mixed template in one product.
+_PADUA_AB1 = np.column_stack([_padua_points(), np.ones(10)])  # (10 points, 3): (a, b, 1)
+_TEMPLATE_FROM_VALUES = _template_map()
+# Elimination runs without row exchanges; a sample whose pivot is below this fraction of the
+# largest entry left in its column (where partial pivoting would exchange rows) is solved by LAPACK.
+_MIN_PIVOT_RATIO = 1e-2
+
+
+def _null_space(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Orthonormal bases of the null spaces of B 3x6 systems, by Householder QR of their transposes.
+
+    Args:
+        A: (6 entries, 3 rows, B), component-major.
+
+    Returns:
+        basis (3, 6, B): N0, N1, N2 with e = a N0 + b N1 + N2 (the last three columns of Q), and
+        |R_kk| (3, B): the size of each row after projecting out the rows before it (rank test).
+    """
+    X = A.copy()
+    reflectors = []
+    sizes = []
+    for k in range(3):
+        x = X[k:, k]  # (6 - k, B)
+        size = np.sqrt((x * x).sum(axis=0))
+        v = x.copy()
+        v[0] += np.where(x[0] >= 0.0, size, -size)  # x + sign(x0) |x| e0: no cancellation
+        vv = (v * v).sum(axis=0)
+        beta = 2.0 / np.where(vv > 0.0, vv, 1.0)
+        if k < 2:
+            rest = X[k:, k + 1 :]
+            rest -= v[:, None] * (beta * (v[:, None] * rest).sum(axis=0))
+        reflectors.append((k, v, beta))
+        sizes.append(size)
+    Z = np.zeros((6, 3, A.shape[2]))
+    Z[3, 0] = Z[4, 1] = Z[5, 2] = 1.0
+    for k, v, beta in reversed(reflectors):  # Q = H0 H1 H2 applied to e3, e4, e5
+        part = Z[k:]
+        part -= v[:, None] * (beta * (v[:, None] * part).sum(axis=0))
+    return np.ascontiguousarray(Z.transpose(1, 0, 2)), np.stack(sizes)
+
+
+def _solve_template(C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss elimination on the template C (6, 10, B), component-major; C is overwritten.
+
+    Returns rows <h> and <i> (4, B) each: ``ab + <h> . (b^3, b^2, b, 1) = 0`` and
+    ``a + <i> . (b^3, b^2, b, 1) = 0``, the paper's (21) and (22); only these two rows are
+    back-substituted. Without row exchanges the elimination is a few whole-batch operations; the
+    samples with a small pivot (``_MIN_PIVOT_RATIO``) are solved again with partial pivoting.
+    Singular templates (degenerate data) give non-finite rows.
+    """
+    original = C.copy()
+    small_pivot = np.zeros(C.shape[2], dtype=bool)
+    for k in range(5):
+        column = C[k:, k]
+        small_pivot |= np.abs(column[0]) < _MIN_PIVOT_RATIO * np.abs(column).max(axis=0)
+        C[k + 1 :, k + 1 :] -= (column[1:] / column[0])[:, None] * C[k, k + 1 :]
+    i = C[5, 6:] / C[5, 5]
+    h = (C[4, 6:] - C[4, 5] * i) / C[4, 4]
+    redo = np.nonzero(small_pivot)[0]
+    if redo.size:
+        h[:, redo], i[:, redo] = _solve_template_pivoted(original[:, :, redo])
+    return h, i
+
+
+def _solve_template_pivoted(C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_solve_template` by LAPACK with partial pivoting, for the few samples that need it."""
+    left, right = C[:, :6].transpose(2, 0, 1), C[:, 6:].transpose(2, 0, 1)
     try:
-        return np.linalg.solve(left, right)
+        X = np.linalg.solve(left, right)
     except np.linalg.LinAlgError:
-        out = np.full(right.shape, np.nan)
-        for i in range(C.shape[0]):
+        X = np.full(right.shape, np.nan)
+        for n in range(len(X)):
             try:
-                out[i] = np.linalg.solve(left[i], right[i])
+                X[n] = np.linalg.solve(left[n], right[n])
             except np.linalg.LinAlgError:
                 pass
-        return out
+    return X[:, 4].T, X[:, 5].T
 
 
 def solve_upright_3pt_batch(F1: np.ndarray, F2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -278,172 +337,155 @@ def solve_upright_3pt_batch(F1: np.ndarray, F2: np.ndarray) -> tuple[np.ndarray,
     F2 = _as_sample_batch("F2", F2)
     if F1.shape != F2.shape:
         raise ValueError(f"F1 and F2: expected the same shape, got {F1.shape} and {F2.shape}")
-    B = F1.shape[0]
+    e, valid = _upright_3pt(F1, F2)
+    E = essential_from_vector(e.T)  # (B, 4, 3, 3)
+    E[~valid.T] = np.nan
+    return E, valid.T
+
+
+def _upright_3pt(X1: np.ndarray, X2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The 3-point on validated unit bearings X1, X2, component-major (3 components, 3 points, B).
+
+    Returns e (6, 4, B), component-major and scaled so that E has unit Frobenius norm, and
+    valid (4, B).
+    """
+    B = X1.shape[2]
     with np.errstate(all="ignore"):
-        A = epipolar_rows(F1, F2)  # (B, 3, 6)
-        rows, first_norms = _orthonormal_rows(A)
-        row_scale = np.linalg.norm(A, axis=-1).max(axis=-1)
-        full_rank = first_norms.min(axis=-1) > _MIN_ROW_RANK_RATIO * row_scale
-        # Fixed directions projected onto the null space, as rows: W^T - (rows W)^T rows.
-        seeds = _NULL_SEEDS.T[None] - np.swapaxes(rows @ _NULL_SEEDS, 1, 2) @ rows
-        N, _ = _orthonormal_rows(seeds)  # (B, 3, 6): e = a N0 + b N1 + N2
+        A = _epipolar_coefficients(X1, X2)  # (6 entries, 3 points, B)
+        basis, sizes = _null_space(A)  # (3 basis vectors, 6 entries, B): e = a N0 + b N1 + N2
+        full_rank = sizes.min(axis=0) > _MIN_ROW_RANK_RATIO * np.sqrt((A * A).sum(axis=0)).max(axis=0)
 
-        # alpha, beta, gamma as complex linear forms over (a, b, 1): (B, 3) each.
-        al, be, ga = alpha_beta_gamma(N)
-        q = (_poly2(be, np.conj(be)) - _poly2(ga, np.conj(ga))).real
-        d = _poly3(al, ga, np.conj(be)).real
-        t = _poly3(be, be, np.conj(al)) + _poly3(al, ga, ga)
-        template = np.concatenate(
-            [(q @ _SHIFT).reshape(B, 3, 10), d[:, None], t.real[:, None], t.imag[:, None]], axis=1
-        )
-        usable = full_rank & (np.abs(template).max(axis=(1, 2)) > _MIN_TEMPLATE_NORM)
-        template[~usable] = np.eye(6, 10)  # solvable dummy; its solutions are discarded below
+        at_points = (_PADUA_AB1 @ basis.reshape(3, -1)).reshape(10, 6, B)  # e(a, b) at the Padua points
+        q, d, t = _constraint_values(*_complex_entries(*at_points.transpose(1, 0, 2)))  # (10, B) each
+        template = (_TEMPLATE_FROM_VALUES @ np.stack([q, d, t.real, t.imag]).reshape(40, B)).reshape(6, 10, B)
+        usable = full_rank & (np.abs(template).max(axis=(0, 1)) > _MIN_TEMPLATE_NORM)
+        template[:, :, ~usable] = np.eye(6, 10)[:, :, None]  # solvable dummy; its solutions are discarded below
 
-        X = _solve_template(template)
-        h, i = X[:, _IDX_AB], X[:, _IDX_A]
+        h, i = _solve_template(template)  # (4, B) each
         # <k> = <h> - b <i>  (23): a quartic in b; a from <i>  (22).
-        quartic = np.stack([i[:, 0], i[:, 1] - h[:, 0], i[:, 2] - h[:, 1], i[:, 3] - h[:, 2], -h[:, 3]], axis=-1)
-        b, valid = quartic_real_roots(quartic)
-        a = -(((i[:, None, 0] * b + i[:, None, 1]) * b + i[:, None, 2]) * b + i[:, None, 3])
-        e = a[..., None] * N[:, None, 0] + b[..., None] * N[:, None, 1] + N[:, None, 2]  # (B, 4, 6)
-        valid &= _isolated(e, al, be, ga)
+        b, valid = quartic_real_roots(np.stack([i[0], i[1] - h[0], i[2] - h[1], i[3] - h[2], -h[3]]), axis=0)  # (4 roots, B)
+        a = -(((i[0] * b + i[1]) * b + i[2]) * b + i[3])
+        e = a * basis[0][:, None] + b * basis[1][:, None] + basis[2][:, None]  # (6, 4, B)
 
-        # Motion along gravity: the true E has E13 = E23 = E31 = E32 = 0, where the two sheets of
-        # upright essential matrices, (yaw, tz) and (yaw + pi, -tz), cross. The template loses rank
-        # there and the solution becomes a double root; near it the two roots are ill-conditioned.
-        # Each sheet alone is regular, so solve each from the null space's nearest vertical point.
-        # (A vanishing template means every point of the null space solves: a pure rotation.)
-        rows_v = np.nonzero(_maybe_near_vertical(N) & usable)[0]
-        near = np.zeros(B, dtype=bool)
-        if rows_v.size:
-            near_v, e_sheets = _near_vertical_solutions(N[rows_v])
-            ok = near_v & np.all(upright_constraint_residual(essential_from_vector(e_sheets)) < _MAX_CONSTRAINT_RESIDUAL, axis=1)
-            rows_v, e_sheets = rows_v[ok], e_sheets[ok]
-            near[rows_v] = True
-            e_v = e_sheets[:, 0]
-            similarity = np.abs(np.einsum("bki,bi->bk", e[rows_v], e_v)) / np.linalg.norm(e[rows_v], axis=-1)
-            slots = np.argsort(-np.where(valid[rows_v], similarity, 2.0), axis=1)[:, :2]
-            e[rows_v[:, None], slots] = e_sheets
-            valid[rows_v[:, None], slots] = True
-
-        E = essential_from_vector(e)
-        E /= np.linalg.norm(E, axis=(-2, -1), keepdims=True)
-        valid &= usable[:, None]
-        valid &= np.all(np.isfinite(E), axis=(-2, -1))
-        valid &= _distinct_epipolar_planes(E, F1)
-        valid &= upright_constraint_residual(np.where(valid[..., None, None], E, 0.0)) < _MAX_CONSTRAINT_RESIDUAL
-    E[~valid] = np.nan
-    return E, valid
+        _use_sheet_solutions(e, valid, basis, usable)
+        e = _unit_frobenius(e)
+        valid &= usable
+        valid &= np.isfinite(e).all(axis=0)
+        valid &= _distinct_epipolar_planes(e, X1)
+        valid &= _max_violation(*_constraint_values(*_complex_entries(*np.where(valid, e, 0.0)))) < _MAX_CONSTRAINT_RESIDUAL
+    return e, valid
 
 
-def _distinct_epipolar_planes(E: np.ndarray, F1: np.ndarray) -> np.ndarray:
-    """(B, 4) bool: under E (B, 4, 3, 3) the three points F1 (B, 3, 3) do not share one epipolar plane.
+def _unit_frobenius(e: np.ndarray) -> np.ndarray:
+    """Component-major e (6, ...) scaled so that its E has unit Frobenius norm (E11 = E22, E12 = -E21 count twice)."""
+    return e / np.sqrt(e[0] * e[0] + 2.0 * (e[1] * e[1] + e[2] * e[2]) + e[3] * e[3] + e[4] * e[4] + e[5] * e[5])
+
+
+def _distinct_epipolar_planes(e: np.ndarray, X1: np.ndarray) -> np.ndarray:
+    """(4, B) bool: under e (6, 4, B) the three points X1 (3, 3, B) do not share one epipolar plane.
 
     Three points on a line coplanar with the baseline (the paper's line parallel to it, or one
     crossing it) lie in one epipolar plane: then the true yaw fits with any translation in that
     plane, and a solver may return a member of that continuum. Its epipolar lines E f1 coincide.
     """
-    lines = np.swapaxes(E @ np.swapaxes(F1, 1, 2)[:, None], 2, 3)  # (B, 4, 3 points, 3): lines in view 2
-    lines /= np.maximum(np.linalg.norm(lines, axis=-1, keepdims=True), 1e-300)
-    c01 = np.linalg.norm(cross(lines[:, :, 0], lines[:, :, 1]), axis=-1)
-    c02 = np.linalg.norm(cross(lines[:, :, 0], lines[:, :, 2]), axis=-1)
-    return np.maximum(c01, c02) > _MIN_EPIPOLAR_PLANE_ANGLE
+    x, y, z = X1[:, :, None]  # (3 points, 1, B) each
+    e13, e21, e22, e23, e31, e32 = e
+    lines = np.stack([e22 * x - e21 * y + e13 * z, e21 * x + e22 * y + e23 * z, e31 * x + e32 * y])  # (3, 3 points, 4, B)
+    sq = (lines * lines).sum(axis=0)  # (3 points, 4, B)
+    dots = (lines[:, :1] * lines[:, 1:]).sum(axis=0)  # line 0 against lines 1 and 2
+    # sin^2 of the angle between two lines is (|u|^2 |v|^2 - (u.v)^2) / (|u|^2 |v|^2); zero lines count as coincident.
+    norms = sq[0] * sq[1:]
+    return np.any(norms - dots * dots > _MIN_EPIPOLAR_PLANE_ANGLE**2 * norms, axis=0)
 
 
-def _isolated(e: np.ndarray, al: np.ndarray, be: np.ndarray, ga: np.ndarray) -> np.ndarray:
-    """(B, 4) bool: the candidates e (B, 4, 6) are isolated solutions of Q = D = T = 0 in the chart.
+def _use_sheet_solutions(e: np.ndarray, valid: np.ndarray, basis: np.ndarray, usable: np.ndarray) -> None:
+    """Near motion along gravity, put each sheet's solution in place of the template's roots there.
 
-    A line of points coplanar with the baseline, or a pure rotation, leaves a continuum of upright
-    essential matrices that fit; every point of it satisfies the constraints, so the residual test
-    cannot reject it. There the constraints' Jacobian in (a, b) drops below rank 2.
-    al, be, ga: (B, 3) linear forms over (a, b, 1).
+    The true E of motion along gravity has E13 = E23 = E31 = E32 = 0, where the two sheets of
+    upright essential matrices, (yaw, tz) and (yaw + pi, -tz), cross. The template loses rank there
+    and the solution becomes a double root; near it the template's roots are ill-conditioned. Each
+    sheet alone is regular, so each is solved from the null space's nearest vertical point
+    (:func:`_near_vertical_solutions`). The two results take the slots of the two candidates nearest
+    to them (free slots first); the second is dropped where it equals the first (exactly vertical
+    motion). Template roots that stay may be ill-conditioned copies of these two; they pass the checks
+    only when close to them, and cost a RANSAC hypothesis each. Dropping them would also drop true
+    solutions of nearly pure rotations, whose null space passes near the vertical point too.
+
+    e (6, 4, B) and valid (4, B) are updated in place; basis (3, 6, B); usable (B,).
     """
-    A, Bt, G = alpha_beta_gamma(e)
-    cols = []
-    for k in (0, 1):  # d/da, d/db
-        dA, dB, dG = al[:, None, k], be[:, None, k], ga[:, None, k]
-        dQ = 2.0 * (np.conj(Bt) * dB).real - 2.0 * (np.conj(G) * dG).real
-        dD = (dA * G * np.conj(Bt) + A * dG * np.conj(Bt) + A * G * np.conj(dB)).real
-        dT = 2.0 * Bt * dB * np.conj(A) + Bt * Bt * np.conj(dA) + dA * G * G + 2.0 * A * G * dG
-        cols.append(np.stack([dQ, dD, dT.real, dT.imag], axis=-1))
-    gxx = np.sum(cols[0] * cols[0], axis=-1)
-    gyy = np.sum(cols[1] * cols[1], axis=-1)
-    gxy = np.sum(cols[0] * cols[1], axis=-1)
-    # sigma_min^2 / sigma_max^2 of the 4x2 Jacobian, up to a factor <= 4.
-    return (gxx * gyy - gxy * gxy) > _MIN_ISOLATION**2 * (gxx + gyy) ** 2
+    rows = np.nonzero(_maybe_near_vertical(basis) & usable)[0]
+    if rows.size == 0:
+        return
+    near, sheets = _near_vertical_solutions(basis[:, :, rows])  # (n,), (6, 2, n)
+    sheets = _unit_frobenius(sheets)
+    ok = near & np.all(_max_violation(*_constraint_values(*_complex_entries(*sheets))) < _MAX_CONSTRAINT_RESIDUAL, axis=0)
+    rows, sheets = rows[ok], sheets[:, :, ok]
+    candidates = e[:, :, rows] / np.sqrt((e[:, :, rows] ** 2).sum(axis=0))  # (6, 4, n)
+    cosines = np.abs(np.einsum("ikn,ijn->jkn", candidates, sheets))  # (2 sheets, 4, n)
+    slots = np.argsort(-np.where(valid[:, rows], np.maximum(cosines[0], cosines[1]), 2.0), axis=0)[:2]  # free slots first
+    sign = np.where((sheets[:, 0] * sheets[:, 1]).sum(axis=0) < 0.0, -1.0, 1.0)
+    gap = sheets[:, 0] - sign * sheets[:, 1]
+    same = (gap * gap).sum(axis=0) < _SHEET_SAME_DISTANCE**2
+    e[:, slots[0], rows] = sheets[:, 0]
+    e[:, slots[1], rows] = sheets[:, 1]
+    valid[slots[0], rows] = True
+    valid[slots[1], rows] = ~same
 
 
-def _maybe_near_vertical(N: np.ndarray) -> np.ndarray:
-    """(B,) bool, cheap and conservative: the null space (B, 3, 6) may pass within
+def _maybe_near_vertical(basis: np.ndarray) -> np.ndarray:
+    """(B,) bool, cheap and conservative: the null space, basis (3, 6, B), may pass within
     ``_NEAR_VERTICAL`` of E13 = E23 = E31 = E32 = 0 (its 4x3 restriction has a small singular value)."""
-    V = N[:, :, [0, 3, 4, 5]]
-    G = V @ np.swapaxes(V, 1, 2)  # (B, 3, 3) Gram matrix; det = product of squared singular values
+    V = basis[:, [0, 3, 4, 5]]
+    G = (V[:, None] * V[None]).sum(axis=2)  # (3, 3, B) Gram matrix; det = product of squared singular values
     det = (
-        G[:, 0, 0] * (G[:, 1, 1] * G[:, 2, 2] - G[:, 1, 2] * G[:, 2, 1])
-        - G[:, 0, 1] * (G[:, 1, 0] * G[:, 2, 2] - G[:, 1, 2] * G[:, 2, 0])
-        + G[:, 0, 2] * (G[:, 1, 0] * G[:, 2, 1] - G[:, 1, 1] * G[:, 2, 0])
+        G[0, 0] * (G[1, 1] * G[2, 2] - G[1, 2] * G[2, 1])
+        - G[0, 1] * (G[1, 0] * G[2, 2] - G[1, 2] * G[2, 0])
+        + G[0, 2] * (G[1, 0] * G[2, 1] - G[1, 1] * G[2, 0])
     )
-    half_trace = 0.5 * (G[:, 0, 0] + G[:, 1, 1] + G[:, 2, 2])
+    half_trace = 0.5 * (G[0, 0] + G[1, 1] + G[2, 2])
     return det <= (_NEAR_VERTICAL**2) * half_trace**2  # sigma_min^2 >= det / (trace/2)^2
 
 
-def _near_vertical_solutions(N: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Solutions near motion along gravity, one per sheet, by Newton from the vertical point.
+def _near_vertical_solutions(basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Solutions near motion along gravity, one per sheet, iterated from the vertical point.
 
     Args:
-        N: (B, 3, 6) orthonormal basis of each sample's null space.
+        basis: (3, 6, n) orthonormal basis of each sample's null space.
 
     Returns:
-        near (B,) bool: the null space passes within ``_NEAR_VERTICAL`` of E13 = E23 = E31 = E32 = 0;
-        e (B, 2, 6): the solution on the sheet tz = +|alpha| and on tz = -|alpha| (rows where
-        ``near`` is false are meaningless).
+        near (n,) bool: the null space passes within ``_NEAR_VERTICAL`` of E13 = E23 = E31 = E32 = 0
+        and each sheet has an isolated solution there; e (6, 2, n): the solution on the sheet
+        tz = +|alpha| and on tz = -|alpha| (columns where ``near`` is false are meaningless).
 
-    On sheet s the upright E satisfy ``s |alpha| gamma + i conj(alpha) beta = 0``: two real
+    On sheet s the upright E satisfy ``s u gamma + i beta = 0`` with u = alpha / |alpha|: two real
     equations in the two coordinates of the null space, regular where alpha != 0, unlike the
-    det/trace system whose equations are all quadratic in (beta, gamma).
+    det/trace system whose equations are all quadratic in (beta, gamma). With u held at its current
+    value they are linear; u varies slowly (beta and gamma are small here), so re-solving with the
+    updated u converges by a factor of about the distance to the vertical point per step. Solutions
+    farther than ``_SHEET_RADIUS`` are left to the template, whose roots are well separated there.
     """
-    B = N.shape[0]
-    V = np.swapaxes(N[:, :, [0, 3, 4, 5]], 1, 2)  # (B, 4, 3): E13, E23, E31, E32 over the basis
-    pairs = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
-    crosses = np.stack([cross(V[:, i], V[:, j]) for i, j in pairs], axis=1)
-    norms = np.linalg.norm(crosses, axis=-1)
-    c = crosses[np.arange(B), np.argmax(norms, axis=1)]
-    c /= np.maximum(np.linalg.norm(c, axis=-1), 1e-300)[:, None]
-    near = (np.linalg.norm(np.einsum("bjk,bk->bj", V, c), axis=-1) < _NEAR_VERTICAL) & (norms.max(axis=1) > 1e-12)
-    # Local chart e = (c + x u + y w) @ N with u, w completing c to an orthonormal frame.
-    helper = np.where((np.abs(c[:, 0]) < 0.9)[:, None], np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
-    u = cross(c, helper)
-    u /= np.linalg.norm(u, axis=-1, keepdims=True)
-    w = cross(c, u)
-    e0, eu, ew = (np.einsum("bk,bki->bi", v, N) for v in (c, u, w))
-
-    (a0, b0, g0), (au, bu, gu), (aw, bw, gw) = (alpha_beta_gamma(v) for v in (e0, eu, ew))
-    sheet = np.array([1.0, -1.0])[None, :]
-    x = np.zeros((B, 2))
-    y = np.zeros((B, 2))
-    for _ in range(_SHEET_NEWTON_STEPS):
-        al = a0[:, None] + x * au[:, None] + y * aw[:, None]
-        be = b0[:, None] + x * bu[:, None] + y * bw[:, None]
-        ga = g0[:, None] + x * gu[:, None] + y * gw[:, None]
-        mod = np.maximum(np.abs(al), 1e-300)
-        F = sheet * mod * ga + 1j * np.conj(al) * be
-        Fx = sheet * ((np.conj(al) * au[:, None]).real / mod * ga + mod * gu[:, None]) + 1j * (
-            np.conj(au)[:, None] * be + np.conj(al) * bu[:, None]
-        )
-        Fy = sheet * ((np.conj(al) * aw[:, None]).real / mod * ga + mod * gw[:, None]) + 1j * (
-            np.conj(aw)[:, None] * be + np.conj(al) * bw[:, None]
-        )
-        det = Fx.real * Fy.imag - Fy.real * Fx.imag
-        ok = np.abs(det) > 1e-300
-        det = np.where(ok, det, 1.0)
-        x = x - np.where(ok, (F.real * Fy.imag - Fy.real * F.imag) / det, 0.0)
-        y = y - np.where(ok, (Fx.real * F.imag - F.real * Fx.imag) / det, 0.0)
+    # Right singular vectors of the null space's E13, E23, E31, E32 part: the last, c, points to the
+    # nearest vertical point; the other two span a local chart e = (c + x v1 + y v2) @ basis.
+    _, sv, vt = np.linalg.svd(basis[:, [0, 3, 4, 5]].transpose(2, 1, 0))  # (n, 4, 3)
+    e0, e1, e2 = (np.einsum("nk,kin->in", vt[:, r], basis) for r in (2, 0, 1))  # (6, n) each
+    (a0, b0, g0), (a1, b1, g1), (a2, b2, g2) = (_complex_entries(*v) for v in (e0, e1, e2))
+    ib0, ib1, ib2 = 1j * b0, 1j * b1, 1j * b2
+    sheet = np.array([[1.0], [-1.0]])
+    x = np.zeros((2, e0.shape[1]))
+    y = np.zeros_like(x)
+    for _ in range(_SHEET_STEPS):
+        alpha = a0 + x * a1 + y * a2
+        su = sheet * alpha / np.abs(alpha)
+        # c1 x + c2 y + c0 = 0 in complex numbers: two real equations in x, y.
+        c0, c1, c2 = su * g0 + ib0, su * g1 + ib1, su * g2 + ib2
+        det = c1.real * c2.imag - c2.real * c1.imag
+        x = (c2.real * c0.imag - c0.real * c2.imag) / det
+        y = (c0.real * c1.imag - c1.real * c0.imag) / det
     # Isolated roots only: a pure rotation makes one sheet's equations vanish on a whole region.
-    scale = np.abs(Fx) ** 2 + np.abs(Fy) ** 2
-    isolated = np.abs(det) > _MIN_ISOLATION * np.maximum(scale, 1e-300)
-    near &= np.all(isolated, axis=1)
-    e = e0[:, None] + x[..., None] * eu[:, None] + y[..., None] * ew[:, None]
-    return near, e
+    scale = (c1 * np.conj(c1)).real + (c2 * np.conj(c2)).real
+    near = (sv[:, 2] < _NEAR_VERTICAL) & (sv[:, 1] > _NEAR_VERTICAL)
+    near &= np.all((np.abs(det) > _MIN_ISOLATION * scale) & (x * x + y * y < _SHEET_RADIUS**2), axis=0)
+    return near, e0[:, None] + x * e1[:, None] + y * e2[:, None]
 
 
 def solve_upright_3pt(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
@@ -456,8 +498,8 @@ def solve_upright_3pt(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
         (k, 3, 3) essential matrices with unit Frobenius norm, 0 <= k <= 4.
     """
     a, b = as_bearing_pair(f1, f2, 3, exact_rows=3)
-    E, valid = solve_upright_3pt_batch(a[None], b[None])
-    return E[0][valid[0]]
+    e, valid = _upright_3pt(a.T[:, :, None], b.T[:, :, None])
+    return essential_from_vector(e[:, valid[:, 0], 0].T)
 
 
 # --------------------------------------------------------------------------- 4-point and linear 5-point
