@@ -36,6 +36,22 @@ def per_call_us(fn: Callable[[], object], min_time_s: float = 0.2, repeats: int 
     return statistics.median(samples)
 
 
+def raise_malloc_thresholds(nbytes: int = 4 << 20) -> None:
+    """Allocate and free one array of ``nbytes``. glibc's malloc then serves arrays up to that size
+    from its heap and keeps twice that much freed memory before returning it to the kernel (its
+    dynamic mmap and trim thresholds): the state of any process that has once freed such an array.
+    Not undoable; before it, a process whose arrays stay small gets freed memory returned at once and
+    faults it in again on the next call."""
+    np.ones(nbytes // 8).sum()
+
+
+def minor_page_faults() -> int:
+    """Minor page faults of this process so far (the kernel's count, not a timing)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+
+
 def machine(poselib: ModuleType | None) -> str:
     """CPU, core count and the versions of everything compared."""
     cpu = platform.processor() or platform.machine()
