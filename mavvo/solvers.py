@@ -285,16 +285,24 @@ def _null_space(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.ascontiguousarray(Z.transpose(1, 0, 2)), np.stack(sizes)
 
 
-def _solve_template(C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _template(basis: np.ndarray) -> np.ndarray:
+    """The row-mixed template (6 equations, 10 monomials, B) of null spaces ``basis`` (3, 6, B)."""
+    B = basis.shape[2]
+    at_points = (_PADUA_AB1 @ basis.reshape(3, -1)).reshape(10, 6, B)  # e(a, b) at the Padua points
+    q, d, t = _constraint_values(*_complex_entries(*at_points.transpose(1, 0, 2)))  # (10, B) each
+    return (_TEMPLATE_FROM_VALUES @ np.stack([q, d, t.real, t.imag]).reshape(40, B)).reshape(6, 10, B)
+
+
+def _solve_template(C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Gauss elimination on the template C (6, 10, B), component-major; C is overwritten.
 
     Returns rows <h> and <i> (4, B) each: ``ab + <h> . (b^3, b^2, b, 1) = 0`` and
     ``a + <i> . (b^3, b^2, b, 1) = 0``, the paper's (21) and (22); only these two rows are
-    back-substituted. Without row exchanges the elimination is a few whole-batch operations; the
-    samples with a small pivot (``_MIN_PIVOT_RATIO``) are solved again with partial pivoting.
-    Singular templates (degenerate data) give non-finite rows.
+    back-substituted. Without row exchanges the elimination is a few whole-batch operations; it
+    also returns the indices of the samples with a small pivot (``_MIN_PIVOT_RATIO``), whose rows
+    are to be taken from :func:`_solve_template_pivoted` instead. Singular templates (degenerate
+    data) give non-finite rows.
     """
-    original = C.copy()
     small_pivot = np.zeros(C.shape[2], dtype=bool)
     for k in range(5):
         column = C[k:, k]
@@ -302,14 +310,11 @@ def _solve_template(C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         C[k + 1 :, k + 1 :] -= (column[1:] / column[0])[:, None] * C[k, k + 1 :]
     i = C[5, 6:] / C[5, 5]
     h = (C[4, 6:] - C[4, 5] * i) / C[4, 4]
-    redo = np.nonzero(small_pivot)[0]
-    if redo.size:
-        h[:, redo], i[:, redo] = _solve_template_pivoted(original[:, :, redo])
-    return h, i
+    return h, i, np.nonzero(small_pivot)[0]
 
 
 def _solve_template_pivoted(C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_solve_template` by LAPACK with partial pivoting, for the few samples that need it."""
+    """Rows <h> and <i> of templates C (6, 10, n) by LAPACK with partial pivoting."""
     left, right = C[:, :6].transpose(2, 0, 1), C[:, 6:].transpose(2, 0, 1)
     try:
         X = np.linalg.solve(left, right)
@@ -349,19 +354,19 @@ def _upright_3pt(X1: np.ndarray, X2: np.ndarray) -> tuple[np.ndarray, np.ndarray
     Returns e (6, 4, B), component-major and scaled so that E has unit Frobenius norm, and
     valid (4, B).
     """
-    B = X1.shape[2]
     with np.errstate(all="ignore"):
         A = _epipolar_coefficients(X1, X2)  # (6 entries, 3 points, B)
         basis, sizes = _null_space(A)  # (3 basis vectors, 6 entries, B): e = a N0 + b N1 + N2
         full_rank = sizes.min(axis=0) > _MIN_ROW_RANK_RATIO * np.sqrt((A * A).sum(axis=0)).max(axis=0)
 
-        at_points = (_PADUA_AB1 @ basis.reshape(3, -1)).reshape(10, 6, B)  # e(a, b) at the Padua points
-        q, d, t = _constraint_values(*_complex_entries(*at_points.transpose(1, 0, 2)))  # (10, B) each
-        template = (_TEMPLATE_FROM_VALUES @ np.stack([q, d, t.real, t.imag]).reshape(40, B)).reshape(6, 10, B)
+        template = _template(basis)
         usable = full_rank & (np.abs(template).max(axis=(0, 1)) > _MIN_TEMPLATE_NORM)
         template[:, :, ~usable] = np.eye(6, 10)[:, :, None]  # solvable dummy; its solutions are discarded below
 
-        h, i = _solve_template(template)  # (4, B) each
+        h, i, redo = _solve_template(template)  # (4, B) each
+        if redo.size:
+            h[:, redo], i[:, redo] = _solve_template_pivoted(_template(basis[:, :, redo]))
+        del template  # 60 values per sample: not kept through the rest, for the batch's peak memory
         # <k> = <h> - b <i>  (23): a quartic in b; a from <i>  (22).
         b, valid = quartic_real_roots(np.stack([i[0], i[1] - h[0], i[2] - h[1], i[3] - h[2], -h[3]]), axis=0)  # (4 roots, B)
         a = -(((i[0] * b + i[1]) * b + i[2]) * b + i[3])
