@@ -70,7 +70,9 @@ _SHEET_STEPS = 5
 _SHEET_RADIUS = 1e-2
 _MIN_ISOLATION = 1e-6
 # The two sheets' solutions closer than this (unit-norm e) are one: motion exactly along gravity.
+# Template roots closer than the copy distance to either are ill-conditioned copies of them.
 _SHEET_SAME_DISTANCE = 1e-8
+_SHEET_COPY_DISTANCE = 1e-2
 # The det cubic of the 4-point, or the 5th singular value of the linear 5-point, vanishes on a
 # horizontal plane (rank 4). Relative to the largest coefficient / singular value.
 _MIN_DEGENERACY_RATIO = 1e-9
@@ -410,11 +412,10 @@ def _use_sheet_solutions(e: np.ndarray, valid: np.ndarray, basis: np.ndarray, us
     upright essential matrices, (yaw, tz) and (yaw + pi, -tz), cross. The template loses rank there
     and the solution becomes a double root; near it the template's roots are ill-conditioned. Each
     sheet alone is regular, so each is solved from the null space's nearest vertical point
-    (:func:`_near_vertical_solutions`). The two results take the slots of the two candidates nearest
-    to them (free slots first); the second is dropped where it equals the first (exactly vertical
-    motion). Template roots that stay may be ill-conditioned copies of these two; they pass the checks
-    only when close to them, and cost a RANSAC hypothesis each. Dropping them would also drop true
-    solutions of nearly pure rotations, whose null space passes near the vertical point too.
+    (:func:`_near_vertical_solutions`). Template roots within ``_SHEET_COPY_DISTANCE`` of them are
+    ill-conditioned copies and are dropped; the two results take the slots of the two candidates
+    nearest to them (free slots first), and the second is dropped where it equals the first (exactly
+    vertical motion).
 
     e (6, 4, B) and valid (4, B) are updated in place; basis (3, 6, B); usable (B,).
     """
@@ -427,7 +428,9 @@ def _use_sheet_solutions(e: np.ndarray, valid: np.ndarray, basis: np.ndarray, us
     rows, sheets = rows[ok], sheets[:, :, ok]
     candidates = e[:, :, rows] / np.sqrt((e[:, :, rows] ** 2).sum(axis=0))  # (6, 4, n)
     cosines = np.abs(np.einsum("ikn,ijn->jkn", candidates, sheets))  # (2 sheets, 4, n)
-    slots = np.argsort(-np.where(valid[:, rows], np.maximum(cosines[0], cosines[1]), 2.0), axis=0)[:2]  # free slots first
+    closest = np.maximum(cosines[0], cosines[1])
+    valid[:, rows] &= closest < 1.0 - 0.5 * _SHEET_COPY_DISTANCE**2  # ill-conditioned copies of them go
+    slots = np.argsort(-np.where(valid[:, rows], closest, 2.0), axis=0)[:2]  # free slots first
     sign = np.where((sheets[:, 0] * sheets[:, 1]).sum(axis=0) < 0.0, -1.0, 1.0)
     gap = sheets[:, 0] - sign * sheets[:, 1]
     same = (gap * gap).sum(axis=0) < _SHEET_SAME_DISTANCE**2
