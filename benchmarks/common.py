@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import platform
 import re
+import resource
 import sys
 import statistics
 import time
@@ -47,8 +48,6 @@ def raise_malloc_thresholds(nbytes: int = 4 << 20) -> None:
 
 def minor_page_faults() -> int:
     """Minor page faults of this process so far (the kernel's count, not a timing)."""
-    import resource
-
     return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 
 

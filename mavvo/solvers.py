@@ -187,7 +187,9 @@ def _constraint_values(al: np.ndarray, be: np.ndarray, ga: np.ndarray) -> tuple[
     return (be * np.conj(be)).real - (ga * np.conj(ga)).real, (al * ga * np.conj(be)).real, be * be * np.conj(al) + al * ga * ga
 
 
-def _max_violation(q: np.ndarray, d: np.ndarray, t: np.ndarray) -> np.ndarray:
+def _violation(e: np.ndarray) -> np.ndarray:
+    """Largest of |Q|, |D|, |T| at component-major vectors e (6, ...), as given (no scaling)."""
+    q, d, t = _constraint_values(*_complex_entries(*e))
     return np.maximum(np.maximum(np.abs(q), np.abs(d)), np.abs(t))
 
 
@@ -198,7 +200,7 @@ def upright_constraint_residual(E: np.ndarray) -> np.ndarray:
     """
     E = np.asarray(E, dtype=float)
     n = np.linalg.norm(E, axis=(-2, -1))
-    return _max_violation(*_constraint_values(*alpha_beta_gamma(essential_to_vector(E) / np.where(n > 0, n, 1.0)[..., None])))
+    return _violation(np.moveaxis(essential_to_vector(E) / np.where(n > 0, n, 1.0)[..., None], -1, 0))
 
 
 # --------------------------------------------------------------------------- 3-point
@@ -379,7 +381,7 @@ def _upright_3pt(X1: np.ndarray, X2: np.ndarray) -> tuple[np.ndarray, np.ndarray
         valid &= usable
         valid &= np.isfinite(e).all(axis=0)
         valid &= _distinct_epipolar_planes(e, X1)
-        valid &= _max_violation(*_constraint_values(*_complex_entries(*np.where(valid, e, 0.0)))) < _MAX_CONSTRAINT_RESIDUAL
+        valid &= _violation(np.where(valid, e, 0.0)) < _MAX_CONSTRAINT_RESIDUAL
     return e, valid
 
 
@@ -424,7 +426,7 @@ def _use_sheet_solutions(e: np.ndarray, valid: np.ndarray, basis: np.ndarray, us
         return
     near, sheets = _near_vertical_solutions(basis[:, :, rows])  # (n,), (6, 2, n)
     sheets = _unit_frobenius(sheets)
-    ok = near & np.all(_max_violation(*_constraint_values(*_complex_entries(*sheets))) < _MAX_CONSTRAINT_RESIDUAL, axis=0)
+    ok = near & np.all(_violation(sheets) < _MAX_CONSTRAINT_RESIDUAL, axis=0)
     rows, sheets = rows[ok], sheets[:, :, ok]
     candidates = e[:, :, rows] / np.sqrt((e[:, :, rows] ** 2).sum(axis=0))  # (6, 4, n)
     cosines = np.abs(np.einsum("ikn,ijn->jkn", candidates, sheets))  # (2 sheets, 4, n)
