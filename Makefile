@@ -22,7 +22,7 @@ sim: $(STAMP)
 	$(BIN)/mavvo sim
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(BIN)/python -m pytest -q -m "not slow" --durations=15
 
 soak: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow

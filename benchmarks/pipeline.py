@@ -2,10 +2,10 @@
 
     python benchmarks/pipeline.py [--scenario survey] [--frames 300] [--markdown docs/benchmarks.md]
 
-Frames of a scenario are rendered first (not timed), then fed to :class:`mavvo.odometry.Odometry` on
+Frames of a scenario are rendered first (not timed), then fed to :class:`mavvo.odometry.pipeline.Odometry` on
 one core. Stages are timed by wrapping the functions the odometry calls: tracking
-(:class:`mavvo.frontend.Frontend`), relative pose (:func:`mavvo.relpose.estimate_upright_relpose`),
-scale (:func:`mavvo.scale.estimate_scale`) and the filter. The reference is what a minimal OpenCV
+(:class:`mavvo.odometry.frontend.Frontend`), relative pose (:func:`mavvo.estimation.relpose.estimate_upright_relpose`),
+scale (:func:`mavvo.odometry.scale.estimate_scale`) and the filter. The reference is what a minimal OpenCV
 monocular pipeline does per frame on the same images: KLT of the previous frame's corners
 (``goodFeaturesToTrack`` when they run low), ``findEssentialMat`` with USAC_MAGSAC and
 ``recoverPose``. Peak memory is what Python and numpy allocated during the run (tracemalloc).
@@ -25,11 +25,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import mavvo.odometry as odometry_module  # noqa: E402
+import mavvo.odometry.pipeline as odometry_module  # noqa: E402
 from benchmarks.common import machine, publish  # noqa: E402
-from mavvo.odometry import Odometry  # noqa: E402
-from sim.scenario import load_scenario  # noqa: E402
-from sim.sequence import PairedSequence  # noqa: E402
+from mavvo.odometry.pipeline import Odometry  # noqa: E402
+from sim.scenarios.loader import load_scenario  # noqa: E402
+from sim.scenarios.paired_frames import PairedSequence  # noqa: E402
 
 BEGIN, END = "<!-- pipeline:begin -->", "<!-- pipeline:end -->"
 

@@ -11,6 +11,7 @@ the stated IMU noise. Errors are in the camera frames against the true relative 
 from __future__ import annotations
 
 import argparse
+import math
 import datetime as dt
 import os
 import statistics
@@ -27,11 +28,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import cv2  # noqa: E402
 
 from benchmarks.common import machine, publish  # noqa: E402
-from mavvo import solvers  # noqa: E402
-from mavvo.camera_model import CameraModel  # noqa: E402
-from mavvo.frames import angle_between_rad, rotation_angle_rad  # noqa: E402
-from mavvo.relpose import RelposeOptions, estimate_relpose_known_gravity  # noqa: E402
-from sim.twoview import TwoViewScene, add_outliers, make_scene  # noqa: E402
+from mavvo import geometry as solvers  # noqa: E402
+from mavvo.geometry.camera_model import CameraModel  # noqa: E402
+from mavvo.geometry.frames import angle_between_rad, rotation_angle_rad  # noqa: E402
+from mavvo.estimation.relpose import RelposeOptions, estimate_relpose_known_gravity  # noqa: E402
+from sim.world.twoview import TwoViewScene, add_outliers, make_scene  # noqa: E402
 
 try:
     import poselib  # type: ignore[import-not-found]
@@ -115,7 +116,7 @@ MINIMAL = {
 
 def _estimator(s: TwoViewScene, tilt_sigma_rad: float | None = None) -> tuple[float, float]:
     uv1, uv2 = pixels(s)
-    opt = RelposeOptions(model="essential", tilt_sigma_rad=tilt_sigma_rad)
+    opt = RelposeOptions(model="essential", max_iterations=1000, tilt_sigma_deg=math.degrees(tilt_sigma_rad or 0.0))
     r = estimate_relpose_known_gravity(uv1, uv2, CAMERA, s.R_lvl_cam1, s.R_lvl_cam2, max_err_px=3.0, options=opt)
     return errors_deg((r.R_c2_c1, r.t_c2_c1) if r.success else None, s)
 
@@ -246,11 +247,11 @@ IMU_SIGMA_RAD = np.radians(0.05)
 
 
 def run_mavvo(tilt_sigma_rad: float | None) -> Callable[[TwoViewScene, np.ndarray, np.ndarray, int], tuple[Pose | None, int]]:
-    opt = RelposeOptions(tilt_sigma_rad=tilt_sigma_rad)
+    opt = RelposeOptions(max_iterations=1000, confidence=CONFIDENCE, tilt_sigma_deg=math.degrees(tilt_sigma_rad or 0.0))
 
     def fn(scene: TwoViewScene, uv1: np.ndarray, uv2: np.ndarray, seed: int) -> tuple[Pose | None, int]:
         r = estimate_relpose_known_gravity(
-            uv1, uv2, CAMERA, scene.R_lvl_cam1, scene.R_lvl_cam2, max_err_px=THRESHOLD_PX, confidence=CONFIDENCE, seed=seed, options=opt
+            uv1, uv2, CAMERA, scene.R_lvl_cam1, scene.R_lvl_cam2, max_err_px=THRESHOLD_PX, seed=seed, options=opt
         )
         return ((r.R_c2_c1, r.t_c2_c1) if r.success else None), r.upright.iterations
 
@@ -312,8 +313,8 @@ def side_by_side(trials: int, sizes: tuple[int, ...], outlier_levels: tuple[floa
             print(f"  N={n} outliers={outliers:.0%} done", file=sys.stderr)
     settings = {
         "mavvo": f"`estimate_relpose_known_gravity`, max_err_px {THRESHOLD_PX}, confidence {CONFIDENCE}, "
-        "`tilt_sigma_rad` = the IMU's 0.05 deg (roll/pitch refined under that prior), other options default",
-        "mavvo, roll/pitch fixed": "the same with `tilt_sigma_rad=None` (the paper's setting: roll and pitch taken as exact)",
+        "`tilt_sigma_deg` = the IMU's 0.05 deg (roll/pitch refined under that prior), other options default",
+        "mavvo, roll/pitch fixed": "the same with `tilt_sigma_deg=0` (the paper's setting: roll and pitch taken as exact)",
         "OpenCV USAC_MAGSAC": f"`findEssentialMat(method=USAC_MAGSAC, prob={CONFIDENCE}, threshold={THRESHOLD_PX})` + `recoverPose`",
         "OpenCV RANSAC": f"`findEssentialMat(method=RANSAC, prob={CONFIDENCE}, threshold={THRESHOLD_PX})` + `recoverPose`",
         "PoseLib": f"`estimate_relative_pose`, max_epipolar_error {THRESHOLD_PX}, success_prob {CONFIDENCE}, min_iterations 0",

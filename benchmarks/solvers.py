@@ -20,10 +20,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mavvo import solvers  # noqa: E402
-from mavvo.frames import angle_between_rad, rot_x, rotation_angle_rad  # noqa: E402
+from mavvo import geometry as solvers  # noqa: E402
+from mavvo.geometry.frames import angle_between_rad, rot_x, rotation_angle_rad  # noqa: E402
 from benchmarks.common import machine, minor_page_faults, per_call_us, publish, raise_malloc_thresholds  # noqa: E402
-from sim.twoview import TwoViewScene, make_scene  # noqa: E402
+from sim.world.twoview import TwoViewScene, make_scene  # noqa: E402
 
 try:
     import poselib  # type: ignore[import-not-found]

@@ -1,10 +1,68 @@
-"""Small frozen dataclasses that cross module boundaries."""
+"""The shared vocabulary: small frozen dataclasses and closed sets (enums) that cross layers."""
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass
 
 import numpy as np
+
+if hasattr(enum, "StrEnum"):  # Python 3.11
+    StrEnum = enum.StrEnum
+else:
+
+    class StrEnum(str, enum.Enum):  # type: ignore[no-redef]
+        """A string enum whose str() and format() are its value (Python 3.10's missing ``enum.StrEnum``)."""
+
+        def __str__(self) -> str:
+            return str(self.value)
+
+        def __format__(self, spec: str) -> str:
+            return str(self.value).__format__(spec)
+
+
+class VisionState(StrEnum):
+    """What vision is doing. The service reports it (VO_STATE, STATUSTEXT, HEARTBEAT status)."""
+
+    STANDBY = "standby"  #: the service has made no estimate yet (never in an estimate's diagnostics)
+    INITIALISING = "initialising"  #: a keyframe was just made: the pose is the anchor
+    TRACKING = "tracking"
+    DEGRADED = "degraded"  #: a pose with reduced trust (pure rotation, no metric scale, few inliers)
+    FAILED = "failed"  #: no pose from vision; nothing is sent
+
+
+class StateReason(StrEnum):
+    """Why the state is not ``tracking``."""
+
+    NONE = ""
+    NEW_KEYFRAME = "new_keyframe"
+    # No pose from this frame (state failed); the first four are the relative pose's own failures.
+    TOO_FEW_POINTS = "too_few_points"
+    DEGENERATE_POINTS = "degenerate_points"
+    NO_MODEL = "no_model"
+    PURE_ROTATION = "pure_rotation"  # also degraded: turning on the spot, translation not observable
+    TOO_FEW_INLIERS = "too_few_inliers"
+    TRACKING_LOST = "tracking_lost"
+    TOO_FEW_FEATURES = "too_few_features"
+    # Degraded.
+    FEW_INLIERS = "few_inliers"
+    SCALE_HELD = "scale_held"
+    SCALE_ASSUMED = "scale_assumed"
+    # The service, when estimates stop coming.
+    NO_ATTITUDE = "no_attitude"
+    NO_FRAMES = "no_frames"
+
+
+class ScaleSource(StrEnum):
+    """Where a frame's metric baseline came from (see :mod:`mavvo.odometry.scale`)."""
+
+    RANGEFINDER = "rangefinder"
+    ALTITUDE = "altitude"
+    FIXED = "fixed"
+    CARRIED = "carried"  #: depths carried from the previous keyframe interval
+    HELD = "held"  #: the scene depth held from the last measured scale
+    ASSUMED = "assumed"  #: ``scale.initial_depth_m``: no measurement yet
+    NONE = "none"  #: no translation measured
 
 
 @dataclass(frozen=True)
@@ -55,30 +113,24 @@ class VoDiagnostics:
     """How one frame's estimate came about; every count refers to this frame against its keyframe.
 
     Attributes:
-        state: ``tracking``, ``degraded`` (a pose with reduced trust: pure rotation, no metric scale,
-            few inliers), ``failed`` (no pose from vision) or ``initialising``.
-        reason: why the state is not ``tracking`` (empty when it is).
+        state: :class:`VisionState` (never ``standby``).
+        reason: :class:`StateReason`, why the state is not ``tracking`` (``NONE`` when it is).
         tracks: features tracked into this frame. inliers, inlier_ratio: of the relative pose.
         parallax_px: median rotation-compensated parallax against the keyframe.
         residual_rms_px: RMS reprojection (Sampson) error of the inliers, pixels.
-        tilt_residual_rad: how far vision moves the given roll/pitch (norm of the correction).
-        scale_source: ``rangefinder``, ``altitude``, ``fixed``, ``carried``, ``held``, ``assumed`` (see
-            :mod:`mavvo.scale`) or ``none`` (no translation measured).
+        scale_source: :class:`ScaleSource`.
         keyframe: a new keyframe was made from this frame.
-        gated: the filter rejected this frame's vision position as a jump.
     """
 
-    state: str
-    reason: str = ""
+    state: VisionState
+    reason: StateReason = StateReason.NONE
     tracks: int = 0
     inliers: int = 0
     inlier_ratio: float = 0.0
     parallax_px: float = 0.0
     residual_rms_px: float = float("nan")
-    tilt_residual_rad: float = float("nan")
-    scale_source: str = "none"
+    scale_source: ScaleSource = ScaleSource.NONE
     keyframe: bool = False
-    gated: bool = False
 
 
 @dataclass(frozen=True)

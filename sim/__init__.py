@@ -1,2 +1,8 @@
-"""The world outside the companion computer: synthetic scenes, and later the rendered camera, the
-simulated flight controller and trajectory evaluation. Depends on mavvo; mavvo never imports it."""
+"""The world outside the companion computer, for tests, ``mavvo sim`` and ``mavvo replay``.
+
+Folders, lowest first (each may import the ones before it, and any of ``mavvo`` but its commands):
+``evaluation/`` (trajectory metrics and report files), ``world/`` (scene, renderer, trajectories,
+clock, faults, the simulated camera), ``flight_controller/`` (the simulated autopilot and its
+sensors), ``scenarios/`` (the YAML scenarios and a whole simulated flight), ``replay/`` (recordings,
+flight-controller logs and data sets fed to the daemon). ``mavvo`` imports ``sim`` only from its
+command modules, and only when the command runs."""

@@ -13,17 +13,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from mavvo.settings import ServiceConfig, config_yaml
-from sim.camera_source import SimCamera
-from sim.clock import LockstepClock
-from sim.fc_logs import write_dataflash
-from sim.flight_controller import import_mavutil
-from sim.metrics import PoseSeries
-from sim.report import write_tum
-from sim.scenario import load_scenario
-from sim.service import config_for
-from sim.trajectories import make_trajectory
-from sim.world import World
+from mavvo.service.settings import ServiceConfig, config_yaml
+from sim.world.camera import SimCamera
+from sim.world.clock import LockstepClock
+from sim.replay.fc_logs import write_dataflash
+from mavvo.service.mavlink import mavutil
+from sim.evaluation.metrics import PoseSeries
+from sim.evaluation.report import write_tum
+from sim.scenarios.loader import load_scenario
+from sim.scenarios.service_run import config_for
+from sim.world.trajectories import make_trajectory
+from sim.world.scene import World
 
 BOOT_S = 100.0
 UNIX_AT_BOOT_US = 1_790_000_000_000_000
@@ -65,7 +65,7 @@ def make_log_flight(
     ranges = [(t, -p[2] / R[2, 2]) for t, p, R in poses]  # the downward laser to flat ground
     if kind == "tlog":
         log = tmp / "flight.tlog"
-        mav = import_mavutil().mavlink
+        mav = mavutil().mavlink
         enc = mav.MAVLink(None, srcSystem=1, srcComponent=1)
         events = [(t, mav.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3)) for t in np.arange(0.0, duration_s, 1.0)]
         events += [(t, mav.MAVLink_attitude_message(int(round((t + BOOT_S) * 1e3)), r, p, y, 0, 0, 0)) for t, r, p, y, _ in att]
@@ -120,7 +120,7 @@ EUROC_T0_NS = 1_403_636_579_763_555_584
 def make_euroc(tmp: Path, *, scenario: str = "figure_eight", duration_s: float = 12.0) -> Path:
     """A small EuRoC/ASL folder (mav0/cam0, imu0, state_groundtruth_estimate0) of a simulated flight.
     The IMU frame is the body's turned to x forward, y left, z up (as a z-up IMU often is)."""
-    from mavvo.frames import quat_wxyz_from_R, rot_x
+    from mavvo.geometry.frames import quat_wxyz_from_R, rot_x
 
     sc = load_scenario(scenario)
     traj = make_trajectory(sc.trajectory)

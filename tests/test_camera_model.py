@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mavvo.camera_model import CameraModel
+from mavvo.geometry.camera_model import CameraModel
 
 PINHOLE = CameraModel(640, 480, 420.0, 418.0, 322.5, 241.0, "pinhole", (-0.28, 0.09, 0.0012, -0.0007, -0.012))
 FISHEYE = CameraModel(800, 600, 285.0, 286.0, 401.0, 299.0, "fisheye", (-0.012, 0.051, -0.049, 0.012))

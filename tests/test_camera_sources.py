@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from mavvo.camera import CameraOptions, FrameQueue, VideoFileSource, open_source
+from mavvo.service.camera import CameraOptions, FrameQueue, VideoFileSource, open_source
 from mavvo.errors import CameraEnded, CameraError
-from mavvo.timing import MonotonicClock
+from mavvo.service.timing import MonotonicClock
 from mavvo.types import Frame
 
 
@@ -65,10 +65,10 @@ def test_unknown_source_names_itself():
 
 
 def test_sim_scheme_renders_the_scenario_on_the_host_clock():
-    from mavvo.cli import _sim_camera
+    from mavvo.commands.run import sim_camera
 
     clock = MonotonicClock()
-    src = open_source(CameraOptions(source="sim:hover"), clock, {"sim": _sim_camera})
+    src = open_source(CameraOptions(source="sim:hover"), clock, {"sim": sim_camera})
     try:
         f = None
         while f is None:

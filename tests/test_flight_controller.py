@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 
 from conftest import free_port
-from sim.clock import LockstepClock, RealClock
-from sim.faults import FaultSchedule, FaultSpec
-from sim.flight_controller import FlightControllerSpec, SimFlightController
-from sim.trajectories import FigureEightSpec, HoverSpec, make_trajectory
+from sim.world.clock import LockstepClock, RealClock
+from sim.world.faults import FaultSchedule, FaultSpec
+from sim.flight_controller.autopilot import SimFlightController
+from sim.flight_controller.spec import FlightControllerSpec
+from sim.world.trajectories import FigureEightSpec, HoverSpec, make_trajectory
 
 ATTITUDE = 30
 SYSTEM_TIME = 2

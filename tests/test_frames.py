@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mavvo.frames import (
+from mavvo.geometry.frames import (
     R_BODY_CAM_FORWARD,
     R_BODY_CAM_NADIR,
     R_from_euler321,

@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mavvo.frames import R_from_euler321
-from mavvo.frontend import Frontend, FrontendOptions
-from sim.camera_source import CameraSpec
-from sim.render import Renderer, apply_effects
-from sim.world import World, WorldSpec
+from mavvo.geometry.frames import R_from_euler321
+from mavvo.odometry.frontend import Frontend, FrontendOptions
+from sim.world.camera import CameraSpec
+from sim.world.render import Renderer, apply_effects
+from sim.world.scene import World, WorldSpec
 
 SPEC = CameraSpec()
 CAMERA = SPEC.camera_model()

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mavvo.frames import rotation_angle_rad
-from mavvo.residuals import ground_sq
-from mavvo.solvers import ground_pose_from_homography, solve_ground_2pt_batch
-from sim.twoview import make_scene
+from mavvo.geometry.frames import rotation_angle_rad
+from mavvo.geometry.residuals import ground_sq
+from mavvo.geometry import ground_pose_from_homography, solve_ground_2pt_batch
+from sim.world.twoview import make_scene
 
 
 def _ground_scenes(n: int, seed: int = 0):

@@ -9,15 +9,17 @@ import socket
 import threading
 import time
 
+import numpy as np
 import pytest
 
 from mavvo.errors import ConfigError
-from mavvo.link import Link, LinkOptions, parse_url, read_signing_key
-from mavvo.timing import MonotonicClock
-from sim.clock import RealClock
-from sim.faults import FaultSchedule, FaultSpec
-from sim.flight_controller import FlightControllerSpec, SimFlightController
-from sim.trajectories import HoverSpec, make_trajectory
+from mavvo.service.link import Link, LinkOptions, SystemStatus, parse_url, read_signing_key
+from mavvo.service.timing import MonotonicClock
+from sim.world.clock import RealClock
+from sim.world.faults import FaultSchedule, FaultSpec
+from sim.flight_controller.autopilot import SimFlightController
+from sim.flight_controller.spec import FlightControllerSpec
+from sim.world.trajectories import HoverSpec, make_trajectory
 
 
 class Recorder:
@@ -54,7 +56,7 @@ class Running:
         self.fc = SimFlightController("udpin:127.0.0.1:0", make_trajectory(HoverSpec()), self.clock, FlightControllerSpec(), FaultSchedule(tuple(faults)))
         host, port = self.fc.address
         self.listener = Recorder()
-        self.link = Link(LinkOptions(url=f"udpout:{host}:{port}", **link_options), MonotonicClock(), self.listener, lambda: "active")
+        self.link = Link(LinkOptions(url=f"udpout:{host}:{port}", **link_options), MonotonicClock(), self.listener, lambda: SystemStatus.ACTIVE)
         self.stop = threading.Event()
         self.threads = [threading.Thread(target=self._serve, daemon=True), threading.Thread(target=self.link.run, args=(self.stop,), daemon=True)]
         for t in self.threads:
@@ -68,9 +70,14 @@ class Running:
     def sim_time(self) -> float:
         return self.clock.now_s()
 
-    def wait_until(self, t_sim_s: float) -> None:
-        while self.sim_time() < t_sim_s:
+    def wait_for(self, done, timeout_s: float = 60.0) -> bool:
+        """Until ``done()`` holds, at most ``timeout_s`` (generous: the machine may be loaded)."""
+        deadline = time.monotonic() + timeout_s
+        while not done():
+            if time.monotonic() > deadline:
+                return False
             time.sleep(0.02)
+        return True
 
     def close(self) -> None:
         self.stop.set()
@@ -94,23 +101,24 @@ def running():
 
 def test_identity_streams_and_clock(running):
     r = running()
-    r.wait_until(2.5)
-    hb = [m for m in r.fc.received if m.type == "HEARTBEAT"]
-    assert hb, "the flight controller heard no HEARTBEAT"
+    heard = lambda: [m for m in r.fc.received if m.type == "HEARTBEAT"]  # noqa: E731
+    assert r.wait_for(lambda: heard() and len(r.listener.attitude) > 60 and r.listener.ranges and r.listener.heights and r.listener.timesync)
+    hb = heard()
     m = hb[-1]
     assert (m.msg.get_srcSystem(), m.msg.get_srcComponent()) == (1, 197)
     assert (m.msg.type, m.msg.autopilot, m.msg.system_status) == (18, 8, 4)  # ONBOARD_CONTROLLER, INVALID, ACTIVE
     assert m.raw[0] == 0xFD  # MAVLink 2
     att = r.listener.attitude
     assert len(att) > 50 and r.listener.ranges and r.listener.heights
-    span_ms = att[-1][1] - att[-51][1]
-    assert 450 <= span_ms <= 550, "50 ATTITUDE intervals at the requested 100 Hz on the boot clock"
+    # The requested 100 Hz on the flight controller's boot clock (a datagram lost under load makes
+    # one longer interval, not a different median).
+    assert np.median(np.diff([t_fc for _, t_fc in att])) == 10
     assert r.listener.heights[-1] == pytest.approx(10.0, abs=2.0)  # the hover's height above home
     # TIMESYNC: the flight controller's boot clock is 30 s ahead of the simulation clock.
     assert r.listener.timesync
     sent, fc = r.listener.timesync[-1]
     true_offset = 30.0 + (0.0 - r.clock._t0)  # boot = 30 + (monotonic - t0)
-    assert fc - sent == pytest.approx(true_offset, abs=0.02)
+    assert fc - sent == pytest.approx(true_offset, abs=0.1)  # within the round trip on a loaded machine
 
 
 def test_reboot_corrupt_bytes_and_silence_are_survived(running):
@@ -120,16 +128,14 @@ def test_reboot_corrupt_bytes_and_silence_are_survived(running):
         FaultSpec("link_silence", 4.5, 2.0),
     )
     r = running(faults=faults, silence_timeout_s=1.0, request_retry_s=0.5)
-    r.wait_until(3.0)
+    # Each step waits for its event (generously), then checks what it left.
+    assert r.wait_for(lambda: any(ms < 2000 for _, ms in r.listener.attitude)), "streams were requested again after the reboot"
     assert r.listener.reboots == 1 and r.link.counters["reboots"] == 1
-    after_reboot = [ms for _, ms in r.listener.attitude if ms < 2000]
-    assert after_reboot, "streams were requested again after the reboot"
-    r.wait_until(4.4)
-    assert r.link.counters["bad_data"] > 0
-    n_before_silence = len(r.listener.attitude)
-    r.wait_until(8.5)
-    assert r.link.counters["reconnects"] >= 1
-    assert len(r.listener.attitude) > n_before_silence + 50, "attitude flows again after the silence"
+    assert r.wait_for(lambda: r.link.counters["bad_data"] > 0), "corrupt bytes were not counted"
+    assert r.wait_for(lambda: r.sim_time() >= 4.5)
+    n_at_silence = len(r.listener.attitude)
+    assert r.wait_for(lambda: r.link.counters["reconnects"] >= 1 and len(r.listener.attitude) > n_at_silence + 50), "attitude flows again after the silence"
+    assert r.listener.reboots == 1
     assert r.link.connected.is_set()
 
 

@@ -7,8 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from mavvo import messages
-from mavvo.frames import R_from_euler321
+from mavvo.service import messages
+from mavvo.types import StateReason, VisionState
+from mavvo.geometry.frames import R_from_euler321
 from mavvo.types import PoseEstimate, VoDiagnostics
 
 
@@ -46,10 +47,29 @@ def test_odometry_velocity_is_in_the_body_frame():
 
 
 def test_statustext_is_prefixed_and_fits_mavlink():
-    t = messages.statustext("failed", "tracking_lost because of a very long explanation of what went wrong")
+    t = messages.statustext(VisionState.FAILED, "tracking_lost because of a very long explanation of what went wrong")  # type: ignore[arg-type]
     assert t["text"].startswith(b"mavvo: failed (") and len(t["text"]) == 50
-    assert t["severity"] == messages.MAV_SEVERITY_WARNING
-    assert messages.statustext("tracking", "")["text"] == b"mavvo: tracking"
+    assert messages.statustext(VisionState.TRACKING, StateReason.NONE)["text"] == b"mavvo: tracking"
+    assert messages.statustext(VisionState.DEGRADED, StateReason.SCALE_HELD)["text"] == b"mavvo: degraded (scale_held)"
+
+
+@pytest.mark.parametrize(
+    "state, severity",  # MAV_SEVERITY: 2 CRITICAL, 4 WARNING, 6 INFO
+    [(VisionState.FAILED, 2), (VisionState.DEGRADED, 4), (VisionState.TRACKING, 6), (VisionState.INITIALISING, 6), (VisionState.STANDBY, 6)],
+)
+def test_statustext_severity_follows_the_state(state, severity):
+    assert messages.statustext(state, StateReason.NONE)["severity"] == severity
+
+
+def test_every_state_has_a_code_and_the_codes_are_the_documented_ones():
+    assert messages.STATE_CODES == {"standby": -1, "initialising": 0, "tracking": 1, "degraded": 2, "failed": 3}
+    assert set(messages.STATE_CODES) == set(VisionState)
+
+
+def test_every_relpose_failure_is_a_state_reason():
+    from mavvo.estimation.relpose import RelposeFailure
+
+    assert {r.value for r in RelposeFailure} <= {r.value for r in StateReason}
 
 
 def test_named_value_names_are_checked():

@@ -9,13 +9,13 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from mavvo.config import build
-from mavvo.frames import R_from_euler321
-from mavvo.odometry import Odometry, OdometryOptions
+from mavvo.service.yaml_loader import build
+from mavvo.geometry.frames import R_from_euler321
+from mavvo.odometry.pipeline import Odometry, OdometryOptions
 from mavvo.types import PoseEstimate
-from sim.metrics import Evaluation, PoseSeries, evaluate
-from sim.scenario import Scenario, load_scenario
-from sim.sequence import PairedSequence
+from sim.evaluation.metrics import Evaluation, PoseSeries, evaluate
+from sim.scenarios.loader import Scenario, load_scenario
+from sim.scenarios.paired_frames import PairedSequence
 
 
 @dataclass(frozen=True)

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from mavvo.filter import FilterOptions, PoseFilter, wrap_angle
-from mavvo.frames import rot_z
-from mavvo.keyframes import Keyframe, KeyframeOptions, carry_depths, keyframe_reason
-from mavvo.scale import ScaleOptions, estimate_scale, ground_depth, scale_from_scene_depth, triangulate_unit
-from sim.twoview import make_scene
+from mavvo.odometry.filter import FilterOptions, PoseFilter, wrap_angle
+from mavvo.geometry.frames import rot_z
+from mavvo.odometry.keyframes import Keyframe, KeyframeOptions, carry_depths, keyframe_reason
+from mavvo.odometry.scale import ScaleOptions, estimate_scale, ground_depth, scale_from_scene_depth, triangulate_unit
+from sim.world.twoview import make_scene
 
 
 def _unit_geometry(scene):
@@ -121,3 +121,24 @@ def test_filter_follows_constant_velocity_and_rejects_a_jump() -> None:
     assert f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_sigma_m=0.02, yaw_sigma_rad=0.005)  # third: believed
     np.testing.assert_allclose(f.position_ned_m, v * 5.05 + [10.0, 0, 0])
     assert np.all(np.linalg.eigvalsh(f.position_covariance) > 0)
+
+
+@pytest.mark.parametrize(
+    "probability, dof, table",  # chi-square quantiles as printed in statistics tables
+    [(0.999, 4, 18.467), (0.999, 1, 10.828), (0.95, 3, 7.815), (0.99, 2, 9.210), (0.95, 1, 3.841)],
+)
+def test_chi2_quantile_matches_the_tables(probability, dof, table):
+    from mavvo.odometry.filter import chi2_quantile
+
+    assert chi2_quantile(probability, dof) == pytest.approx(table, abs=1e-3)
+
+
+def test_gate_uses_the_measurement_size():
+    """A yaw-only update 3.5 sigma off is beyond the 1-dof gate (10.83) though inside the 4-dof one
+    (18.47): it is rejected. The same yaw error with a position that agrees passes the 4-dof gate."""
+    f = PoseFilter(FilterOptions(max_rejections=10))
+    f.reset(0.0, np.zeros(3), 0.0, pos_sigma_m=0.01, yaw_sigma_rad=1e-4)
+    sigma = 0.01
+    off = 3.5 * np.hypot(sigma, 1e-4)
+    assert not f.update(None, off, pos_sigma_m=0.01, yaw_sigma_rad=sigma)
+    assert f.update(np.zeros(3), off, pos_sigma_m=0.01, yaw_sigma_rad=sigma)

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from mavvo.polyroots import cubic_real_roots, quartic_real_roots
+from mavvo.geometry.polyroots import cubic_real_roots, quartic_real_roots
 
 
 def _real_roots(coeffs: np.ndarray) -> np.ndarray:

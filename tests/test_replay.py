@@ -15,17 +15,17 @@ import yaml
 
 from mavvo.cli import main
 from mavvo.errors import ConfigError
-from mavvo.recorder import RecordOptions, Recorder
-from mavvo.settings import ServiceConfig
-from mavvo.timing import Pairing
-from mavvo.tlog import payload, read_tlog, write_record
+from mavvo.service.recorder import RecordOptions, Recorder
+from mavvo.service.settings import ServiceConfig
+from mavvo.service.timing import Pairing
+from mavvo.service.tlog import payload, read_tlog, write_record
 from mavvo.types import Frame
-from sim.clock import LockstepClock
-from sim.recording import load_recording
-from sim.replay import replay
-from sim.scenario import load_scenario
-from sim.service import run_daemon_in_sim
-from sim.time_offset import estimate_offset
+from sim.world.clock import LockstepClock
+from sim.replay.recording import load_recording
+from sim.replay.driver import replay
+from sim.scenarios.loader import load_scenario
+from sim.scenarios.service_run import run_daemon_in_sim
+from sim.replay.time_offset import estimate_offset
 
 sys.path.insert(0, str(Path(__file__).parent))
 from flightlogs import make_euroc, make_log_flight  # noqa: E402
@@ -193,7 +193,7 @@ def test_euroc_folder_replays_with_truth_or_imu_attitude(tmp_path, capsys):
     code, s, err = _replay_cli(capsys, root, "--config", over, "--out", tmp_path / "b")
     assert code == 0, err
     assert s["evaluation"]["ate_se3_m"]["rmse"] < 0.5  # the filter's tilt errors in turns cost some accuracy
-    from sim.replay_sources import open_replay_source
+    from sim.replay.sources import open_replay_source
 
     inp = open_replay_source(root)
     assert np.allclose(inp.config.mounting.rotation(), np.array(load_scenario("figure_eight").camera.R_body_cam()), atol=1e-3)

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from conftest import free_port
-from mavvo.camera import FrameSource
+from mavvo.service.camera import FrameSource
 from mavvo.errors import CameraError, ConfigError
-from sim.scenario import Scenario, load_scenario, scenario_names
-from sim.simulation import Simulation
+from sim.scenarios.loader import Scenario, load_scenario, scenario_names
+from sim.scenarios.flight import Simulation
 
 
 @pytest.mark.parametrize("name", scenario_names())
@@ -22,9 +22,11 @@ def test_shipped_scenarios_load_and_render(name):
     sim = Simulation(sc, f"udpin:127.0.0.1:{free_port()}")
     try:
         assert isinstance(sim.camera, FrameSource)
-        for t in np.linspace(0.0, sim.duration_s, 4):
-            if any(f.start_s <= t < f.end_s for f in sc.faults if f.kind in ("dark_frames", "textureless_frames")):
-                continue
+        # Four moments spread over the flight, outside the faults that blank the image on purpose.
+        blank = [f for f in sc.faults if f.kind in ("dark_frames", "textureless_frames")]
+        times = [t for t in np.linspace(0.0, sim.duration_s, 9) if not any(f.start_s <= t < f.end_s for f in blank)][::2][:4]
+        assert len(times) == 4
+        for t in times:
             img = sim.camera.render_at(t)
             assert img.shape == (sc.camera.height_px, sc.camera.width_px) and img.dtype == np.uint8
             assert img.std() > 15, f"{name} at {t:.1f} s looks featureless"
@@ -65,8 +67,9 @@ def test_camera_faults():
     try:
         by_kind = {f.kind: f for f in sc.faults}
         miss = by_kind["frames_missing"]
-        sim.camera._next = int(round((miss.start_s - 0.2) * sc.camera.rate_hz))
+        sim.camera.skip_to(miss.start_s - 0.2)
         got = [sim.camera.read(1.0) for _ in range(10)]
+        assert got[0].t_exposure_s == pytest.approx(miss.start_s - 0.2)
         times = np.array([f.t_exposure_s for f in got])
         assert not np.any((times >= miss.start_s) & (times < miss.end_s))
         assert np.diff([f.seq for f in got]).max() == int(round(miss.duration_s * sc.camera.rate_hz)) + 1  # the gap shows in seq
@@ -124,16 +127,16 @@ def test_unknown_scenario_lists_the_shipped_ones(tmp_path):
 def test_docs_list_every_scenario_key():
     from pathlib import Path
 
-    from sim.scenario import scenario_keys_markdown
+    from sim.scenarios.loader import scenario_keys_markdown
 
     doc = (Path(__file__).resolve().parents[1] / "docs" / "simulator.md").read_text()
     section = doc.split("<!-- keys:begin -->\n", 1)[1].split("<!-- keys:end -->", 1)[0]
-    assert section == scenario_keys_markdown(), "docs/simulator.md is stale: paste sim.scenario.scenario_keys_markdown()"
+    assert section == scenario_keys_markdown(), "docs/simulator.md is stale: paste sim.scenarios.loader.scenario_keys_markdown()"
 
 
 def test_a_scenario_run_evaluates_what_the_flight_controller_received(mavutil, tmp_path):
     """A client that reports the true camera-frame times with 5 cm of noise scores about 5 cm * sqrt(3)."""
-    from sim.report import vision_estimates, write_report
+    from sim.evaluation.report import vision_estimates, write_report
 
     port = free_port()
     sim = Simulation(load_scenario("square"), f"udpin:127.0.0.1:{port}", duration_s=20.0)

@@ -11,17 +11,18 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
 import pytest
 
-from mavvo.camera import InjectedSource, ReconnectingSource
+from mavvo.service.camera import InjectedSource, ReconnectingSource
 from mavvo.errors import CameraEnded, CameraError
-from mavvo.settings import OutputOptions, ServiceConfig
-from sim.faults import FaultSpec
-from sim.scenario import load_scenario
-from sim.service import run_daemon_in_sim
+from mavvo.service.settings import OutputOptions, ServiceConfig
+from sim.world.faults import FaultSpec
+from sim.scenarios.loader import load_scenario
+from sim.scenarios.service_run import run_daemon_in_sim
 
 
 @pytest.fixture(scope="module")
@@ -101,6 +102,12 @@ def test_faults_are_survived_and_recovered_from():
     texts = run.statustexts
     assert any(3.0 < t < 7.5 and text == "mavvo: failed (no_attitude)" for t, text in texts), texts
     assert any(t > 7.0 and text == "mavvo: tracking" for t, text in texts), texts
+    # HEARTBEAT: CRITICAL (5) while vision had failed, ACTIVE (4) again afterwards, never
+    # FLIGHT_TERMINATION (7), which would tell the ground station the vehicle is terminating itself.
+    status = run.heartbeat_status
+    assert 7 not in {s for _, s in status}
+    assert any(3.0 < t < 7.5 and s == 5 for t, s in status), status
+    assert status[-1][1] == 4
 
 
 class FixedClock:
@@ -115,7 +122,7 @@ class FixedClock:
 
 def test_bad_frames_are_counted_not_fatal():
     """Frames of the wrong size or type from the camera: counted and skipped, the service goes on."""
-    from mavvo.daemon import Daemon
+    from mavvo.service.daemon import Daemon
 
     source = InjectedSource()
     source.push(np.zeros((10, 10), np.uint8), 0.0)
@@ -129,6 +136,33 @@ def test_bad_frames_are_counted_not_fatal():
         d.fc.on_attitude(t_ms, 0.0, 0.0, 0.0)
     summary = d.run()
     assert summary.counters["bad_frames"] == 2 and summary.counters["frames"] == 2
+
+
+def test_lockstep_hook_reports_progress_a_driver_can_wait_for():
+    """The documented hook a simulation or replay drives the daemon with: hand over a frame, wait until
+    the worker has finished it; the counts only grow."""
+    from mavvo.service.daemon import Daemon
+
+    source = InjectedSource()
+    cfg = dataclasses.replace(ServiceConfig(), link=dataclasses.replace(ServiceConfig().link, url="udpout:127.0.0.1:9"))
+    clock = FixedClock()
+    d = Daemon(cfg, source=source, clock=clock)
+    assert d.progress().frames_done == 0 and d.progress().fc_state_version == 0
+    d.fc.on_attitude(0, 0.0, 0.0, 0.0)
+    assert d.progress().fc_state_version == 1
+    runner = threading.Thread(target=d.run, daemon=True)
+    runner.start()
+    try:
+        for k in range(3):
+            source.push(np.zeros((480, 640), np.uint8), 0.01 * k)
+            assert d.wait_progress(lambda p, k=k: p.frames_done >= k + 1, timeout_s=60.0)
+        assert d.progress().frames_done == 3
+        assert not d.wait_progress(lambda p: p.frames_done >= 4, timeout_s=0.2)  # nothing more was handed over
+    finally:
+        source.end()
+        d.request_stop()
+        runner.join(30)
+    assert not runner.is_alive()
 
 
 def test_reconnecting_source_reopens_a_lost_camera():
@@ -231,16 +265,26 @@ def test_mavvo_run_reads_an_image_folder_and_stops_on_sigterm(tmp_path):
     cfg = tmp_path / "mavvo.yaml"
     cfg.write_text(f"camera: {{source: '{folder}'}}\nlink: {{url: 'udpout:127.0.0.1:9'}}\nservice: {{health_log_interval_s: 0.5}}\n")
     proc = subprocess.Popen([sys.executable, "-m", "mavvo", "run", "--config", str(cfg)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines: list[str] = []
     try:
-        time.sleep(4.5)
-        assert proc.poll() is None, "the service stopped by itself"
+        # Wait (generously) for the event, not for a time: the health line that counts the third
+        # frame skipped for want of attitude.
+        reader = threading.Thread(target=lambda: lines.extend(iter(proc.stderr.readline, "")), daemon=True)
+        reader.start()
+        deadline = time.monotonic() + 60.0
+        while not any("skipped_attitude_missing 3" in line for line in lines) and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert proc.poll() is None, "the service stopped by itself: " + "".join(lines)
         proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=30)
+        proc.wait(timeout=30)
+        reader.join(10)
     finally:
         if proc.poll() is None:
             proc.kill()
+    err = "".join(lines)
     assert proc.returncode == 0, err
-    final = [line for line in err.splitlines() if "final:" in line]
+    final = [line for line in lines if "final:" in line]
     assert len(final) == 1 and "frames_dropped" not in final[0]
     n = int(final[0].split("frames ")[1].split(",")[0])
+    # Every frame was skipped and counted, and SIGTERM stopped the service before the folder's end.
     assert 3 <= n < 29 and f"skipped_attitude_missing {n}" in final[0]

@@ -12,7 +12,7 @@ import pytest
 
 from mavvo.cli import main
 from mavvo.errors import ConfigError
-from mavvo.settings import ServiceConfig, default_yaml, load_config
+from mavvo.service.settings import ServiceConfig, default_yaml, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,7 +24,7 @@ def write(tmp_path: Path, text: str) -> Path:
 
 
 def test_default_yaml_lists_every_key_and_is_current():
-    assert (ROOT / "config" / "default.yaml").read_text(encoding="utf-8") == default_yaml(), "run: python -c 'from mavvo.settings import default_yaml; open(\"config/default.yaml\",\"w\").write(default_yaml())'"
+    assert (ROOT / "config" / "default.yaml").read_text(encoding="utf-8") == default_yaml(), "run: python -c 'from mavvo.service.settings import default_yaml; open(\"config/default.yaml\",\"w\").write(default_yaml())'"
     assert load_config(ROOT / "config" / "default.yaml") == ServiceConfig()
     text = default_yaml()
     for section in ("camera", "mounting", "link", "timing", "output", "service", "odometry"):

@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mavvo.frames import angle_between_rad, rotation_angle_rad
-from mavvo.solvers import solve_upright_3pt, solve_upright_3pt_batch, upright_constraint_residual, upright_pose_from_essential
-from sim.faults import FaultSpec
-from sim.scenario import load_scenario
-from sim.service import run_daemon_in_sim
-from sim.twoview import TwoViewScene, make_scene
+from mavvo.geometry.frames import angle_between_rad, rotation_angle_rad
+from mavvo.geometry import solve_upright_3pt, solve_upright_3pt_batch, upright_constraint_residual, upright_pose_from_essential
+from sim.world.faults import FaultSpec
+from sim.scenarios.loader import load_scenario
+from sim.scenarios.service_run import run_daemon_in_sim
+from sim.world.twoview import TwoViewScene, make_scene
 
 pytestmark = pytest.mark.slow
 

@@ -9,7 +9,7 @@ import threading
 import numpy as np
 import pytest
 
-from mavvo.timing import ClockSync, FlightControllerState, TimingOptions, wait_for_pairing
+from mavvo.service.timing import ClockSync, FlightControllerState, TimingOptions, wait_for_pairing
 
 OFFSET_S = 30.0  # boot clock minus host clock
 

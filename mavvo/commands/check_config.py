@@ -1,0 +1,22 @@
+"""``mavvo check-config FILE``: load a settings file strictly and report the first problem."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from mavvo.service.settings import load_config
+
+
+def add_parser(sub: Any) -> None:
+    c = sub.add_parser("check-config", help="check a settings file and exit", description="Load a settings file strictly and report the first problem, with its key path.")
+    c.add_argument("file", type=Path, metavar="FILE")
+
+    c.set_defaults(handler=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    cfg = load_config(args.file)
+    print(f"{args.file}: ok (link {cfg.link.url}, camera {cfg.camera.source} {cfg.camera.width_px}x{cfg.camera.height_px}, scale from {cfg.odometry.scale.source})")
+    return 0

@@ -1,0 +1,147 @@
+"""``mavvo sim``: the service flown against the simulated flight controller and camera, or the
+simulated flight controller alone (``--fc-only``). ``sim`` is imported only when the command runs."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import signal
+import threading
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+from mavvo.commands.run import with_record
+from mavvo.errors import ConfigError, LinkError
+from mavvo.service.settings import ServiceConfig, load_config
+
+log = logging.getLogger(__name__)
+
+_PROGRESS_EVERY_S = 5.0
+_DEFAULT_SCENARIO = "figure_eight"
+
+
+def add_parser(sub: Any) -> None:
+    s = sub.add_parser(
+        "sim",
+        help="run the service against the simulated drone and print how close it came to the truth",
+        description=(
+            "Fly a simulated drone: the mavvo service talks MAVLink 2 over UDP on 127.0.0.1 to a simulated flight "
+            "controller and reads frames rendered by a simulated camera, then the estimates the flight controller "
+            "received are compared with the truth. Lockstep (as fast as the computer allows, the same on every run) "
+            "unless --realtime. With --fc-only, only the simulated flight controller runs, in real time, on --mavlink, "
+            "for any MAVLink client (a ground station, a script, or mavvo run with camera.source sim:SCENARIO)."
+        ),
+    )
+    s.add_argument("--scenario", default=_DEFAULT_SCENARIO, help=f"a shipped scenario name or a .yaml path (see --list); default {_DEFAULT_SCENARIO}")
+    s.add_argument("--list", action="store_true", help="list the shipped scenarios and exit")
+    s.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds of flight (default: the scenario's length; --fc-only: until stopped)")
+    s.add_argument("--realtime", action="store_true", help="run at wall-clock speed instead of lockstep")
+    s.add_argument("--config", type=Path, default=None, metavar="FILE", help="service settings to use (the scenario sets camera, mounting and link); default: the built-in defaults")
+    s.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout")
+    s.add_argument("--out", type=Path, default=None, metavar="DIR", help="where the report goes (default mavvo-sim-out/SCENARIO; with --fc-only: none)")
+    s.add_argument("--record", type=Path, default=None, metavar="DIR", help="record the flight (as mavvo run --record does) with its ground truth, for mavvo replay")
+    s.add_argument("--fc-only", action="store_true", help="run only the simulated flight controller")
+    s.add_argument(
+        "--mavlink", default="udpin:127.0.0.1:14550",
+        help="--fc-only: where the flight controller listens: udpin:HOST:PORT or tcpin:HOST:PORT (udpout:/tcp: connect out); default udpin:127.0.0.1:14550",
+    )
+    s.add_argument(
+        "--time-source", choices=("arrival", "usec"), default="arrival",
+        help="--fc-only: evaluate estimates at their arrival time (default; clients on their own clock) or at their usec stamp read as simulation time",
+    )
+    s.set_defaults(handler=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    from sim.scenarios.loader import load_scenario, scenario_names  # sim is loaded only for this command
+
+    if args.list:
+        for name in scenario_names():
+            print(f"{name:18s} {load_scenario(name).description}")
+        return 0
+    if args.duration is not None and not (args.duration > 0 and math.isfinite(args.duration)):
+        raise ConfigError(f"--duration: expected a positive number of seconds, got {args.duration}")
+    scenario = load_scenario(args.scenario)
+    if args.fc_only:
+        return _fc_only(scenario, args)
+    return _sim_service(scenario, args)
+
+
+def _sim_service(scenario: Any, args: argparse.Namespace) -> int:
+    from sim.scenarios.service_run import run_daemon_in_sim
+
+    base = with_record(load_config(args.config) if args.config is not None else ServiceConfig(), args.record)
+    out = args.out if args.out is not None else Path("mavvo-sim-out") / scenario.name
+    run = run_daemon_in_sim(scenario, base, realtime=args.realtime, duration_s=args.duration, out_dir=out)
+    summary = run.summary()
+    summary["report_dir"] = str(out) if run.evaluation is not None else None
+    summary["plot"] = str(out / "evaluation.png") if run.evaluation is not None else None
+    if args.json:
+        print(json.dumps(summary))
+        return 0
+    print(
+        f"{scenario.name}: {summary['frames']} frames, {summary['estimates_received']} estimates received by the flight controller, "
+        f"{run.resets} resets; {run.duration_s:.1f} s flown in {run.wall_s:.1f} s"
+    )
+    if run.evaluation is None:
+        print("too few estimates to evaluate")
+        return 0
+    ev = run.evaluation
+    print(
+        f"ATE {ev.ate_se3_m['rmse']:.3f} m RMSE ({ev.ate_se3_rmse_percent_of_path:.2f}% of {ev.path_length_m:.1f} m), "
+        f"Sim(3) {ev.ate_sim3_m['rmse']:.3f} m at scale {ev.sim3_scale:.3f}"
+    )
+    print(f"plot: {summary['plot']}")
+    if run.recording is not None:
+        print(f"recording: {run.recording} (replay it: mavvo replay {run.recording})")
+    return 0
+
+
+def _fc_only(scenario: Any, args: argparse.Namespace) -> int:
+    from sim.evaluation.report import vision_estimates, write_report
+    from sim.scenarios.flight import Simulation
+
+    try:
+        sim = Simulation(scenario, args.mavlink, realtime=True)
+    except LinkError as e:
+        raise ConfigError(f"--mavlink {e}") from e
+    stop = threading.Event()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    until = args.duration if args.duration is not None else math.inf
+    log.info("simulated flight controller on %s, scenario %s (%.0f s of trajectory); Ctrl-C stops", args.mavlink, scenario.name, sim.trajectory.duration_s)
+    try:
+        next_report = _PROGRESS_EVERY_S
+        while not stop.is_set() and sim.clock.now_s() < until:
+            sim.serve(stop, until_s=min(until, next_report))
+            if sim.clock.now_s() >= next_report:
+                log.info("t=%.0f s sent %s received %s", sim.clock.now_s(), _counts(sim.fc.sent_counts), _counts(_received(sim)))
+                next_report += _PROGRESS_EVERY_S
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+        sim.close()
+    log.info("stopped at t=%.1f s; received %s", sim.clock.now_s(), _counts(_received(sim)))
+    if args.out is not None:
+        tlog = sim.fc.save_tlog(args.out / "received.tlog")
+        print(f"received messages: {tlog}")
+        est = vision_estimates(sim.fc.received, args.time_source)
+        if len(est) >= 3:
+            ev = write_report(args.out, est, sim.truth_at(est.timestamps_s), title=scenario.name)
+            print(
+                f"{len(est)} vision estimates: ATE {ev.ate_se3_m['rmse']:.3f} m RMSE (SE(3)), {ev.ate_sim3_m['rmse']:.3f} m (Sim(3)), "
+                f"{ev.ate_se3_rmse_percent_of_path:.2f}% of {ev.path_length_m:.1f} m; report in {args.out}"
+            )
+        else:
+            print(f"{len(est)} vision estimates received: too few to evaluate")
+    return 0
+
+
+def _received(sim: Any) -> dict[str, int]:
+    return Counter(r.type for r in sim.fc.received)
+
+
+def _counts(d: dict[str, int]) -> str:
+    return ", ".join(f"{k} {v}" for k, v in sorted(d.items())) or "nothing"

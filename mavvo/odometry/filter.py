@@ -1,0 +1,165 @@
+"""A small constant-velocity Kalman filter on NED position and yaw (the only filterpy importer).
+
+State (8): position x, y, z (m), velocity (m/s), yaw (rad, kept continuous, not wrapped) and yaw rate
+(rad/s). Process noise is white acceleration (``accel_sigma_m_s2``) and white yaw acceleration.
+Measurements are vision positions and yaws with a covariance from the odometry's quality. Before an
+update, the innovation's squared Mahalanobis distance is compared with the chi-square quantile of
+``gate_probability`` for as many degrees of freedom as the measurement has (4 for position and yaw,
+1 for yaw alone): a jump beyond it is rejected. After ``max_rejections`` rejections in a row the
+filter believes the measurements again and restarts at the latest one (keeping its velocity), so a
+real change is followed instead of coasted past.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import math
+
+import numpy as np
+from filterpy.kalman import KalmanFilter
+
+from mavvo.options import bounded
+
+__all__ = ["FilterOptions", "PoseFilter", "chi2_cdf", "chi2_quantile", "wrap_angle"]
+
+_DIM_X, _DIM_Z = 8, 4
+_H = np.zeros((_DIM_Z, _DIM_X))
+_H[0, 0] = _H[1, 1] = _H[2, 2] = _H[3, 6] = 1.0
+
+
+def chi2_cdf(x: float, dof: int) -> float:
+    """P(X <= x) for X chi-square with ``dof`` (a positive integer) degrees of freedom, in closed form:
+    even k: 1 - exp(-x/2) sum_{i<k/2} (x/2)^i / i!;  odd k: erf(sqrt(x/2)) - exp(-x/2) sum_{i<(k-1)/2}
+    (x/2)^(i+1/2) / Gamma(i+3/2)."""
+    if x <= 0:
+        return 0.0
+    h = 0.5 * x
+    if dof % 2 == 0:
+        return 1.0 - math.exp(-h) * sum(h**i / math.factorial(i) for i in range(dof // 2))
+    return math.erf(math.sqrt(h)) - math.exp(-h) * sum(h ** (i + 0.5) / math.gamma(i + 1.5) for i in range((dof - 1) // 2))
+
+
+def chi2_quantile(probability: float, dof: int) -> float:
+    """The x with chi2_cdf(x, dof) = probability (bisection to 1e-10 relative)."""
+    lo, hi = 0.0, 1.0
+    while chi2_cdf(hi, dof) < probability:
+        hi *= 2.0
+    while hi - lo > 1e-10 * hi:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if chi2_cdf(mid, dof) < probability else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def wrap_angle(a: float) -> float:
+    """``a`` wrapped to [-pi, pi)."""
+    return float((a + np.pi) % (2.0 * np.pi) - np.pi)
+
+
+@dataclass(frozen=True)
+class FilterOptions:
+    """Settings of :class:`PoseFilter`."""
+
+    accel_sigma_m_s2: float = bounded(3.0, "process noise: white acceleration, 1 sigma", gt=0)
+    yaw_accel_sigma_rad_s2: float = bounded(2.0, "process noise: white yaw acceleration, 1 sigma", gt=0)
+    initial_velocity_sigma_m_s: float = bounded(1.0, "velocity uncertainty at a (re)start", gt=0)
+    gate_probability: float = bounded(0.999, "reject a measurement whose squared Mahalanobis distance exceeds the chi2 quantile of this probability (dof: the measurement's size)", gt=0, lt=1)
+    max_rejections: int = bounded(5, "after this many rejections in a row, restart at the measurement", ge=1)
+
+
+class PoseFilter:
+    """Constant-velocity filter (see the module docstring). Times are seconds on any one clock."""
+
+    def __init__(self, options: FilterOptions | None = None) -> None:
+        self.options = options or FilterOptions()
+        self._kf = KalmanFilter(dim_x=_DIM_X, dim_z=_DIM_Z)
+        self._kf.H = _H
+        self._t_s: float | None = None
+        self.rejections = 0
+        # Gate per measurement size: position and yaw (4), yaw alone (1).
+        self._gate = {k: chi2_quantile(self.options.gate_probability, k) for k in (1, _DIM_Z)}
+
+    def reset(self, t_s: float, p_ned_m: np.ndarray, yaw_rad: float, *, v_ned_m_s: np.ndarray | None = None, pos_sigma_m: float, yaw_sigma_rad: float) -> None:
+        """Start at a pose (velocity zero with ``initial_velocity_sigma_m_s`` unless given)."""
+        x = np.zeros((_DIM_X, 1))
+        x[0:3, 0] = p_ned_m
+        if v_ned_m_s is not None:
+            x[3:6, 0] = v_ned_m_s
+        x[6, 0] = yaw_rad
+        sv = self.options.initial_velocity_sigma_m_s
+        self._kf.x = x
+        self._kf.P = np.diag([pos_sigma_m**2] * 3 + [sv**2] * 3 + [yaw_sigma_rad**2, 0.1**2])
+        self._t_s = float(t_s)
+        self.rejections = 0
+
+    def predict(self, t_s: float) -> None:
+        """Move the state to ``t_s`` (no-op for a time at or before the current one)."""
+        if self._t_s is None:
+            raise RuntimeError("PoseFilter.predict before reset")
+        dt = float(t_s) - self._t_s
+        if dt <= 0:
+            return
+        F = np.eye(_DIM_X)
+        F[0, 3] = F[1, 4] = F[2, 5] = F[6, 7] = dt
+        q = np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
+        Q = np.zeros((_DIM_X, _DIM_X))
+        for i in range(3):
+            Q[np.ix_([i, i + 3], [i, i + 3])] = q * self.options.accel_sigma_m_s2**2
+        Q[6:8, 6:8] = q * self.options.yaw_accel_sigma_rad_s2**2
+        self._kf.predict(F=F, Q=Q)
+        self._t_s = float(t_s)
+
+    def update(self, p_ned_m: np.ndarray | None, yaw_rad: float, *, pos_sigma_m: float, yaw_sigma_rad: float) -> bool:
+        """Fuse a measurement taken at the current time; False when it was rejected by the gate.
+
+        ``p_ned_m`` None measures the yaw only (vision saw a rotation but no translation).
+        """
+        kf = self._kf
+        rows = slice(0, 4) if p_ned_m is not None else slice(3, 4)
+        H = _H[rows]
+        z = np.empty((_DIM_Z, 1))
+        if p_ned_m is not None:
+            z[0:3, 0] = p_ned_m
+        z[3, 0] = kf.x[6, 0] + wrap_angle(yaw_rad - kf.x[6, 0])
+        z = z[rows]
+        R = np.diag([pos_sigma_m**2] * 3 + [yaw_sigma_rad**2])[rows, rows]
+        y = z - H @ kf.x  # innovation y = z - H x
+        S = H @ kf.P @ H.T + R  # its covariance S = H P H' + R
+        d2 = float((y.T @ np.linalg.solve(S, y))[0, 0])  # squared Mahalanobis distance y' S^-1 y
+        if d2 > self._gate[len(z)]:
+            self.rejections += 1
+            if self.rejections < self.options.max_rejections:
+                return False
+            p = kf.x[0:3, 0] if p_ned_m is None else p_ned_m
+            self.reset(self._t_s, p, z[-1, 0], v_ned_m_s=kf.x[3:6, 0], pos_sigma_m=pos_sigma_m, yaw_sigma_rad=yaw_sigma_rad)
+            return True
+        self.rejections = 0
+        kf.update(z, R=R, H=H)
+        return True
+
+    @property
+    def position_ned_m(self) -> np.ndarray:
+        return self._kf.x[0:3, 0].copy()
+
+    @property
+    def velocity_ned_m_s(self) -> np.ndarray:
+        return self._kf.x[3:6, 0].copy()
+
+    @property
+    def yaw_rad(self) -> float:
+        return wrap_angle(float(self._kf.x[6, 0]))
+
+    @property
+    def position_covariance(self) -> np.ndarray:
+        """(3,3) m^2."""
+        return self._kf.P[0:3, 0:3].copy()
+
+    @property
+    def velocity_covariance(self) -> np.ndarray:
+        """(3,3) (m/s)^2."""
+        return self._kf.P[3:6, 3:6].copy()
+
+    @property
+    def yaw_variance(self) -> float:
+        """rad^2."""
+        return float(self._kf.P[6, 6])

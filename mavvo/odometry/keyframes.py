@@ -1,0 +1,149 @@
+"""Keyframes: when to make one, what it keeps, and the chain of their poses in the world frame.
+
+Every frame is measured against the current keyframe, so the error of a frame does not pass to the
+next one; only a keyframe switch commits an error to the chain. A new keyframe is made from a frame
+whose pose was accepted when
+
+- the median rotation-compensated parallax against the keyframe reaches ``parallax_px`` (the baseline
+  is long enough; longer ones lose tracks), or
+- fewer than ``min_survival`` of the keyframe's tracks are left, or
+- the relative pose has fewer than ``min_inliers`` inliers.
+
+Poses: a keyframe stores its camera position ``p_ned_m`` and the heading ``yaw_rad`` of its level
+frame in the world frame (NED). A frame at ``c2`` (its camera centre in the keyframe's level frame,
+metres) with relative yaw ``yaw_2_1`` (``R_2_1 = Rz(yaw_2_1)``) is at
+``p = p_kf + Rz(yaw_kf) @ c2`` with heading ``yaw_kf - yaw_2_1``; a new keyframe takes that pose,
+so the chain stays in one continuous frame.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from mavvo.options import bounded
+from mavvo.geometry.frames import rot_z
+
+__all__ = ["KeyframeOptions", "Keyframe", "KeyframePose", "KeyframeChain", "keyframe_reason", "carry_depths"]
+
+
+@dataclass(frozen=True)
+class KeyframeOptions:
+    """When a frame becomes the new keyframe (see the module docstring)."""
+
+    parallax_px: float = bounded(40.0, "median rotation-compensated parallax against the keyframe", gt=0)
+    min_survival: float = bounded(0.5, "fraction of the keyframe's tracks still alive", gt=0, lt=1)
+    min_inliers: int = bounded(60, "inliers of the relative pose", ge=0)
+    history: int = bounded(1000, "keyframe poses kept for inspection", ge=1)
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    """One keyframe.
+
+    Attributes:
+        seq, t_s: the frame's sequence number and exposure time.
+        ids: (N,) int64 track ids, increasing.
+        f_lvl: (N,3) their unit bearings in the keyframe's level frame.
+        depth_m: (N,) metric depth along each bearing where known (carried scale), else NaN.
+        p_ned_m: (3,) camera position in the world frame (NED, m).
+        yaw_rad: heading of the keyframe's level frame in the world frame.
+        fc_yaw_rad: the flight controller's yaw at this frame (NaN if unknown).
+    """
+
+    seq: int
+    t_s: float
+    ids: np.ndarray
+    f_lvl: np.ndarray
+    depth_m: np.ndarray
+    p_ned_m: np.ndarray
+    yaw_rad: float
+    fc_yaw_rad: float
+
+    def match(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Indices (into this keyframe, into ``ids``) of the tracks both have; ``ids`` increasing."""
+        _, i_kf, i_cur = np.intersect1d(self.ids, ids, assume_unique=True, return_indices=True)
+        return i_kf, i_cur
+
+    def pose_of(self, c2_lvl_m: np.ndarray, yaw_2_1_rad: float) -> tuple[np.ndarray, float]:
+        """World (position, heading) of a frame at ``c2_lvl_m`` with relative yaw ``yaw_2_1_rad``."""
+        return self.p_ned_m + rot_z(self.yaw_rad) @ c2_lvl_m, self.yaw_rad - yaw_2_1_rad
+
+
+@dataclass(frozen=True)
+class KeyframePose:
+    """A keyframe's place in the chain: sequence number, time, camera position (NED, m), heading."""
+
+    seq: int
+    t_s: float
+    p_ned_m: np.ndarray
+    yaw_rad: float
+    reset_counter: int
+
+
+def keyframe_reason(options: KeyframeOptions, *, parallax_px: float, survival: float, inliers: int) -> str:
+    """Why the current frame should become the keyframe: ``parallax``, ``survival``, ``inliers`` or ''."""
+    if parallax_px >= options.parallax_px:
+        return "parallax"
+    if survival < options.min_survival:
+        return "survival"
+    if inliers < options.min_inliers:
+        return "inliers"
+    return ""
+
+
+def carry_depths(
+    kf: Keyframe,
+    i_kf: np.ndarray,
+    i_cur: np.ndarray,
+    n_cur: int,
+    R_2_1: np.ndarray,
+    t_2_1_m: np.ndarray,
+    new_depth_m: np.ndarray,
+    new_parallax_rad: np.ndarray,
+    min_parallax_rad: float,
+) -> np.ndarray:
+    """Metric depths for a new keyframe made from the current frame.
+
+    Args:
+        kf: the old keyframe; ``i_kf``, ``i_cur`` the matched indices (into kf and into the current
+            frame's ``n_cur`` tracks).
+        R_2_1, t_2_1_m: the metric relative pose from the old keyframe to the current frame.
+        new_depth_m: (len(i_kf),) metric depths along the current bearings triangulated in this pair
+            (NaN where not triangulated); ``new_parallax_rad`` their parallax.
+        min_parallax_rad: a new depth with less parallax than this is too uncertain to carry.
+
+    Returns:
+        (n_cur,) depths: the new triangulation where its parallax is at least ``min_parallax_rad``;
+        else the old keyframe's depth moved into the new frame (this carries scale through a pure
+        rotation); NaN elsewhere.
+    """
+    out = np.full(n_cur, np.nan)
+    old = kf.depth_m[i_kf]
+    X2 = (old[:, None] * kf.f_lvl[i_kf]) @ R_2_1.T + t_2_1_m
+    moved = np.linalg.norm(X2, axis=1)  # NaN where the old depth is unknown
+    use_new = np.isfinite(new_depth_m) & (new_parallax_rad >= min_parallax_rad)
+    out[i_cur] = np.where(use_new, new_depth_m, moved)
+    return out
+
+
+class KeyframeChain:
+    """The current keyframe and the poses of the last ``history`` keyframes."""
+
+    def __init__(self, options: KeyframeOptions | None = None) -> None:
+        self.options = options or KeyframeOptions()
+        self.current: Keyframe | None = None
+        self.poses: deque[KeyframePose] = deque(maxlen=self.options.history)
+        self.count = 0
+
+    def push(self, kf: Keyframe, reset_counter: int) -> None:
+        """Make ``kf`` the current keyframe."""
+        self.current = kf
+        self.count += 1
+        self.poses.append(KeyframePose(kf.seq, kf.t_s, kf.p_ned_m.copy(), kf.yaw_rad, reset_counter))
+
+    def drop(self) -> None:
+        """Lose the current keyframe (tracking lost); the history stays."""
+        self.current = None

@@ -1,0 +1,324 @@
+"""The visual odometry: paired frames in, filtered metric NED poses out.
+
+:meth:`Odometry.step` takes one :class:`mavvo.types.PairedFrame` (image, roll/pitch at exposure,
+optionally the flight controller's yaw, rangefinder and height) and returns a
+:class:`mavvo.types.PoseEstimate`. It is pure: no threads, sockets or clocks; the same frames give the
+same estimates (RANSAC is seeded with the frame's sequence number).
+
+Per frame: track features (:mod:`mavvo.odometry.frontend`), derotate their bearings with the given roll/pitch,
+estimate yaw and translation direction against the keyframe with the 3-point RANSAC
+(:mod:`mavvo.estimation.relpose`), fix the baseline in metres (:mod:`mavvo.odometry.scale`), place the frame in the world
+frame through the keyframe (:mod:`mavvo.odometry.keyframes`), and smooth (:mod:`mavvo.odometry.filter`).
+
+World frame: NED, x north: the heading at initialisation is the flight controller's yaw (0 when it
+sends none); heading afterwards comes from vision, optionally pulled slowly toward the flight
+controller's (``heading_correction_time_s``). The origin is the camera at initialisation.
+
+States: ``initialising`` (a keyframe was just made: the pose is the anchor), ``tracking``,
+``degraded`` (a pose, trusted less: pure rotation, no metric scale source, few inliers; quality at most
+``degraded_quality_max``) and ``failed`` (no pose from vision; the estimate is the filter's prediction,
+quality -1, not to be sent). Tracking is lost when fewer than ``min_tracks`` of the keyframe's tracks
+survive, or after ``max_failed_frames`` frames in a row without a pose. The next frame with enough
+features re-initialises at the last good filtered pose (heading moved on by the flight controller's yaw
+change since then) and bumps ``reset_counter`` once.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mavvo.geometry.camera_model import CameraModel
+from mavvo.options import bounded
+from mavvo.odometry.filter import FilterOptions, PoseFilter, wrap_angle
+from mavvo.geometry.frames import R_lvl_body, R_lvl_cam, as_rotation
+from mavvo.odometry.frontend import Frontend, FrontendOptions, Tracks
+from mavvo.odometry.keyframes import Keyframe, KeyframeChain, KeyframeOptions, carry_depths, keyframe_reason
+from mavvo.estimation.relpose import RelposeFailure, RelposeOptions, UprightRelpose, estimate_upright_relpose
+from mavvo.odometry.scale import ScaleEstimate, ScaleOptions, estimate_scale, scale_from_scene_depth, triangulate_unit
+from mavvo.types import PairedFrame, PoseEstimate, ScaleSource, StateReason, VisionState, VoDiagnostics
+
+__all__ = ["OdometryOptions", "Odometry"]
+
+log = logging.getLogger(__name__)
+
+_TRUSTED_SCALE = frozenset({ScaleSource.RANGEFINDER, ScaleSource.ALTITUDE, ScaleSource.FIXED, ScaleSource.CARRIED})
+# An untrusted scale source -> the reason the frame is degraded.
+_UNTRUSTED_SCALE_REASON = {ScaleSource.HELD: StateReason.SCALE_HELD, ScaleSource.ASSUMED: StateReason.SCALE_ASSUMED}
+# No parallax and less turn than this against the keyframe: standing still, not a degraded pure rotation.
+_STATIONARY_YAW_RAD = math.radians(2.0)
+
+
+@dataclass(frozen=True)
+class OdometryOptions:
+    """Everything :class:`Odometry` can be told; the defaults suit a 640x480 camera at 20 frames/s."""
+
+    frontend: FrontendOptions = field(default_factory=FrontendOptions)
+    ransac: RelposeOptions = field(default_factory=RelposeOptions)
+    keyframes: KeyframeOptions = field(default_factory=KeyframeOptions)
+    scale: ScaleOptions = field(default_factory=ScaleOptions)
+    filter: FilterOptions = field(default_factory=FilterOptions)
+    min_tracks: int = bounded(30, "fewer tracks shared with the keyframe: tracking is lost", ge=5)
+    min_inliers: int = bounded(20, "fewer inliers: no pose from this frame", ge=5)
+    good_inliers: int = bounded(120, "inliers for full quality", ge=5)
+    max_failed_frames: int = bounded(5, "frames in a row without a pose before the keyframe is given up", ge=1)
+    position_sigma_m: float = bounded(0.02, "vision position noise at full quality, plus the scale spread times the baseline", gt=0)
+    yaw_sigma_deg: float = bounded(0.3, "vision yaw noise at full quality", gt=0)
+    attitude_sigma_deg: float = bounded(0.2, "roll/pitch uncertainty reported in the covariance", gt=0)
+    heading_correction_time_s: float = bounded(0.0, "pull the vision heading toward the flight controller's yaw with this time constant (0: off)", ge=0)
+    degraded_quality_max: int = bounded(50, "quality cap while degraded", ge=1, le=100)
+
+
+@dataclass
+class _Good:
+    """The last frame whose pose was accepted: where re-initialisation anchors."""
+
+    t_s: float
+    p_ned_m: np.ndarray
+    v_ned_m_s: np.ndarray
+    yaw_rad: float
+    fc_yaw_rad: float
+
+
+@dataclass(frozen=True)
+class _NoPose:
+    """Why a frame has no pose against its keyframe."""
+
+    reason: StateReason
+
+
+@dataclass
+class _Measurement:
+    p_ned_m: np.ndarray
+    yaw_rad: float
+    relpose: UprightRelpose
+    scale: ScaleEstimate | None
+    c2_m: np.ndarray
+    parallax_px: float
+    depth2_m: np.ndarray  # (matched,) metric depths along the current bearings, NaN where none
+    parallax_rad: np.ndarray  # (matched,)
+
+
+class Odometry:
+    """Visual odometry for one camera (see the module docstring).
+
+    Args:
+        camera: intrinsics and distortion of the images.
+        R_body_cam: (3,3) camera mounting, camera vectors into the body frame (FRD).
+        options: :class:`OdometryOptions`.
+    """
+
+    def __init__(self, camera: CameraModel, R_body_cam: np.ndarray, options: OdometryOptions | None = None) -> None:
+        self.camera = camera
+        self.R_body_cam = as_rotation("R_body_cam", R_body_cam)
+        self.options = opt = options or OdometryOptions()
+        self.frontend = Frontend(camera, opt.frontend)
+        self.chain = KeyframeChain(opt.keyframes)
+        self.filter = PoseFilter(opt.filter)
+        self._focal_px = 0.5 * (camera.fx_px + camera.fy_px)
+        self._max_err_rad = opt.ransac.max_err_px / self._focal_px
+        self._min_parallax_rad = math.radians(opt.scale.min_parallax_deg)
+        self._carry_min_parallax_rad = math.radians(opt.scale.carry_min_parallax_deg)
+        self._yaw_sigma_rad = math.radians(opt.yaw_sigma_deg)
+        self._att_var = math.radians(opt.attitude_sigma_deg) ** 2
+        self.reset_counter = 0
+        self._good: _Good | None = None
+        self._failed_in_row = 0
+        self._metric_interval = False  # a trusted scale has been carried into the current keyframe
+        self._scene_depth_m: float | None = None
+        self._last_yaw_2_1 = 0.0  # yaw of the last frame against the keyframe: the yaw prior without the FC's
+
+    # ----------------------------------------------------------------------------------------------
+    def step(self, frame: PairedFrame) -> PoseEstimate | None:
+        """One frame (exposure times increasing). None until the first frame with enough features."""
+        if not (math.isfinite(frame.roll_rad) and math.isfinite(frame.pitch_rad)):
+            raise ValueError(f"frame {frame.seq}: roll_rad and pitch_rad must be finite, got {frame.roll_rad}, {frame.pitch_rad}")
+        tracks = self.frontend.process(frame.image)
+        f_lvl = tracks.f_cam @ R_lvl_cam(frame.roll_rad, frame.pitch_rad, self.R_body_cam).T
+        kf = self.chain.current
+        if kf is None:
+            return self._initialise(frame, tracks, f_lvl)
+        i_kf, i_cur = kf.match(tracks.ids)
+        if len(i_kf) < self.options.min_tracks:
+            self.chain.drop()
+            return self._failed(frame, StateReason.TRACKING_LOST, len(i_kf))
+        m = self._measure(frame, kf, i_kf, i_cur, f_lvl)
+        if isinstance(m, _NoPose):
+            self._failed_in_row += 1
+            if self._failed_in_row >= self.options.max_failed_frames:
+                self.chain.drop()
+            return self._failed(frame, m.reason, len(i_kf))
+        self._failed_in_row = 0
+        return self._accept(frame, tracks, f_lvl, kf, i_kf, i_cur, m)
+
+    # ----------------------------------------------------------------------------------------------
+    def _initialise(self, frame: PairedFrame, tracks: Tracks, f_lvl: np.ndarray) -> PoseEstimate | None:
+        if len(tracks.ids) < self.options.min_tracks:
+            if self._good is None:
+                return None
+            return self._failed(frame, StateReason.TOO_FEW_FEATURES, len(tracks.ids))
+        fc_yaw = frame.yaw_rad
+        if self._good is None:
+            p, yaw, v = np.zeros(3), (fc_yaw if math.isfinite(fc_yaw) else 0.0), None
+        else:
+            g = self._good
+            turn = wrap_angle(fc_yaw - g.fc_yaw_rad) if math.isfinite(fc_yaw) and math.isfinite(g.fc_yaw_rad) else 0.0
+            p, yaw, v = g.p_ned_m.copy(), wrap_angle(g.yaw_rad + turn), g.v_ned_m_s
+            self.reset_counter = (self.reset_counter + 1) % 256
+            log.info("re-initialised at frame %d (reset %d), anchored at the pose of %.2f s", frame.seq, self.reset_counter, g.t_s)
+        kf = Keyframe(frame.seq, frame.t_exposure_s, tracks.ids, f_lvl, np.full(len(tracks.ids), np.nan), p, yaw, fc_yaw)
+        self.chain.push(kf, self.reset_counter)
+        self._last_yaw_2_1 = 0.0
+        self._metric_interval = False
+        self._failed_in_row = 0
+        self.filter.reset(frame.t_exposure_s, p, yaw, v_ned_m_s=v, pos_sigma_m=self.options.position_sigma_m, yaw_sigma_rad=self._yaw_sigma_rad)
+        self._good = _Good(frame.t_exposure_s, p.copy(), np.zeros(3) if v is None else v.copy(), yaw, fc_yaw)
+        diag = VoDiagnostics(state=VisionState.INITIALISING, reason=StateReason.NEW_KEYFRAME, tracks=len(tracks.ids), keyframe=True)
+        return self._estimate(frame, diag, quality=1)
+
+    def _measure(self, frame: PairedFrame, kf: Keyframe, i_kf: np.ndarray, i_cur: np.ndarray, f_lvl: np.ndarray) -> _Measurement | _NoPose:
+        """The frame's pose against the keyframe, or the reason there is none."""
+        opt = self.options
+        f1, f2 = kf.f_lvl[i_kf], f_lvl[i_cur]
+        if math.isfinite(kf.fc_yaw_rad) and math.isfinite(frame.yaw_rad):
+            prior = wrap_angle(kf.fc_yaw_rad - frame.yaw_rad)
+        else:
+            prior = self._last_yaw_2_1
+        rp = estimate_upright_relpose(
+            f1, f2, max_err_rad=self._max_err_rad, seed=frame.seq, options=opt.ransac, yaw_prior_rad=prior
+        )
+        if not rp.success and rp.reason != RelposeFailure.PURE_ROTATION:
+            return _NoPose(StateReason(rp.reason.value))
+        if rp.num_inliers < opt.min_inliers:
+            return _NoPose(StateReason.TOO_FEW_INLIERS)
+        self._last_yaw_2_1 = rp.yaw_rad
+        inl = rp.inliers
+        n = len(i_kf)
+        depth2 = np.full(n, np.nan)
+        par = np.zeros(n)
+        if rp.reason == RelposeFailure.PURE_ROTATION:
+            a = f1[inl] @ rp.R_2_1.T
+            par[inl] = np.arccos(np.clip(np.einsum("ij,ij->i", a, f2[inl]), -1.0, 1.0))
+            c2, scale = np.zeros(3), None
+        else:
+            lam1, lam2, par_i, valid = triangulate_unit(f1[inl], f2[inl], rp.R_2_1, rp.t_2_1, self._min_parallax_rad)
+            par[inl] = par_i
+            pts = lam1[valid, None] * f1[inl][valid]
+            carried = kf.depth_m[i_kf][inl][valid]
+            known = np.isfinite(carried) & (par_i[valid] >= self._carry_min_parallax_rad)
+            down2 = R_lvl_body(frame.roll_rad, frame.pitch_rad)[:, 2]
+            c2_unit = -rp.R_2_1.T @ rp.t_2_1
+            scale = estimate_scale(
+                opt.scale, points_lvl=pts, parallax_rad=par_i[valid], c2_lvl1=c2_unit, down_lvl2=down2,
+                range_m=frame.range_m, height_m=frame.height_m, carried_depth_m=carried[known],
+                depth_unit=lam1[valid][known], first_interval=not self._metric_interval,
+            )
+            if scale is None:
+                depth = self._scene_depth_m or opt.scale.initial_depth_m
+                scale = scale_from_scene_depth(pts, depth, ScaleSource.HELD if self._scene_depth_m else ScaleSource.ASSUMED, opt.scale.min_points)
+            if scale is None:
+                # Too little parallax to triangulate: the baseline is below what the images resolve
+                # (about depth * min_parallax), so the frame is where the keyframe is.
+                c2 = np.zeros(3)
+            else:
+                c2 = scale.baseline_m * c2_unit
+                d2 = np.full(int(np.count_nonzero(inl)), np.nan)
+                d2[valid] = scale.baseline_m * lam2[valid]
+                depth2[inl] = d2
+                if self._trusted(scale):
+                    self._scene_depth_m = float(np.median(scale.baseline_m * lam1[valid]))
+        p, yaw = kf.pose_of(c2, rp.yaw_rad)
+        parallax_px = float(np.median(par[inl])) * self._focal_px
+        return _Measurement(p, yaw, rp, scale, c2, parallax_px, depth2, par)
+
+    def _accept(self, frame: PairedFrame, tracks: Tracks, f_lvl: np.ndarray, kf: Keyframe, i_kf: np.ndarray, i_cur: np.ndarray, m: _Measurement) -> PoseEstimate:
+        opt = self.options
+        rp = m.relpose
+        reason = StateReason.NONE
+        if rp.reason == RelposeFailure.PURE_ROTATION and abs(rp.yaw_rad) >= _STATIONARY_YAW_RAD:
+            reason = StateReason.PURE_ROTATION
+        elif m.scale is not None and not self._trusted(m.scale):
+            reason = _UNTRUSTED_SCALE_REASON[m.scale.source]
+        elif rp.num_inliers < opt.keyframes.min_inliers:
+            reason = StateReason.FEW_INLIERS
+        degraded = reason != StateReason.NONE
+        quality = self._quality(rp, degraded=degraded)
+        spread = m.scale.spread if m.scale is not None else 0.0
+        pos_sigma = (opt.position_sigma_m + spread * float(np.linalg.norm(m.c2_m))) * 100.0 / quality
+        yaw_sigma = self._yaw_sigma_rad * 100.0 / quality
+        self.filter.predict(frame.t_exposure_s)
+        # Without parallax the translation is not measured (the keyframe's position would be a frozen
+        # pose for a camera moving along its axis): the filter carries the position on.
+        p_meas = m.p_ned_m if m.scale is not None else None
+        accepted = self.filter.update(p_meas, m.yaw_rad, pos_sigma_m=pos_sigma, yaw_sigma_rad=yaw_sigma)
+        survival = len(i_kf) / len(kf.ids)
+        why_kf = keyframe_reason(opt.keyframes, parallax_px=m.parallax_px, survival=survival, inliers=rp.num_inliers) if accepted else ""
+        if why_kf:
+            self._new_keyframe(frame, tracks, f_lvl, kf, i_kf, i_cur, m)
+        if accepted:
+            self._good = _Good(frame.t_exposure_s, self.filter.position_ned_m, self.filter.velocity_ned_m_s, self.filter.yaw_rad, frame.yaw_rad)
+        diag = VoDiagnostics(
+            state=VisionState.DEGRADED if degraded else VisionState.TRACKING, reason=reason, tracks=len(tracks.ids), inliers=rp.num_inliers,
+            inlier_ratio=rp.inlier_ratio, parallax_px=m.parallax_px, residual_rms_px=rp.residual_rms_rad * self._focal_px,
+            scale_source=m.scale.source if m.scale is not None else ScaleSource.NONE, keyframe=bool(why_kf),
+        )
+        return self._estimate(frame, diag, quality=quality)
+
+    def _new_keyframe(self, frame: PairedFrame, tracks: Tracks, f_lvl: np.ndarray, kf: Keyframe, i_kf: np.ndarray, i_cur: np.ndarray, m: _Measurement) -> None:
+        rp = m.relpose
+        t_m = -rp.R_2_1 @ m.c2_m  # metric t_2_1
+        depth = carry_depths(kf, i_kf, i_cur, len(tracks.ids), rp.R_2_1, t_m, m.depth2_m, m.parallax_rad, self._carry_min_parallax_rad)
+        yaw = wrap_angle(m.yaw_rad)
+        tau = self.options.heading_correction_time_s
+        if tau > 0 and math.isfinite(frame.yaw_rad):
+            yaw = wrap_angle(yaw + min(1.0, (frame.t_exposure_s - kf.t_s) / tau) * wrap_angle(frame.yaw_rad - yaw))
+        # Without a measured translation (mostly a turn on the spot) the keyframe stays where the old
+        # one was: taking the filter's coasted position instead let its velocity noise into the chain.
+        self.chain.push(Keyframe(frame.seq, frame.t_exposure_s, tracks.ids, f_lvl, depth, m.p_ned_m, yaw, frame.yaw_rad), self.reset_counter)
+        self._last_yaw_2_1 = 0.0
+        known = np.isfinite(depth)
+        self._metric_interval = m.scale is not None and self._trusted(m.scale) and np.count_nonzero(known) >= self.options.scale.min_points
+        if np.any(known):
+            self._scene_depth_m = float(np.median(depth[known]))
+
+    def _failed(self, frame: PairedFrame, reason: StateReason, tracks: int) -> PoseEstimate:
+        self.filter.predict(frame.t_exposure_s)  # the filter runs from the first keyframe on
+        return self._estimate(frame, VoDiagnostics(state=VisionState.FAILED, reason=reason, tracks=tracks), quality=-1)
+
+    def _trusted(self, scale: ScaleEstimate) -> bool:
+        """Metric: a measured source, or the scene depth held from one while the interval is metric."""
+        return scale.source in _TRUSTED_SCALE or (scale.source == ScaleSource.HELD and self._metric_interval)
+
+    # ----------------------------------------------------------------------------------------------
+    def _quality(self, rp: UprightRelpose, degraded: bool) -> int:
+        opt = self.options
+        span = max(opt.good_inliers - opt.min_inliers, 1)
+        inl = min(max((rp.num_inliers - opt.min_inliers) / span, 0.0), 1.0)
+        ratio = min(rp.inlier_ratio / 0.8, 1.0)
+        resid = rp.residual_rms_rad * self._focal_px / opt.ransac.max_err_px if math.isfinite(rp.residual_rms_rad) else 1.0
+        q = 100.0 * math.sqrt(inl) * ratio * min(max(1.0 - 0.5 * resid, 0.2), 1.0)
+        q = max(1, int(round(q)))
+        return min(q, opt.degraded_quality_max) if degraded else q
+
+    def _estimate(self, frame: PairedFrame, diag: VoDiagnostics, quality: int) -> PoseEstimate:
+        f = self.filter
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = f.position_covariance
+        cov[3, 3] = cov[4, 4] = self._att_var
+        cov[5, 5] = f.yaw_variance
+        return PoseEstimate(
+            t_exposure_s=frame.t_exposure_s,
+            seq=frame.seq,
+            p_ned_m=f.position_ned_m,
+            rpy_rad=np.array([frame.roll_rad, frame.pitch_rad, f.yaw_rad]),
+            v_ned_m_s=f.velocity_ned_m_s,
+            covariance=cov,
+            v_covariance=f.velocity_covariance,
+            quality=quality,
+            reset_counter=self.reset_counter,
+            diagnostics=diag,
+        )
+

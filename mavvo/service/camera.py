@@ -1,0 +1,374 @@
+"""Frame sources and the newest-frame queue.
+
+The daemon reads frames through :class:`FrameSource` only, so a V4L2 device, a video file, an image
+folder, an injected source and the simulator's rendered camera are interchangeable. Every frame carries
+its exposure time on the host clock: the driver's timestamp when it has one (V4L2 buffers are stamped
+on the monotonic clock), else the grab time minus ``camera.latency_ms``. File and folder sources replay
+their own timestamps from the moment they are opened, paced in real time.
+
+``camera.source`` forms: ``/dev/videoN`` (V4L2), a video file, a folder of images with a
+``timestamps.txt`` (``TIMESTAMP_S FILENAME`` per line), or ``SCHEME:ARGUMENT`` for a source the caller
+registers (the CLI registers ``sim:SCENARIO``, the simulator's rendered camera).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Literal, Protocol, runtime_checkable
+
+import cv2
+import numpy as np
+
+from mavvo.geometry.camera_model import CameraIntrinsics
+from mavvo.options import bounded
+from mavvo.errors import CameraEnded, CameraError
+from mavvo.service.timing import Clock
+from mavvo.types import Frame
+
+__all__ = [
+    "CameraOptions", "FrameSource", "FrameQueue", "InjectedSource", "V4L2Source", "VideoFileSource",
+    "ImageFolderSource", "ReconnectingSource", "open_source",
+]
+
+log = logging.getLogger(__name__)
+
+_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".tif", ".tiff")
+_DRIVER_STAMP_PLAUSIBLE_S = 1.0
+
+
+@dataclass(frozen=True)
+class CameraOptions(CameraIntrinsics):
+    """The camera: its intrinsics (:class:`CameraIntrinsics`), where frames come from and how they are stamped."""
+
+    source: str = bounded("/dev/video0", "/dev/videoN (V4L2), a video file, an image folder with timestamps.txt, or sim:SCENARIO")
+    rate_hz: float = bounded(20.0, "frame rate requested from a device", gt=0, le=240)
+    timestamps: Literal["auto", "driver", "grab"] = bounded("auto", "exposure time from the driver's timestamp (auto: when plausible) or the grab time minus latency_ms")
+    latency_ms: float = bounded(30.0, "grab time minus this is the exposure time, when the driver gives none", ge=0)
+    queue_size: int = bounded(2, "frames waiting for the worker; the oldest is dropped when full", ge=1, le=64)
+    reconnect_max_s: float = bounded(5.0, "longest back-off between attempts to reopen a lost camera", gt=0)
+
+
+@runtime_checkable
+class FrameSource(Protocol):
+    """A camera as the daemon sees it."""
+
+    def read(self, timeout_s: float) -> Frame | None:
+        """The next frame, waiting at most ``timeout_s`` (where the source can: see
+        :meth:`V4L2Source.read`); None if none came in time.
+
+        Raises :class:`CameraEnded` when a finite source is done, :class:`CameraError` when it failed.
+        """
+
+    def close(self) -> None:
+        """Release the device or file; idempotent."""
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    if image.ndim == 3 and image.shape[2] == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.ndim == 3 and image.shape[2] == 4:
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
+    return image
+
+
+class FrameQueue:
+    """Frames between the camera thread and the worker.
+
+    ``drop_oldest`` (real time): ``put`` never blocks; a full queue drops its oldest frame (counted in
+    ``dropped``), so the worker always gets the newest. Otherwise (lockstep simulation) ``put`` waits
+    for room, so no frame is lost and runs repeat.
+    """
+
+    def __init__(self, capacity: int, *, drop_oldest: bool = True) -> None:
+        self._q: queue.Queue[Frame] = queue.Queue(capacity)
+        self.drop_oldest = drop_oldest
+        self.dropped = 0
+
+    def put(self, frame: Frame, stop: threading.Event) -> None:
+        while not stop.is_set():
+            try:
+                if self.drop_oldest:
+                    self._q.put_nowait(frame)
+                else:
+                    self._q.put(frame, timeout=0.05)
+                return
+            except queue.Full:
+                if self.drop_oldest:
+                    try:
+                        self._q.get_nowait()
+                        self.dropped += 1
+                    except queue.Empty:
+                        pass
+
+    def get(self, timeout_s: float) -> Frame | None:
+        try:
+            return self._q.get(timeout=timeout_s)
+        except queue.Empty:
+            return None
+
+    def empty(self) -> bool:
+        return self._q.empty()
+
+
+class InjectedSource:
+    """Frames pushed by the embedding program (or a test): ``push`` queues one, ``end`` finishes."""
+
+    def __init__(self) -> None:
+        self._q: queue.Queue[Frame | None] = queue.Queue()
+        self._seq = 0
+        self._ended = False
+
+    def push(self, image: np.ndarray, t_exposure_s: float, seq: int | None = None) -> None:
+        """Queue one frame; ``seq`` defaults to one more than the last."""
+        self._seq = self._seq if seq is None else seq
+        self._q.put(Frame(image, float(t_exposure_s), self._seq))
+        self._seq += 1
+
+    def end(self) -> None:
+        self._q.put(None)
+
+    def read(self, timeout_s: float) -> Frame | None:
+        if self._ended:
+            raise CameraEnded("injected source: ended")
+        try:
+            f = self._q.get(timeout=timeout_s)
+        except queue.Empty:
+            return None
+        if f is None:
+            self._ended = True
+            raise CameraEnded("injected source: ended")
+        return f
+
+    def close(self) -> None:
+        self._ended = True
+
+
+class V4L2Source:
+    """A V4L2 camera through OpenCV, grey frames, stamped as ``options.timestamps`` says."""
+
+    def __init__(self, device: str, options: CameraOptions, clock: Clock) -> None:
+        self.device, self.options, self.clock = device, options, clock
+        cap = cv2.VideoCapture(device, cv2.CAP_V4L2)
+        if not cap.isOpened():
+            raise CameraError(f"camera.source {device}: cannot open the V4L2 device")
+        cap.set(cv2.CAP_PROP_FRAME_WIDTH, options.width_px)
+        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, options.height_px)
+        cap.set(cv2.CAP_PROP_FPS, options.rate_hz)
+        cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # the newest frame, not a backlog
+        self._cap = cap
+        self._seq = 0
+
+    def read(self, timeout_s: float) -> Frame | None:
+        """The next frame. ``timeout_s`` is not honoured: OpenCV's read blocks until the driver
+        delivers a frame or its own select() timeout (10 s) expires, which raises CameraError."""
+        if self._cap is None:
+            raise CameraError(f"camera.source {self.device}: read after close")
+        ok, img = self._cap.read()
+        t_grab = self.clock.now_s()
+        if not ok or img is None:
+            raise CameraError(f"camera.source {self.device}: no frame (device lost?)")
+        t_exp = t_grab - self.options.latency_ms * 1e-3
+        if self.options.timestamps != "grab":
+            t_driver = self._cap.get(cv2.CAP_PROP_POS_MSEC) * 1e-3
+            plausible = t_driver > 0 and abs(t_driver - t_grab) < _DRIVER_STAMP_PLAUSIBLE_S
+            if plausible or self.options.timestamps == "driver":
+                t_exp = t_driver
+        frame = Frame(_grey(img), t_exp, self._seq)
+        self._seq += 1
+        return frame
+
+    def close(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+
+
+class _PacedSource:
+    """Frames with recorded timestamps, replayed from the moment of opening, paced in real time."""
+
+    def __init__(self, name: str, clock: Clock) -> None:
+        self.name, self.clock = name, clock
+        self._t0_host: float | None = None
+        self._t0_rec = 0.0
+        self._seq = 0
+        self._closed = False
+        self._pending: tuple[np.ndarray, float] | None = None
+
+    def _next(self) -> tuple[np.ndarray, float] | None:
+        raise NotImplementedError
+
+    def read(self, timeout_s: float) -> Frame | None:
+        if self._closed:
+            raise CameraError(f"camera.source {self.name}: read after close")
+        if self._pending is None:
+            self._pending = self._next()
+            if self._pending is None:
+                raise CameraEnded(f"camera.source {self.name}: end after {self._seq} frames")
+        img, t_rec = self._pending
+        now = self.clock.now_s()
+        if self._t0_host is None:
+            self._t0_host, self._t0_rec = now, t_rec
+        t_host = self._t0_host + (t_rec - self._t0_rec)
+        if self.clock.realtime and t_host > now:
+            if t_host - now > timeout_s:  # not due yet: the caller gets control back in time
+                time.sleep(timeout_s)
+                return None
+            time.sleep(t_host - now)
+        self._pending = None
+        frame = Frame(_grey(img), t_host, self._seq)
+        self._seq += 1
+        return frame
+
+    def close(self) -> None:
+        self._closed = True
+
+
+class VideoFileSource(_PacedSource):
+    """A video file; timestamps from the container (frame index / fps when it has none)."""
+
+    def __init__(self, path: Path, clock: Clock) -> None:
+        super().__init__(str(path), clock)
+        self._cap = cv2.VideoCapture(str(path))
+        if not self._cap.isOpened():
+            raise CameraError(f"camera.source {path}: cannot open as a video file")
+        fps = self._cap.get(cv2.CAP_PROP_FPS)
+        self._period_s = 1.0 / fps if fps and math.isfinite(fps) and fps > 0 else 0.05
+
+    def _next(self) -> tuple[np.ndarray, float] | None:
+        if self._cap is None:
+            return None
+        ok, img = self._cap.read()
+        if not ok:
+            return None
+        t = self._cap.get(cv2.CAP_PROP_POS_MSEC) * 1e-3
+        return img, (t if t > 0 or self._seq == 0 else self._seq * self._period_s)
+
+    def close(self) -> None:
+        super().close()
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+
+
+def read_frame_index(folder: Path) -> list[tuple[int, float, Path]]:
+    """The frames listed in ``folder/timestamps.txt``: (line number, time in seconds, image path), one
+    ``TIMESTAMP_S FILENAME`` per line, ``#`` comments, increasing times; CameraError naming the file and
+    line otherwise."""
+    index = folder / "timestamps.txt"
+    try:
+        lines = index.read_text(encoding="utf-8").splitlines()
+    except OSError as e:
+        raise CameraError(f"camera.source {index}: cannot read: {e.strerror or e}") from e
+    items: list[tuple[int, float, Path]] = []
+    for n, line in enumerate(lines, 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.split(maxsplit=1)
+        try:
+            t = float(parts[0])
+        except ValueError:
+            t = math.nan
+        if len(parts) != 2 or not math.isfinite(t) or (items and t <= items[-1][1]):
+            raise CameraError(f"{index}:{n}: expected 'TIMESTAMP_S FILENAME' with increasing times, got {line!r}")
+        items.append((n, t, folder / parts[1]))
+    if not items:
+        raise CameraError(f"{index}: no frames listed")
+    return items
+
+
+class ImageFolderSource(_PacedSource):
+    """A folder of images listed in its ``timestamps.txt``: ``TIMESTAMP_S FILENAME`` per line, ``#``
+    comments; timestamps must increase."""
+
+    def __init__(self, folder: Path, clock: Clock) -> None:
+        super().__init__(str(folder), clock)
+        self._items = [(t, path) for _, t, path in read_frame_index(folder)]
+        self._i = 0
+
+    def _next(self) -> tuple[np.ndarray, float] | None:
+        while self._i < len(self._items):
+            t, path = self._items[self._i]
+            self._i += 1
+            img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            if img is not None:
+                return img, t
+            log.warning("camera.source %s: cannot read %s; skipped", self.name, path)
+        return None
+
+
+class ReconnectingSource:
+    """Reopens a source that failed (not one that ended), with back-off; ``read`` returns None while
+    the camera is away. Counts ``reconnects``."""
+
+    def __init__(self, open_source: Callable[[], FrameSource], clock: Clock, *, reconnect_max_s: float = 5.0, name: str = "camera") -> None:
+        self._open = open_source
+        self.clock = clock
+        self.name = name
+        self.reconnect_max_s = reconnect_max_s
+        self.reconnects = 0
+        self._source: FrameSource | None = open_source()
+        self._backoff_s = 0.25
+        self._retry_at_s = -math.inf
+
+    def read(self, timeout_s: float) -> Frame | None:
+        if self._source is None:
+            if self.clock.now_s() < self._retry_at_s:
+                time.sleep(min(timeout_s, 0.05))
+                return None
+            try:
+                self._source = self._open()
+                self.reconnects += 1
+                self._backoff_s = 0.25
+                log.info("%s: reopened", self.name)
+            except CameraEnded:
+                raise
+            except CameraError as e:
+                self._retry_at_s = self.clock.now_s() + self._backoff_s
+                self._backoff_s = min(2 * self._backoff_s, self.reconnect_max_s)
+                log.debug("%s: still unavailable: %s", self.name, e)
+                return None
+        try:
+            return self._source.read(timeout_s)
+        except CameraEnded:
+            raise
+        except CameraError as e:
+            log.warning("%s: %s; reopening", self.name, e)
+            self._source.close()
+            self._source = None
+            self._retry_at_s = self.clock.now_s() + self._backoff_s
+            return None
+
+    def close(self) -> None:
+        if self._source is not None:
+            self._source.close()
+            self._source = None
+
+
+SourceFactory = Callable[[str, CameraOptions, Clock], FrameSource]
+
+
+def open_source(options: CameraOptions, clock: Clock, schemes: dict[str, SourceFactory] | None = None) -> FrameSource:
+    """The source ``options.source`` names (see the module docstring); devices are wrapped to reconnect.
+    CameraError naming the source when it is none of the known forms or cannot be opened."""
+    spec = options.source
+    scheme, sep, arg = spec.partition(":")
+    if sep and schemes and scheme in schemes:
+        return schemes[scheme](arg, options, clock)
+    if spec.startswith("/dev/video"):
+        return ReconnectingSource(lambda: V4L2Source(spec, options, clock), clock, reconnect_max_s=options.reconnect_max_s, name=spec)
+    p = Path(spec)
+    if p.is_dir():
+        return ImageFolderSource(p, clock)
+    if p.is_file():
+        return VideoFileSource(p, clock)
+    known = ", ".join(f"{s}:" for s in (schemes or {}))
+    raise CameraError(
+        f"camera.source {spec!r}: expected /dev/videoN, a video file, an image folder" + (f" or {known}ARGUMENT" if known else "") + "; nothing there"
+    )

@@ -1,0 +1,386 @@
+"""The service: link, camera and worker threads wired together, with a clean stop.
+
+- The link thread (:class:`mavvo.service.link.Link`) owns the MAVLink connection and fills the flight
+  controller's state (:class:`mavvo.service.timing.FlightControllerState`).
+- The camera thread reads the frame source into a :class:`mavvo.service.camera.FrameQueue` (real time: the
+  newest frames, older ones dropped and counted; lockstep simulation: every frame, in order).
+- The worker pairs each frame with roll/pitch at its exposure, runs :meth:`mavvo.odometry.pipeline.Odometry.step`
+  and sends the estimate: VISION_POSITION_ESTIMATE (capped at ``output.max_rate_hz``), optionally
+  VISION_SPEED_ESTIMATE and ODOMETRY, nothing while failed.
+- The calling thread supervises: SIGTERM/SIGINT set the stop flag (handlers restored afterwards),
+  systemd READY/WATCHDOG/STOPPING, STATUSTEXT on state changes (also "failed" when estimates stop
+  coming: no attitude, no frames), NAMED_VALUE_FLOAT health, counters in the log every
+  ``service.health_log_interval_s``.
+
+Bad input from the flight controller or the camera never stops the service: it is logged, counted,
+reported over MAVLink and skipped. The stop is bounded: the worker finishes its frame, the link sends
+what is queued, and every thread is joined within ``service.shutdown_drain_s``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import signal
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from mavvo.service import messages, sdnotify
+from mavvo.service.camera import FrameQueue, FrameSource, SourceFactory, open_source
+from mavvo.errors import CameraEnded
+from mavvo.service.link import Link, SystemStatus
+from mavvo.odometry.pipeline import Odometry
+from mavvo.service.recorder import Recorder
+from mavvo.service.settings import ServiceConfig, config_yaml
+from mavvo.service.timing import Clock, FlightControllerState, MonotonicClock, wait_for_pairing
+from mavvo.types import Frame, PairedFrame, PoseEstimate, StateReason, VisionState
+
+__all__ = ["Daemon", "DaemonSummary", "LockstepProgress"]
+
+log = logging.getLogger(__name__)
+
+_SUPERVISE_TICK_S = 0.1
+_LOCKSTEP_POLL_S = 1e-4  # how often wait_progress looks (real time)
+_NO_ESTIMATE_S = 1.0  # no estimate for this long (host clock): the operator is told vision failed
+_ERROR_LOG_EVERY = 100  # after the first few, log one repeated error in this many
+_SYSTEM_STATUS = {
+    VisionState.STANDBY: SystemStatus.STANDBY, VisionState.INITIALISING: SystemStatus.ACTIVE, VisionState.TRACKING: SystemStatus.ACTIVE,
+    VisionState.DEGRADED: SystemStatus.CRITICAL, VisionState.FAILED: SystemStatus.CRITICAL,
+}
+
+
+def _snapshot(counter: Counter[str]) -> dict[str, int]:
+    """A copy of a counter that another thread adds keys to. ``dict(counter)`` copies in one C call
+    under the GIL; iterating the live counter could meet a new key and raise."""
+    return dict(counter)
+
+
+@dataclass(frozen=True)
+class LockstepProgress:
+    """How far the daemon has got, for a driver that runs it in lockstep (simulation, replay).
+
+    Every count only grows. A driver hands the daemon one input, then waits with
+    :meth:`Daemon.wait_progress` until the matching count has moved, so the daemon's threads see
+    every input at the simulated moment it was meant for, whatever the machine's load.
+
+    Attributes:
+        messages_received: MAVLink messages the link has read and handed to the flight controller's
+            state (good or bad).
+        fc_state_version: updates the flight controller's state has absorbed; each frame's pairing
+            records the version it saw (:attr:`mavvo.service.timing.Pairing.fc_version`).
+        frames_done: frames the worker has finished, whatever came of them (estimate, skipped, error).
+    """
+
+    messages_received: int
+    fc_state_version: int
+    frames_done: int
+
+
+@dataclass(frozen=True)
+class DaemonSummary:
+    """How a run went: every counter, the last state, and the capture-to-send latency."""
+
+    counters: dict[str, int]
+    state: VisionState
+    latency_ms: float | None
+
+
+class Daemon:
+    """mavvo's service (see the module docstring).
+
+    Args:
+        config: the service's settings.
+        clock: the host clock (``time.monotonic`` by default; the simulator passes its own).
+        source: the frame source; default: opened from ``config.camera.source``.
+        schemes: extra ``camera.source`` schemes (the CLI registers ``sim:``).
+        on_estimate: called on the worker thread with every estimate (replay's quality timeline); it
+            must be quick.
+
+    With ``config.record.dir`` set, the run is recorded (:mod:`mavvo.service.recorder`).
+    """
+
+    def __init__(
+        self,
+        config: ServiceConfig,
+        *,
+        clock: Clock | None = None,
+        source: FrameSource | None = None,
+        schemes: dict[str, SourceFactory] | None = None,
+        on_estimate: Callable[[PoseEstimate], None] | None = None,
+    ) -> None:
+        self.config = config
+        self.clock = clock or MonotonicClock()
+        self.on_estimate = on_estimate
+        self.fc = FlightControllerState(self.clock, config.timing)
+        self.source = source if source is not None else open_source(config.camera, self.clock, schemes)
+        try:
+            self.recorder = Recorder(config.record, config_yaml(config), self.clock) if config.record.dir else None
+            self.link = Link(config.link, self.clock, self.fc, self._system_status, tap=self.recorder.mavlink if self.recorder else None)
+        except BaseException:
+            self.source.close()
+            if getattr(self, "recorder", None) is not None:
+                self.recorder.close()
+            raise
+        self.frames = FrameQueue(config.camera.queue_size, drop_oldest=self.clock.realtime)
+        self.odometry = Odometry(config.camera.camera_model(), config.mounting.rotation(), config.odometry)
+        self.counters: Counter[str] = Counter()
+        self.stop_event = threading.Event()
+        self.state = VisionState.STANDBY
+        self.last_estimate: PoseEstimate | None = None
+        self._camera_done = threading.Event()
+        self._worker_done = threading.Event()
+        self._worker_beat_s = 0.0
+        self._wall = MonotonicClock()
+        self._last_sent_t_s = -math.inf
+        self._last_text_s = -math.inf
+        self._pending_text: dict[str, Any] | None = None
+        self._next_health_s = -math.inf
+        self._reset_counter: int | None = None
+        self._errors_logged: Counter[str] = Counter()
+        self._state_lock = threading.Lock()
+        self._skipped_at_last_report = 0
+
+    # ------------------------------------------------------------------ lockstep
+
+    def progress(self) -> LockstepProgress:
+        """The counts a lockstep driver waits on (thread-safe: each is read in one step)."""
+        return LockstepProgress(self.link.counters["rx"], self.fc.version, self.counters["frames_done"])
+
+    def wait_progress(self, done: Callable[[LockstepProgress], bool], timeout_s: float) -> bool:
+        """Wait until ``done(self.progress())`` holds, at most ``timeout_s`` seconds of real time, or
+        until the daemon stops. Returns whether it holds. For lockstep drivers, on their own thread."""
+        deadline = self._wall.now_s() + timeout_s
+        while not done(self.progress()):
+            if self.stop_event.is_set() or self._wall.now_s() > deadline:
+                return done(self.progress())
+            time.sleep(_LOCKSTEP_POLL_S)
+        return True
+
+    # ------------------------------------------------------------------ running
+
+    def request_stop(self) -> None:
+        """Ask the service to stop (thread- and signal-safe)."""
+        self.stop_event.set()
+
+    def run(self) -> DaemonSummary:
+        """Run until stopped (signal, :meth:`request_stop`) or until a finite source ends and its
+        frames are processed. Installs SIGTERM/SIGINT handlers when called from the main thread."""
+        previous = {}
+        if threading.current_thread() is threading.main_thread():
+            previous = {s: signal.signal(s, lambda *_: self.request_stop()) for s in (signal.SIGTERM, signal.SIGINT)}
+        link_stop = threading.Event()
+        threads = [
+            threading.Thread(target=self.link.run, args=(link_stop,), name="mavvo-link", daemon=True),
+            threading.Thread(target=self._camera_loop, name="mavvo-camera", daemon=True),
+            threading.Thread(target=self._worker_loop, name="mavvo-worker", daemon=True),
+        ]
+        try:
+            for t in threads:
+                t.start()
+            m = self.config.mounting
+            log.info(
+                "mavvo running: link %s, camera %s; camera lever arm %s m: set VISO_POS_X/Y/Z (ArduPilot) or EKF2_EV_POS_X/Y/Z (PX4) to it",
+                self.config.link.url, self.config.camera.source, list(m.lever_arm_m),
+            )
+            sdnotify.notify("READY=1")
+            self._supervise()
+        finally:
+            sdnotify.notify("STOPPING=1")
+            self.stop_event.set()
+            deadline = self._wall.now_s() + self.config.service.shutdown_drain_s
+            for t in threads[1:]:
+                t.join(max(deadline - self._wall.now_s(), 0.0))
+            link_stop.set()  # after the worker: its last messages go out in the link's drain
+            threads[0].join(max(deadline - self._wall.now_s(), 0.1))
+            self.source.close()
+            if self.recorder is not None:
+                self.recorder.close()
+            for s, h in previous.items():
+                signal.signal(s, h)
+        summary = self.summary()
+        self._log_health(final=True)
+        return summary
+
+    def _supervise(self) -> None:
+        watchdog_s = sdnotify.watchdog_interval_s()
+        next_ping = self._wall.now_s()
+        next_log = self.clock.now_s() + self.config.service.health_log_interval_s
+        while not self.stop_event.wait(_SUPERVISE_TICK_S):
+            if self._worker_done.is_set():
+                break  # the source ended and every frame was processed
+            if watchdog_s is not None and self._wall.now_s() >= next_ping:
+                # Only a worker that is making progress (or idling on an empty queue) keeps systemd happy.
+                if self._wall.now_s() - self._worker_beat_s < 2 * watchdog_s:
+                    sdnotify.notify("WATCHDOG=1")
+                next_ping = self._wall.now_s() + watchdog_s
+            self._report(self.clock.now_s())
+            if self.clock.now_s() >= next_log:
+                self._log_health()
+                next_log = self.clock.now_s() + self.config.service.health_log_interval_s
+
+    def _camera_loop(self) -> None:
+        backoff = 0.1
+        try:
+            while not self.stop_event.is_set():
+                try:
+                    frame = self.source.read(0.2)
+                except CameraEnded as e:
+                    log.info("%s", e)
+                    return
+                except Exception as e:  # a source that failed for good, or a broken driver: wait and retry
+                    self.counters["camera_errors"] += 1
+                    self._log_error("camera", e)
+                    self.stop_event.wait(backoff)
+                    backoff = min(2 * backoff, self.config.camera.reconnect_max_s)
+                    continue
+                backoff = 0.1
+                if frame is not None:
+                    self.frames.put(frame, self.stop_event)
+        finally:
+            self._camera_done.set()
+
+    def _worker_loop(self) -> None:
+        try:
+            while not self.stop_event.is_set():
+                self._worker_beat_s = self._wall.now_s()
+                frame = self.frames.get(0.1)
+                if frame is None:
+                    if self._camera_done.is_set() and self.frames.empty():
+                        return
+                    continue
+                try:
+                    self._process(frame)
+                except Exception as e:  # a bug must not take the service down; it is counted and logged
+                    self.counters["errors"] += 1
+                    self._log_error("worker", e, traceback=True)
+                finally:
+                    self.counters["frames_done"] += 1
+        finally:
+            self._worker_done.set()
+
+    # ------------------------------------------------------------------ one frame
+
+    def _process(self, frame: Frame) -> None:
+        self.counters["frames"] += 1
+        p = wait_for_pairing(self.fc, frame.t_exposure_s)
+        if self.recorder is not None:
+            self.recorder.frame(frame, p, self.clock.now_s())
+        if p.status != "paired":
+            self.counters[f"skipped_attitude_{p.status}"] += 1
+            return
+        paired = PairedFrame(frame.image, frame.t_exposure_s, frame.seq, p.roll_rad, p.pitch_rad, p.yaw_rad, p.range_m, p.height_m)
+        try:
+            est = self.odometry.step(paired)
+        except ValueError as e:  # a malformed image (wrong size, not grey 8-bit)
+            self.counters["bad_frames"] += 1
+            self._log_error("frame", e)
+            return
+        self.counters["paired"] += 1
+        if est is not None:
+            self._publish(est)
+
+    def _publish(self, est: PoseEstimate) -> None:
+        self.last_estimate = est
+        if self.on_estimate is not None:
+            self.on_estimate(est)
+        self._set_state(est.diagnostics.state, est.diagnostics.reason)
+        if self._reset_counter is not None and est.reset_counter != self._reset_counter:
+            self.counters["resets"] += 1
+        self._reset_counter = est.reset_counter
+        out = self.config.output
+        if est.quality < 0:
+            self.counters["not_sent_failed"] += 1
+        elif est.t_exposure_s - self._last_sent_t_s < 1.0 / out.max_rate_hz - 1e-6:
+            self.counters["not_sent_rate"] += 1
+        else:
+            self._last_sent_t_s = est.t_exposure_s
+            self.link.send("VISION_POSITION_ESTIMATE", messages.vision_position_estimate(est), t_capture_s=est.t_exposure_s)
+            if out.speed_estimate:
+                self.link.send("VISION_SPEED_ESTIMATE", messages.vision_speed_estimate(est))
+            if out.odometry:
+                self.link.send("ODOMETRY", messages.odometry(est))
+            self.counters["estimates_sent"] += 1
+
+    # ------------------------------------------------------------------ the operator's view
+
+    def _set_state(self, state: VisionState, reason: StateReason) -> None:
+        with self._state_lock:
+            if state == self.state:
+                return
+            log.info("state %s -> %s%s", self.state, state, f" ({reason})" if reason else "")
+            self.state = state
+            self._pending_text = messages.statustext(state, reason)
+
+    def _report(self, now: float) -> None:
+        """From the supervisor: notice when estimates stop coming, send the pending STATUSTEXT (rate
+        limited) and the health values."""
+        est = self.last_estimate
+        skipped = sum(v for k, v in _snapshot(self.counters).items() if k.startswith("skipped_attitude"))
+        if est is not None and self.state != VisionState.FAILED and now - est.t_exposure_s > _NO_ESTIMATE_S:
+            self._set_state(VisionState.FAILED, StateReason.NO_ATTITUDE if skipped > self._skipped_at_last_report else StateReason.NO_FRAMES)
+        self._skipped_at_last_report = skipped
+        with self._state_lock:
+            text = self._pending_text
+            if text is not None and now - self._last_text_s >= self.config.output.statustext_min_interval_s:
+                self._pending_text, self._last_text_s = None, now
+            else:
+                text = None
+        if text is not None:
+            self.link.send("STATUSTEXT", text)
+        if now >= self._next_health_s:
+            period = 1.0 / self.config.output.health_rate_hz
+            # On the period's grid, so the rate holds however coarse the supervisor's ticks are.
+            self._next_health_s = self._next_health_s + period if now < self._next_health_s + period else now + period
+            latency = self.link.latency_s()
+            fresh = est is not None and now - est.t_exposure_s <= _NO_ESTIMATE_S
+            values = (
+                ("VO_QUAL", est.quality if fresh else -1), ("VO_INLIER", est.diagnostics.inliers if fresh else 0),
+                ("VO_STATE", messages.STATE_CODES[self.state]),
+                ("VO_LAT_MS", latency * 1e3 if latency is not None else math.nan),
+            )
+            t_ms = int(now * 1000)
+            for name, value in values:
+                self.link.send("NAMED_VALUE_FLOAT", messages.named_value_float(t_ms, name, value))
+
+    # ------------------------------------------------------------------ health
+
+    def _system_status(self) -> SystemStatus:
+        return _SYSTEM_STATUS[self.state]
+
+    def health(self) -> dict[str, int]:
+        """Every counter of the service and its parts."""
+        c = _snapshot(self.counters)
+        c.update({f"link_{k}": v for k, v in _snapshot(self.link.counters).items()})
+        c.update({f"fc_{k}": v for k, v in _snapshot(self.fc.counters).items()})
+        c["frames_dropped"] = self.frames.dropped
+        c["camera_reconnects"] = getattr(self.source, "reconnects", 0)
+        if self.recorder is not None:
+            c.update({f"record_{k}": v for k, v in _snapshot(self.recorder.counters).items()})
+        return dict(sorted(c.items()))
+
+    def summary(self) -> DaemonSummary:
+        latency = self.link.latency_s()
+        return DaemonSummary(self.health(), self.state, None if latency is None else latency * 1e3)
+
+    def _log_health(self, final: bool = False) -> None:
+        h = self.health()
+        latency = self.link.latency_s()
+        lat = "" if latency is None else (
+            f"; capture-to-send {latency * 1e3:.0f} ms: set VISO_DELAY_MS={round(latency * 1e3)} (ArduPilot) "
+            f"or EKF2_EV_DELAY={round(latency * 1e3)} (PX4)"
+        )
+        keys = ("frames", "paired", "estimates_sent", "not_sent_failed", "resets", "frames_dropped", "bad_frames",
+                "skipped_attitude_wait", "skipped_attitude_stale", "skipped_attitude_missing", "fc_attitude_rejected",
+                "link_bad_data", "link_reconnects", "link_reboots", "camera_errors", "camera_reconnects", "errors",
+                "record_frames", "record_dropped_frames", "record_dropped_messages")
+        counts = ", ".join(f"{k} {h[k]}" for k in keys if h.get(k))
+        log.info("%s: state %s; %s%s", "final" if final else "health", self.state, counts or "nothing yet", lat)
+
+    def _log_error(self, where: str, e: BaseException, traceback: bool = False) -> None:
+        self._errors_logged[where] += 1
+        n = self._errors_logged[where]
+        if n <= 3 or n % _ERROR_LOG_EVERY == 0:
+            log.warning("%s: %s (occurrence %d)", where, e, n, exc_info=traceback)

@@ -1,0 +1,432 @@
+"""The MAVLink link to the flight controller (pymavlink through :mod:`mavvo.service.mavlink`).
+
+One thread (:meth:`Link.run`) owns the connection: it reads, hands the flight controller's state to a
+:class:`LinkListener` (attitude, rangefinder, height, TIMESYNC answers, reboots), and writes what other
+threads queued with :meth:`Link.send`. It also keeps the link alive:
+
+- HEARTBEAT at 1 Hz as MAV_TYPE_ONBOARD_CONTROLLER / MAV_AUTOPILOT_INVALID, component 197
+  (MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY), ``system_status`` from the service's health;
+- ATTITUDE, DISTANCE_SENSOR and GLOBAL_POSITION_INT (height above home) requested with
+  MAV_CMD_SET_MESSAGE_INTERVAL, and requested again (with back-off) until they arrive, whenever a
+  stream goes quiet, and after a flight-controller reboot (``time_boot_ms`` going back);
+- TIMESYNC requests every second; the flight controller's own TIMESYNC requests are answered with the
+  host clock that stamps every estimate (what PX4 needs to map ``usec``);
+- reconnect with back-off when the link dies: a read or write error (serial unplugged) or nothing heard
+  for ``silence_timeout_s`` (UDP silent);
+- optional MAVLink 2 signing with a key read from a file that only its owner may read.
+
+Connection strings: ``/dev/ttyAMA0:921600`` (serial through pyserial; ``serial:`` prefix optional),
+``udpin:HOST:PORT`` (listen), ``udpout:HOST:PORT`` (send first), ``tcp:HOST:PORT`` (connect),
+``tcpin:HOST:PORT`` (listen).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import os
+import queue
+import select
+import stat
+import statistics
+import threading
+from collections import Counter, deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Protocol
+
+from mavvo.options import bounded
+from mavvo.errors import ConfigError, LinkError
+from mavvo.service.mavlink import SOCKET_SCHEMES, mavutil
+from mavvo.service.timing import Clock
+from mavvo.types import StrEnum
+
+
+__all__ = ["LinkOptions", "LinkListener", "Link", "SystemStatus", "Tap", "parse_url", "read_signing_key", "stamp_us", "us_to_s"]
+
+log = logging.getLogger(__name__)
+
+
+
+class SystemStatus(StrEnum):
+    """HEARTBEAT ``system_status`` of the vision component. Never FLIGHT_TERMINATION: that tells the
+    ground station the vehicle is terminating itself."""
+
+    STANDBY = "standby"  #: no estimate yet
+    ACTIVE = "active"  #: tracking
+    CRITICAL = "critical"  #: degraded or failed
+
+COMPONENT_ID = 197  # MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
+_REBOOT_STEP_S = 1.0  # time_boot_ms going back by more than this is a reboot, not a reordered packet
+_SEND_QUEUE = 128
+_MAX_REQUEST_BACKOFF_S = 30.0
+# A TIMESYNC answer is ours when its ts1 reads as a moment of our own clock at most this long ago: it
+# then measures our clock whoever asked. (No dictionary of requests: a replayed answer must count as it
+# did in flight, and pymavlink's TIMESYNC has no target fields to tell requesters apart.)
+_TIMESYNC_MAX_RTT_S = 1.0
+
+
+@dataclass(frozen=True)
+class LinkOptions:
+    """The MAVLink connection."""
+
+    url: str = bounded("/dev/ttyAMA0:921600", "serial DEVICE:BAUD, udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or tcpin:HOST:PORT")
+    system_id: int = bounded(0, "the flight controller's MAVLink system id (0: take it from its HEARTBEAT); mavvo uses the same", ge=0, le=255)
+    attitude_rate_hz: float = bounded(100.0, "ATTITUDE rate to request (at least the camera rate; 100 Hz brackets every exposure closely)", gt=0, le=1000)
+    range_rate_hz: float = bounded(20.0, "DISTANCE_SENSOR rate to request", gt=0, le=1000)
+    height_rate_hz: float = bounded(10.0, "GLOBAL_POSITION_INT (height above home) rate to request", gt=0, le=1000)
+    request_retry_s: float = bounded(2.0, "first retry of a stream request that brought nothing; doubles up to 30 s", gt=0)
+    timesync_interval_s: float = bounded(1.0, "TIMESYNC request period", gt=0)
+    silence_timeout_s: float = bounded(3.0, "nothing heard for this long: reconnect", gt=0)
+    reconnect_max_s: float = bounded(8.0, "longest back-off between reconnection attempts", gt=0)
+    signing_key_file: str = bounded("", "MAVLink 2 signing key: 64 hex digits, 32 raw bytes or a passphrase (SHA-256); mode 0600 or stricter; empty: unsigned")
+
+
+class LinkListener(Protocol):
+    """Receives the flight controller's state from the link thread (see :mod:`mavvo.service.timing`)."""
+
+    def on_attitude(self, t_fc_ms: int, roll_rad: float, pitch_rad: float, yaw_rad: float, t_arrival_host_s: float | None = None) -> None: ...
+    def on_range(self, t_fc_ms: int, range_m: float | None, t_arrival_host_s: float | None = None) -> None: ...
+    def on_height(self, t_fc_ms: int, height_m: float, t_arrival_host_s: float | None = None) -> None: ...
+    def on_timesync(self, t_sent_host_s: float, t_fc_s: float, t_arrival_host_s: float | None = None) -> None: ...
+    def on_reboot(self) -> None: ...
+
+
+Tap = Callable[[int, bytes], None]
+"""Sees every message the link reads or writes: (host clock in whole microseconds, the message's bytes;
+mavvo's own are from component 197). It must not block: it runs on the link thread."""
+
+
+def stamp_us(clock: Clock) -> int:
+    """Now on ``clock`` in whole microseconds: the one arrival stamp a message gets. Whole microseconds
+    (what a .tlog stores) so that a recorded flight replays with exactly the stamps it had."""
+    return round(clock.now_s() * 1e6)
+
+
+def us_to_s(t_us: int) -> float:
+    """Microseconds to seconds, the one way both recording and replay convert."""
+    return t_us / 1_000_000
+
+
+def parse_url(url: str) -> tuple[str, int | None]:
+    """(pymavlink device string, serial baud rate or None) for a connection string; ConfigError when
+    it is none of the supported forms."""
+    if url.startswith(SOCKET_SCHEMES):
+        host, _, port = url.split(":", 1)[1].rpartition(":")
+        if not host or not port.isdigit() or not 0 < int(port) < 65536:
+            raise ConfigError(f"link.url: expected {url.split(':')[0]}:HOST:PORT with a port 1-65535, got {url!r}")
+        return url, None
+    dev = url.removeprefix("serial:")
+    if dev.startswith("/dev/") or dev.startswith("/"):
+        path, _, baud = dev.rpartition(":")
+        if not path or not baud.isdigit() or int(baud) <= 0:
+            raise ConfigError(f"link.url: expected a serial device with its baud rate, like /dev/ttyAMA0:921600, got {url!r}")
+        return path, int(baud)
+    raise ConfigError(
+        f"link.url: expected /dev/DEVICE:BAUD, udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or tcpin:HOST:PORT, got {url!r}"
+    )
+
+
+def read_signing_key(path: str | Path) -> bytes:
+    """The 32-byte signing key in ``path``: 64 hex digits, 32 raw bytes, or a passphrase hashed with
+    SHA-256 (as ground stations derive it). ConfigError if the file cannot be read or group or others may
+    read or write it."""
+    p = Path(path)
+    try:
+        st = p.stat()
+        raw = p.read_bytes()
+    except OSError as e:
+        raise ConfigError(f"link.signing_key_file {p}: cannot read: {e.strerror or e}") from e
+    if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise ConfigError(f"link.signing_key_file {p}: expected mode 0600 or stricter (owner only), got {stat.S_IMODE(st.st_mode):04o}; run chmod 600 {p}")
+    text = raw.strip()
+    if len(text) == 64:
+        try:
+            return bytes.fromhex(text.decode("ascii"))
+        except (UnicodeDecodeError, ValueError):
+            pass
+    if len(raw) == 32:
+        return raw
+    if not text:
+        raise ConfigError(f"link.signing_key_file {p}: expected a key, the file is empty")
+    return hashlib.sha256(text).digest()
+
+
+@dataclass
+class _Stream:
+    msg_id: int
+    rate_hz: float
+    last_rx_s: float = -math.inf
+    next_request_s: float = -math.inf
+    backoff_s: float = 0.0
+
+
+class Link:
+    """The connection thread (see the module docstring).
+
+    Args:
+        options: :class:`LinkOptions`.
+        clock: the host clock (stamps TIMESYNC and latency; decides time-outs).
+        listener: gets the flight controller's state.
+        system_status: called once a second for the HEARTBEAT's ``system_status``.
+
+    Counters (``counters``): ``rx`` messages, ``bad_data`` (corrupt bytes), ``sent``, ``send_dropped``
+    (queue full), ``connects``, ``reconnects``, ``reboots``, ``stream_requests``, ``denied``. ``rx``
+    counts a message once the listener has absorbed it.
+    """
+
+    def __init__(
+        self, options: LinkOptions, clock: Clock, listener: LinkListener,
+        system_status: Callable[[], SystemStatus] = lambda: SystemStatus.STANDBY, tap: Tap | None = None,
+    ) -> None:
+        self.options = options
+        self.tap = tap
+        self.clock = clock
+        self.listener = listener
+        self.system_status = system_status
+        self.device, self.baud = parse_url(options.url)
+        self.signing_key = read_signing_key(options.signing_key_file) if options.signing_key_file else None
+        self.counters: Counter[str] = Counter()
+        self.fc_system_id: int | None = options.system_id or None
+        self.fc_component_id: int | None = None
+        self.connected = threading.Event()
+        self._mavutil = mavutil()  # MAVLink 2 checked here, whoever imported pymavlink first
+        self._mav = self._mavutil.mavlink
+        self._conn: Any = None
+        self._queue: queue.Queue[tuple[str, dict[str, Any], float | None]] = queue.Queue(_SEND_QUEUE)
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
+        self._latencies_s: deque[float] = deque(maxlen=200)
+        self._latency_lock = threading.Lock()
+        self._last_boot_ms: int | None = None
+        mav = self._mav
+        self._streams = [
+            _Stream(mav.MAVLINK_MSG_ID_ATTITUDE, options.attitude_rate_hz),
+            _Stream(mav.MAVLINK_MSG_ID_DISTANCE_SENSOR, options.range_rate_hz),
+            _Stream(mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, options.height_rate_hz),
+        ]
+        self._status_map = {
+            SystemStatus.STANDBY: mav.MAV_STATE_STANDBY, SystemStatus.ACTIVE: mav.MAV_STATE_ACTIVE, SystemStatus.CRITICAL: mav.MAV_STATE_CRITICAL,
+        }
+
+    # ------------------------------------------------------------------ other threads
+
+    def send(self, name: str, fields: dict[str, Any], t_capture_s: float | None = None) -> None:
+        """Queue message ``name`` (e.g. ``VISION_POSITION_ESTIMATE``) with its fields; thread-safe,
+        never blocks (when the queue is full the oldest message is dropped and counted).
+        ``t_capture_s``: the exposure it reports, for the capture-to-send latency."""
+        item = (name, fields, t_capture_s)
+        while True:
+            try:
+                self._queue.put_nowait(item)
+                break
+            except queue.Full:
+                try:
+                    self._queue.get_nowait()
+                    self.counters["send_dropped"] += 1
+                except queue.Empty:
+                    pass
+        try:
+            os.write(self._wake_w, b"x")
+        except BlockingIOError:
+            pass  # the pipe is full: the link thread is already awake
+
+    def latency_s(self) -> float | None:
+        """Median capture-to-send latency over the last 200 estimates, seconds."""
+        with self._latency_lock:
+            return statistics.median(self._latencies_s) if self._latencies_s else None
+
+    # ------------------------------------------------------------------ the link thread
+
+    def run(self, stop: threading.Event) -> None:
+        """Connect, serve and reconnect until ``stop`` is set; then send what is queued and close."""
+        backoff = 0.25
+        try:
+            while not stop.is_set():
+                if self._conn is None:
+                    if not self._connect():
+                        stop.wait(backoff)
+                        backoff = min(backoff * 2, self.options.reconnect_max_s)
+                        continue
+                    backoff = 0.25
+                try:
+                    self._serve_once()
+                except (OSError, LinkError) as e:  # serial unplugged, socket gone, silence
+                    log.warning("link %s: %s; reconnecting", self.options.url, e)
+                    self._disconnect()
+                    self.counters["reconnects"] += 1
+                    stop.wait(backoff)
+                    backoff = min(backoff * 2, self.options.reconnect_max_s)
+            self._drain()
+        finally:
+            self._disconnect()
+            for fd in (self._wake_r, self._wake_w):
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+
+    def _connect(self) -> bool:
+        try:
+            kw: dict[str, Any] = {"source_system": self.fc_system_id or 1, "source_component": COMPONENT_ID}
+            if self.baud is not None:
+                kw["baud"] = self.baud
+            conn = self._mavutil.mavlink_connection(self.device, **kw)
+        except Exception as e:  # pyserial, socket and pymavlink raise many kinds; all mean "not now"
+            self.counters["connect_failures"] += 1
+            if self.counters["connect_failures"] in (1, 10) or self.counters["connect_failures"] % 100 == 0:
+                log.warning("link %s: cannot connect: %s (retrying)", self.options.url, e)
+            return False
+        if self.signing_key is not None:
+            conn.setup_signing(self.signing_key, sign_outgoing=True, link_id=0)
+        self._conn = conn
+        self.counters["connects"] += 1
+        now = self.clock.now_s()
+        self._last_rx_s = now
+        self._next_heartbeat_s = now
+        self._next_timesync_s = now
+        for s in self._streams:
+            s.last_rx_s, s.next_request_s, s.backoff_s = -math.inf, now, 0.0
+        self.connected.set()
+        log.info("link %s: connected", self.options.url)
+        return True
+
+    def _disconnect(self) -> None:
+        self.connected.clear()
+        if self._conn is not None:
+            try:
+                self._conn.close()
+            except Exception:  # closing a dead port may raise anything; it is gone either way
+                pass
+            self._conn = None
+
+    def _serve_once(self) -> None:
+        """One turn: wait for bytes or queued messages (at most 20 ms), read, write, keep alive."""
+        fd = getattr(self._conn, "fd", None)
+        fds = [self._wake_r] + ([fd] if fd is not None else [])
+        select.select(fds, [], [], 0.02)
+        try:
+            while os.read(self._wake_r, 4096):
+                pass
+        except BlockingIOError:
+            pass
+        while (msg := self._conn.recv_msg()) is not None:
+            self._handle(msg)
+        now = self.clock.now_s()
+        self._flush(now)
+        self._keep_alive(now)
+        if now - self._last_rx_s > self.options.silence_timeout_s:
+            raise LinkError(f"nothing heard for {now - self._last_rx_s:.1f} s")
+
+    def _flush(self, now: float) -> None:
+        while True:
+            try:
+                name, fields, t_capture = self._queue.get_nowait()
+            except queue.Empty:
+                return
+            self._write(name, fields)
+            if t_capture is not None:
+                with self._latency_lock:
+                    self._latencies_s.append(now - t_capture)
+
+    def _write(self, name: str, fields: dict[str, Any]) -> None:
+        msg = getattr(self._conn.mav, f"{name.lower()}_encode")(**fields)
+        self._conn.mav.send(msg)
+        self.counters["sent"] += 1
+        if self.tap is not None:
+            self.tap(stamp_us(self.clock), bytes(msg.get_msgbuf()))
+
+    def _drain(self) -> None:
+        """Send what is still queued (the stop's bounded drain: one pass, no waiting)."""
+        if self._conn is not None:
+            try:
+                self._flush(self.clock.now_s())
+            except OSError:
+                pass
+
+    def _keep_alive(self, now: float) -> None:
+        mav = self._mav
+        if now >= self._next_heartbeat_s:
+            self._next_heartbeat_s = now + 1.0
+            status = self._status_map[self.system_status()]
+            self._write("HEARTBEAT", {
+                "type": mav.MAV_TYPE_ONBOARD_CONTROLLER, "autopilot": mav.MAV_AUTOPILOT_INVALID,
+                "base_mode": 0, "custom_mode": 0, "system_status": status,
+            })
+        if self.fc_system_id is None or self.fc_component_id is None:
+            return  # requests go to a flight controller we have heard
+        if now >= self._next_timesync_s:
+            self._next_timesync_s = now + self.options.timesync_interval_s
+            self._write("TIMESYNC", {"tc1": 0, "ts1": stamp_us(self.clock) * 1000})  # whole microseconds, like arrivals
+        for s in self._streams:
+            quiet = now - s.last_rx_s > max(3.0 / s.rate_hz, self.options.request_retry_s)
+            if quiet and now >= s.next_request_s:
+                s.backoff_s = min(max(2 * s.backoff_s, self.options.request_retry_s), _MAX_REQUEST_BACKOFF_S)
+                s.next_request_s = now + s.backoff_s
+                self.counters["stream_requests"] += 1
+                self._write("COMMAND_LONG", {
+                    "target_system": self.fc_system_id, "target_component": self.fc_component_id,
+                    "command": mav.MAV_CMD_SET_MESSAGE_INTERVAL, "confirmation": 0,
+                    "param1": s.msg_id, "param2": 1e6 / s.rate_hz, "param3": 0, "param4": 0, "param5": 0, "param6": 0, "param7": 0,
+                })
+
+    # ------------------------------------------------------------------ what arrives
+
+    def _handle(self, msg: Any) -> None:
+        kind = msg.get_type()
+        if kind == "BAD_DATA":
+            self.counters["bad_data"] += 1
+            return
+        t_us = stamp_us(self.clock)
+        if self.tap is not None:
+            self.tap(t_us, bytes(msg.get_msgbuf()))
+        try:
+            self._dispatch(msg, kind, us_to_s(t_us))
+        finally:
+            self.counters["rx"] += 1
+
+    def _dispatch(self, msg: Any, kind: str, now: float) -> None:
+        self._last_rx_s = now
+        src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
+        if kind == "HEARTBEAT":
+            if msg.autopilot != self._mav.MAV_AUTOPILOT_INVALID and self.fc_component_id is None and (self.fc_system_id in (None, src_sys)):
+                self.fc_system_id, self.fc_component_id = src_sys, src_comp
+                self._conn.mav.srcSystem = src_sys
+                log.info("flight controller: system %d component %d (autopilot type %d)", src_sys, src_comp, msg.autopilot)
+            return
+        if src_sys != self.fc_system_id or src_comp != self.fc_component_id:
+            return
+        boot_ms = getattr(msg, "time_boot_ms", None)
+        if boot_ms is not None:
+            if self._last_boot_ms is not None and boot_ms < self._last_boot_ms - _REBOOT_STEP_S * 1000:
+                self._rebooted(now)
+            self._last_boot_ms = boot_ms
+        for s in self._streams:
+            if s.msg_id == msg.get_msgId():
+                s.last_rx_s, s.backoff_s = now, 0.0
+        if kind == "ATTITUDE":
+            self.listener.on_attitude(msg.time_boot_ms, msg.roll, msg.pitch, msg.yaw, now)
+        elif kind == "DISTANCE_SENSOR":
+            if msg.orientation == self._mav.MAV_SENSOR_ROTATION_PITCH_270:
+                ok = msg.min_distance <= msg.current_distance <= msg.max_distance
+                self.listener.on_range(msg.time_boot_ms, msg.current_distance * 0.01 if ok else None, now)
+        elif kind == "GLOBAL_POSITION_INT":
+            self.listener.on_height(msg.time_boot_ms, msg.relative_alt * 1e-3, now)
+        elif kind == "TIMESYNC":
+            if msg.tc1 == 0:  # the flight controller asks for our clock: the one estimates are stamped with
+                self._write("TIMESYNC", {"tc1": int(now * 1e9), "ts1": msg.ts1})
+            elif 0.0 <= now - msg.ts1 * 1e-9 <= _TIMESYNC_MAX_RTT_S:
+                self.listener.on_timesync(msg.ts1 * 1e-9, msg.tc1 * 1e-9, now)
+        elif kind == "COMMAND_ACK" and msg.command == self._mav.MAV_CMD_SET_MESSAGE_INTERVAL and msg.result != self._mav.MAV_RESULT_ACCEPTED:
+            self.counters["denied"] += 1
+            if self.counters["denied"] <= 3:
+                log.info("flight controller refused a stream request (result %d); retrying with back-off", msg.result)
+
+    def _rebooted(self, now: float) -> None:
+        log.warning("flight controller rebooted (time_boot_ms went back); re-requesting streams")
+        self.counters["reboots"] += 1
+        self.listener.on_reboot()
+        for s in self._streams:
+            s.last_rx_s, s.next_request_s, s.backoff_s = -math.inf, now, 0.0

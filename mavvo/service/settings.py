@@ -1,0 +1,144 @@
+"""The service's settings: :class:`ServiceConfig`, read from YAML strictly (``mavvo run --config FILE``).
+
+Each section is the options dataclass of the module it configures, so the defaults and help live next
+to the code that uses them: ``camera`` (:mod:`mavvo.service.camera`), ``link`` (:mod:`mavvo.service.link`),
+``timing`` (:mod:`mavvo.service.timing`), ``odometry`` (:mod:`mavvo.odometry.pipeline`), ``record``
+(:mod:`mavvo.service.recorder`); ``mounting``, ``output`` and
+``service`` are defined here. ``config/default.yaml`` lists every key with its default and help;
+:func:`default_yaml` writes it (a test keeps the file current). Any key left out takes its default.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mavvo.geometry.frames import R_BODY_CAM_NADIR
+from mavvo.service.camera import CameraOptions
+from mavvo.options import bounded
+from mavvo.service.yaml_loader import build, load_yaml
+from mavvo.errors import ConfigError
+from mavvo.service.link import LinkOptions, parse_url
+from mavvo.odometry.pipeline import OdometryOptions
+from mavvo.service.recorder import RecordOptions
+from mavvo.service.timing import TimingOptions
+
+__all__ = ["MountingOptions", "OutputOptions", "ServiceOptions", "ServiceConfig", "load_config", "parse_config", "config_yaml", "default_yaml"]
+
+Matrix3 = tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
+
+
+def as_matrix3(R: np.ndarray) -> Matrix3:
+    """A (3,3) array as the nested tuple a YAML key holds."""
+    return tuple(tuple(float(v) for v in row) for row in R)  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class MountingOptions:
+    """Where the camera sits on the vehicle."""
+
+    R_body_cam: Matrix3 = bounded(as_matrix3(R_BODY_CAM_NADIR), "rotation taking camera vectors (x right, y down, z forward) into the body frame (FRD), rows; default: nadir, image top forward")
+    lever_arm_m: tuple[float, float, float] = bounded((0.0, 0.0, 0.0), "camera centre in the body frame (FRD), metres: set VISO_POS_X/Y/Z (ArduPilot) or EKF2_EV_POS_X/Y/Z (PX4) to it")
+
+    def __post_init__(self) -> None:
+        R = np.asarray(self.R_body_cam, dtype=float)
+        if not (np.allclose(R @ R.T, np.eye(3), atol=1e-3) and np.linalg.det(R) > 0):
+            raise ValueError(f"R_body_cam: expected a rotation matrix (orthonormal rows, determinant +1), got {self.R_body_cam}")
+
+    def rotation(self) -> np.ndarray:
+        """R_body_cam, re-orthonormalised (YAML holds a few decimals)."""
+        U, _, Vt = np.linalg.svd(np.asarray(self.R_body_cam, dtype=float))
+        return U @ Vt
+
+
+@dataclass(frozen=True)
+class OutputOptions:
+    """What goes to the flight controller."""
+
+    max_rate_hz: float = bounded(30.0, "most VISION_POSITION_ESTIMATEs per second (ArduPilot ignores faster than 50 Hz)", gt=0, le=50)
+    speed_estimate: bool = bounded(True, "also send VISION_SPEED_ESTIMATE")
+    odometry: bool = bounded(False, "also send ODOMETRY (frame LOCAL_FRD, child BODY_FRD, body-frame velocity, quality)")
+    statustext_min_interval_s: float = bounded(2.0, "at most one STATUSTEXT on state changes per this interval (the latest state wins)", ge=0)
+    health_rate_hz: float = bounded(1.0, "NAMED_VALUE_FLOAT health values (VO_QUAL, VO_INLIER, VO_LAT_MS, VO_STATE) per second", gt=0, le=5)
+
+
+@dataclass(frozen=True)
+class ServiceOptions:
+    """The daemon itself."""
+
+    health_log_interval_s: float = bounded(5.0, "health counters in the log every this many seconds", gt=0)
+    shutdown_drain_s: float = bounded(2.0, "on stop, wait at most this long for the current frame and the queued messages", gt=0)
+
+
+@dataclass(frozen=True)
+class ServiceConfig:
+    """Everything ``mavvo run`` reads from its configuration file."""
+
+    camera: CameraOptions = field(default_factory=CameraOptions)
+    mounting: MountingOptions = field(default_factory=MountingOptions)
+    link: LinkOptions = field(default_factory=LinkOptions)
+    timing: TimingOptions = field(default_factory=TimingOptions)
+    output: OutputOptions = field(default_factory=OutputOptions)
+    service: ServiceOptions = field(default_factory=ServiceOptions)
+    odometry: OdometryOptions = field(default_factory=OdometryOptions)
+    record: RecordOptions = field(default_factory=RecordOptions)
+
+
+def parse_config(data: Any, source: str) -> ServiceConfig:
+    """A ServiceConfig from a parsed YAML mapping; ConfigError naming ``source`` and the key path."""
+    cfg = build(ServiceConfig, data, source)
+    try:
+        parse_url(cfg.link.url)
+    except ConfigError as e:
+        raise ConfigError(f"{source}: {e}") from e
+    return cfg
+
+
+def load_config(path: str | Path) -> ServiceConfig:
+    """Read and check a configuration file."""
+    return parse_config(load_yaml(path), str(path))
+
+
+def _yaml_value(v: Any) -> str:
+    if isinstance(v, tuple):
+        return "[" + ", ".join(_yaml_value(x) for x in v) + "]"
+    return json.dumps(v)  # JSON scalars are YAML scalars; repr-exact for floats
+
+
+def config_yaml(config: ServiceConfig | None = None, header: tuple[str, ...] = ()) -> str:
+    """Every key of ``config`` (default: the defaults) with its value and help, as a YAML file that
+    :func:`load_config` reads back to an equal config."""
+    lines = list(header)
+
+    def section(obj: Any, indent: int) -> None:
+        pad = "  " * indent
+        for f in dataclasses.fields(obj):
+            value = getattr(obj, f.name)
+            if dataclasses.is_dataclass(value):
+                doc = (type(value).__doc__ or "").strip().splitlines()[0]
+                lines.append(f"{pad}{f.name}:  # {doc}")
+                section(value, indent + 1)
+            else:
+                lines.append(f"{pad}{f.name}: {_yaml_value(value)}  # {f.metadata.get('help', '')}")
+
+    config = config or ServiceConfig()
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        lines += ["", f"{f.name}:  # {(type(value).__doc__ or '').strip().splitlines()[0]}"]
+        section(value, 1)
+    return "\n".join(lines) + "\n"
+
+
+def default_yaml() -> str:
+    """Every key of :class:`ServiceConfig` with its default and help: ``config/default.yaml``."""
+    return config_yaml(header=(
+        "# mavvo configuration: every key, its default and what it means. Units are in the key names",
+        "# (_px pixels, _m metres, _s seconds, _ms milliseconds, _hz per second, _deg degrees).",
+        "# Any key may be left out and takes the default shown. Check a file with: mavvo check-config FILE",
+        "# (this file is written by mavvo.service.settings.default_yaml; a test keeps it current).",
+    ))

@@ -1,0 +1,299 @@
+"""Clocks, the flight controller's boot clock on the host clock, and roll/pitch at each exposure.
+
+Two clocks meet here. The host clock (``t_host_s``: ``time.monotonic`` on a drone, the simulation clock
+in the simulator) stamps camera exposures, message arrivals and every estimate mavvo sends. The flight
+controller's boot clock (``t_fc_s``, ATTITUDE.time_boot_ms / 1000) stamps its measurements. The offset
+``t_fc_s - t_host_s`` comes from two sources (:class:`ClockSync`):
+
+- TIMESYNC round trips: the reply with the smallest round trip in the window gives the offset at the
+  midpoint of its round trip (its error is at most half that round trip);
+- arrivals: a message cannot arrive before it was measured, so ``t_fc - t_arrival`` over the window is a
+  lower bound on the offset, reached by the fastest message (the minimum-latency filter). Without
+  TIMESYNC this bound is the estimate (it assumes the fastest message took no time); with TIMESYNC it
+  clamps an estimate that would put a message's arrival before its measurement.
+
+:class:`FlightControllerState` keeps the recent ATTITUDE samples (and the latest rangefinder and
+height) and pairs a frame with roll/pitch/yaw interpolated at its exposure time. A frame is paired only
+between two samples that bracket it at most ``max_attitude_gap_s`` apart; otherwise it waits for a
+newer sample or is skipped and counted, never paired with a wrong attitude. Only this module reads a
+clock, and the clock is injected.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+import threading
+import time
+from collections import Counter, deque
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+from mavvo.options import bounded
+
+__all__ = [
+    "Clock", "MonotonicClock", "TimingOptions", "ClockSync", "Pairing", "FlightControllerState", "wait_for_pairing",
+]
+
+
+class Clock(Protocol):
+    """The host clock: seconds, monotonic. ``realtime`` is False for a simulated clock that moves only
+    when the simulation moves it (lockstep): then waiting on it would never end, and waits are bounded
+    by the data instead (see :func:`wait_for_pairing`)."""
+
+    realtime: bool
+
+    def now_s(self) -> float: ...
+
+
+class MonotonicClock:
+    """``time.monotonic``: the clock a drone's estimates are stamped with."""
+
+    realtime = True
+
+    def now_s(self) -> float:
+        return time.monotonic()
+
+
+@dataclass(frozen=True)
+class TimingOptions:
+    """Pairing frames with the flight controller's attitude."""
+
+    max_attitude_gap_s: float = bounded(0.05, "longest gap between the two ATTITUDE samples around an exposure", gt=0)
+    attitude_wait_s: float = bounded(0.1, "how long after an exposure to wait for the ATTITUDE that follows it", gt=0)
+    range_max_age_s: float = bounded(0.2, "a rangefinder reading older than this at the exposure is not used", gt=0)
+    height_max_age_s: float = bounded(0.5, "a height reading older than this at the exposure is not used", gt=0)
+    sync_window_s: float = bounded(30.0, "window of the clock-offset filters (tracks clock drift)", gt=0)
+    history_s: float = bounded(2.0, "ATTITUDE history kept for pairing", gt=0)
+
+
+class _WindowMax:
+    """Maximum (or minimum, with ``sign=-1``) of values over a sliding time window, O(1) amortised."""
+
+    def __init__(self, window_s: float, sign: float = 1.0) -> None:
+        self.window_s = window_s
+        self._sign = sign
+        self._q: deque[tuple[float, float, object]] = deque()  # (t, key, payload), keys decreasing
+
+    def push(self, t: float, value: float, payload: object = None) -> None:
+        key = self._sign * value
+        while self._q and self._q[-1][1] <= key:
+            self._q.pop()
+        self._q.append((t, key, payload))
+        while self._q[0][0] < t - self.window_s:
+            self._q.popleft()
+
+    def best(self) -> tuple[float, object] | None:
+        """(value, payload) of the best entry, or None when empty."""
+        if not self._q:
+            return None
+        _, key, payload = self._q[0]
+        return self._sign * key, payload
+
+    def clear(self) -> None:
+        self._q.clear()
+
+
+class ClockSync:
+    """The offset ``t_fc_s - t_host_s`` from TIMESYNC round trips and message arrivals (see the module
+    docstring). Not thread-safe: :class:`FlightControllerState` holds the lock."""
+
+    def __init__(self, window_s: float = 30.0) -> None:
+        self._arrival_bound = _WindowMax(window_s)  # max of t_fc - t_arrival
+        self._round_trips = _WindowMax(window_s, sign=-1.0)  # min round trip, payload: offset
+
+    def add_arrival(self, t_fc_s: float, t_arrival_host_s: float) -> None:
+        """A message measured at ``t_fc_s`` arrived at ``t_arrival_host_s``."""
+        self._arrival_bound.push(t_arrival_host_s, t_fc_s - t_arrival_host_s)
+
+    def add_timesync(self, t_sent_host_s: float, t_fc_s: float, t_arrival_host_s: float) -> None:
+        """A TIMESYNC request sent at ``t_sent_host_s`` was answered with the flight controller's time
+        ``t_fc_s`` and the answer arrived at ``t_arrival_host_s``."""
+        rtt = t_arrival_host_s - t_sent_host_s
+        if rtt < 0:
+            return
+        self._round_trips.push(t_arrival_host_s, rtt, t_fc_s - (t_sent_host_s + 0.5 * rtt))
+
+    def offset_s(self) -> float | None:
+        """The current estimate, or None before any measurement."""
+        bound = self._arrival_bound.best()
+        sync = self._round_trips.best()
+        if sync is not None:
+            offset = float(sync[1])
+            return offset if bound is None else max(offset, bound[0])
+        return None if bound is None else bound[0]
+
+    def round_trip_s(self) -> float | None:
+        """The smallest TIMESYNC round trip in the window (the offset's error is at most half of it)."""
+        best = self._round_trips.best()
+        return None if best is None else best[0]
+
+    def reset(self) -> None:
+        self._arrival_bound.clear()
+        self._round_trips.clear()
+
+
+@dataclass(frozen=True)
+class Pairing:
+    """The flight controller's state at one exposure.
+
+    ``status``: ``paired`` (roll/pitch valid), ``wait`` (no ATTITUDE after the exposure yet), ``stale``
+    (the samples around the exposure are too far apart: the stream stalled or was spoiled) or
+    ``missing`` (no samples or no clock offset at all).
+    """
+
+    status: Literal["paired", "wait", "stale", "missing"]
+    fc_version: int = 0  # how many flight-controller updates the state had absorbed (a replay resumes here)
+    roll_rad: float = math.nan
+    pitch_rad: float = math.nan
+    yaw_rad: float = math.nan
+    range_m: float | None = None
+    height_m: float | None = None
+
+
+class FlightControllerState:
+    """What the flight controller said recently, on both clocks; thread-safe (the link thread writes,
+    the worker reads). Counters: ``attitude``, ``attitude_rejected`` (non-finite or not newer),
+    ``reboots``.
+
+    Each update carries the arrival time the link stamped once for its message (``t_arrival_host_s``;
+    None: now on the clock), so a recorded flight replays with the same stamps. ``version`` counts the
+    updates absorbed; each :class:`Pairing` says which version it saw, so a replay can pair a frame after
+    exactly the same updates as the flight did.
+    """
+
+    def __init__(self, clock: Clock, options: TimingOptions = TimingOptions()) -> None:
+        self.clock = clock
+        self.options = options
+        self.counters: Counter[str] = Counter()
+        self._lock = threading.Lock()
+        self._new_data = threading.Condition(self._lock)
+        self._sync = ClockSync(options.sync_window_s)
+        self._t_fc: list[float] = []  # ATTITUDE times, increasing
+        self._rpy: list[tuple[float, float, float]] = []
+        self._range: tuple[float, float | None] | None = None  # (t_fc_s, metres or None for no reading)
+        self._height: tuple[float, float] | None = None
+        self.version = 0
+
+    def _arrival(self, t_arrival_host_s: float | None) -> float:
+        return self.clock.now_s() if t_arrival_host_s is None else t_arrival_host_s
+
+    # ------------------------------------------------------------------ the link's side
+
+    def on_attitude(self, t_fc_ms: int, roll_rad: float, pitch_rad: float, yaw_rad: float, t_arrival_host_s: float | None = None) -> None:
+        """An ATTITUDE message, just arrived. Non-finite roll/pitch and samples not newer than the last
+        are dropped (counted): a repeated or spoiled stream must not be interpolated."""
+        now = self._arrival(t_arrival_host_s)
+        t = t_fc_ms * 1e-3
+        with self._new_data:
+            self.version += 1
+            self._sync.add_arrival(t, now)
+            if not (math.isfinite(roll_rad) and math.isfinite(pitch_rad)) or (self._t_fc and t <= self._t_fc[-1]):
+                self.counters["attitude_rejected"] += 1
+                return
+            self.counters["attitude"] += 1
+            self._t_fc.append(t)
+            self._rpy.append((roll_rad, pitch_rad, yaw_rad if math.isfinite(yaw_rad) else math.nan))
+            cut = bisect.bisect_left(self._t_fc, t - self.options.history_s)
+            if cut > 64:  # trim in batches: list.pop(0) per sample would be quadratic
+                del self._t_fc[:cut], self._rpy[:cut]
+            self._new_data.notify_all()
+
+    def on_range(self, t_fc_ms: int, range_m: float | None, t_arrival_host_s: float | None = None) -> None:
+        """A downward rangefinder reading (None: out of range or no target)."""
+        with self._lock:
+            self.version += 1
+            self._range = (t_fc_ms * 1e-3, range_m if range_m is not None and math.isfinite(range_m) else None)
+
+    def on_height(self, t_fc_ms: int, height_m: float, t_arrival_host_s: float | None = None) -> None:
+        """The vehicle's height above home (take-off), metres, positive up."""
+        with self._lock:
+            self.version += 1
+            if math.isfinite(height_m):
+                self._height = (t_fc_ms * 1e-3, height_m)
+
+    def on_timesync(self, t_sent_host_s: float, t_fc_s: float, t_arrival_host_s: float | None = None) -> None:
+        """The answer to a TIMESYNC request that was sent at ``t_sent_host_s``."""
+        now = self._arrival(t_arrival_host_s)
+        with self._lock:
+            self.version += 1
+            self._sync.add_timesync(t_sent_host_s, t_fc_s, now)
+
+    def on_reboot(self) -> None:
+        """The boot clock went back: the flight controller restarted; forget its old clock and samples."""
+        with self._lock:
+            self.version += 1
+            self.counters["reboots"] += 1
+            self._sync.reset()
+            self._t_fc.clear()
+            self._rpy.clear()
+            self._range = None
+            self._height = None
+
+    # ------------------------------------------------------------------ the worker's side
+
+    def pair(self, t_exposure_host_s: float) -> Pairing:
+        """The flight controller's state at an exposure (see :class:`Pairing`)."""
+        with self._lock:
+            return self._pair_locked(t_exposure_host_s)
+
+    def _pair_locked(self, t_exposure_host_s: float) -> Pairing:
+        v = self.version
+        offset = self._sync.offset_s()
+        if offset is None or not self._t_fc:
+            return Pairing("missing", v)
+        t = t_exposure_host_s + offset
+        i = bisect.bisect_left(self._t_fc, t)
+        if i == len(self._t_fc):
+            return Pairing("wait", v)
+        if self._t_fc[i] == t:
+            roll, pitch, yaw = self._rpy[i]
+        else:
+            if i == 0 or self._t_fc[i] - self._t_fc[i - 1] > self.options.max_attitude_gap_s:
+                return Pairing("stale", v)
+            t0, t1 = self._t_fc[i - 1], self._t_fc[i]
+            w = (t - t0) / (t1 - t0)
+            (r0, p0, y0), (r1, p1, y1) = self._rpy[i - 1], self._rpy[i]
+            roll = r0 + w * (r1 - r0)
+            pitch = p0 + w * (p1 - p0)
+            yaw = y0 + w * math.remainder(y1 - y0, math.tau)
+            yaw = math.remainder(yaw, math.tau)
+        range_m = height_m = None
+        if self._range is not None and abs(t - self._range[0]) <= self.options.range_max_age_s:
+            range_m = self._range[1]
+        if self._height is not None and abs(t - self._height[0]) <= self.options.height_max_age_s:
+            height_m = self._height[1]
+        return Pairing("paired", v, roll, pitch, yaw, range_m, height_m)
+
+    def wait_for_new_data(self, timeout_s: float) -> None:
+        """Block until the next ATTITUDE arrives or ``timeout_s`` of real time passes."""
+        with self._new_data:
+            self._new_data.wait(timeout_s)
+
+
+def wait_for_pairing(state: FlightControllerState, t_exposure_host_s: float, *, lockstep_wait_s: float = 0.05) -> Pairing:
+    """Pair an exposure, waiting for the ATTITUDE that follows it.
+
+    In real time the wait ends ``attitude_wait_s`` after the exposure on the host clock. On a lockstep
+    clock the host clock stands still while the worker waits, so the wait ends when the sample arrives
+    or after ``lockstep_wait_s`` of real time (the flight controller has sent everything up to the
+    frame's arrival by then; a longer silence is a fault). A frame still waiting at the end is
+    ``stale``.
+    """
+    deadline = t_exposure_host_s + state.options.attitude_wait_s
+    waited = 0.0
+    step = 0.005
+    while True:
+        p = state.pair(t_exposure_host_s)
+        if p.status != "wait":
+            return p
+        if state.clock.realtime:
+            left = deadline - state.clock.now_s()
+            if left <= 0:
+                return Pairing("stale", p.fc_version)
+            state.wait_for_new_data(min(left, step * 4))
+        else:
+            if waited >= lockstep_wait_s:
+                return Pairing("stale", p.fc_version)
+            state.wait_for_new_data(step)
+            waited += step

@@ -1,0 +1,157 @@
+"""YAML to frozen dataclasses, strictly.
+
+Every dataclass field is a key; its type annotation is the expected type and its metadata (set by
+:func:`mavvo.options.bounded`) may carry bounds (``ge``, ``gt``, ``le``, ``lt``) and a one-line ``help``. An unknown key, a wrong type or a value
+out of range is a :class:`ConfigError` that names the source, the key path and what was expected::
+
+    sim/scenarios/hover.yaml: trajectory.altitude_m: expected a number > 0, got -3
+
+Supported field types: bool, int, float, str, ``Literal[...]``, ``tuple[T, ...]``, fixed tuples,
+``T | None``, nested dataclasses (also in tuples), and unions of dataclasses told apart by a ``type``
+key that matches each class's ``TYPE`` class attribute.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from pathlib import Path
+from typing import Any, Literal, TypeVar, Union, get_args, get_origin
+
+import yaml
+
+from mavvo.errors import ConfigError
+from mavvo.options import BOUNDS
+
+T = TypeVar("T")
+
+def load_yaml(path: str | Path) -> dict[str, Any]:
+    """Read a YAML mapping; ConfigError naming the file if it is missing, unparsable or not a mapping."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as e:
+        raise ConfigError(f"{p}: cannot read: {e.strerror or e}") from e
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{p}: not valid YAML: {e}") from e
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{p}: expected a mapping of keys at the top level, got {type(data).__name__}")
+    return data
+
+
+def build(cls: type[T], data: Any, source: str, path: str = "") -> T:
+    """Instantiate dataclass ``cls`` from a mapping, checking every key against its fields."""
+    return _convert(cls, data, source, path)
+
+
+def _fail(source: str, path: str, expected: str, value: Any) -> ConfigError:
+    where = f"{source}: {path}" if path else source
+    return ConfigError(f"{where}: expected {expected}, got {value!r}")
+
+
+def _join(path: str, key: str) -> str:
+    return f"{path}.{key}" if path else key
+
+
+def _build_dataclass(cls: type, data: Any, source: str, path: str) -> Any:
+    if not isinstance(data, dict):
+        raise _fail(source, path, f"a mapping of {cls.__name__} keys", data)
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    unknown = [k for k in data if k not in fields]
+    if unknown:
+        raise ConfigError(
+            f"{source}: {_join(path, str(unknown[0]))}: unknown key; expected one of {', '.join(sorted(fields))}"
+        )
+    kwargs = {}
+    for name, f in fields.items():
+        key_path = _join(path, name)
+        if name not in data:
+            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                raise ConfigError(f"{source}: {key_path}: required key is missing")
+            continue
+        value = _convert(hints[name], data[name], source, key_path)
+        _check_bounds(f.metadata, value, source, key_path)
+        kwargs[name] = value
+    try:
+        return cls(**kwargs)
+    except (ValueError, TypeError) as e:
+        raise ConfigError(f"{source}: {path or cls.__name__}: {e}") from e
+
+
+def _convert_tagged(classes: list[type], value: Any, source: str, path: str) -> Any:
+    """A union of dataclasses told apart by the mapping's ``type`` key (each class's ``TYPE``)."""
+    by_tag = {c.TYPE: c for c in classes}
+    if not isinstance(value, dict):
+        raise _fail(source, path, "a mapping with a 'type' key", value)
+    tag = value.get("type")
+    if tag not in by_tag:
+        raise _fail(source, _join(path, "type"), "one of " + ", ".join(repr(t) for t in by_tag), tag)
+    return _build_dataclass(by_tag[tag], {k: v for k, v in value.items() if k != "type"}, source, path)
+
+
+def _check_bounds(meta: Any, value: Any, source: str, path: str) -> None:
+    items = value if isinstance(value, tuple) else (value,)
+    for name, op in BOUNDS.items():
+        if name not in meta:
+            continue
+        b = meta[name]
+        for v in items:
+            if isinstance(v, (int, float)) and not isinstance(v, bool):
+                ok = {"ge": v >= b, "gt": v > b, "le": v <= b, "lt": v < b}[name]
+                if not ok:
+                    raise _fail(source, path, f"a number {op} {b}", value)
+
+
+def _convert(tp: Any, value: Any, source: str, path: str) -> Any:
+    origin = get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        return _build_dataclass(tp, value, source, path)
+    if origin in (Union, types.UnionType):
+        args = get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        rest = [a for a in args if a is not type(None)]
+        if len(rest) == 1:
+            return _convert(rest[0], value, source, path)
+        if all(dataclasses.is_dataclass(a) and hasattr(a, "TYPE") for a in rest):
+            return _convert_tagged(rest, value, source, path)
+        raise TypeError(f"config: unsupported union {tp}")
+    if origin is Literal:
+        choices = get_args(tp)
+        if value not in choices or isinstance(value, bool) != isinstance(choices[0], bool):
+            raise _fail(source, path, "one of " + ", ".join(repr(c) for c in choices), value)
+        return value
+    if origin is tuple:
+        args = get_args(tp)
+        if not isinstance(value, (list, tuple)):
+            raise _fail(source, path, "a list", value)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(args[0], v, source, f"{path}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise _fail(source, path, f"a list of {len(args)} values", value)
+        return tuple(_convert(a, v, source, f"{path}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise _fail(source, path, "true or false", value)
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise _fail(source, path, "an integer", value)
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise _fail(source, path, "a finite number", value)
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise _fail(source, path, "a string", value)
+        return value
+    raise TypeError(f"config: unsupported field type {tp!r} at {path}")
+

@@ -1,0 +1,1 @@
+"""Evaluation: trajectory error metrics (pure) and the files an evaluation leaves (TUM, JSON, PNG)."""

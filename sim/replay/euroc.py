@@ -1,0 +1,201 @@
+"""A EuRoC/ASL dataset folder as a replay input.
+
+Read: ``mav0/cam0`` (data.csv, data/*.png, sensor.yaml with ``T_BS``, intrinsics, radial-tangential
+distortion, resolution, rate), ``mav0/imu0/data.csv`` (gyro rad/s, accelerometer m/s^2) and, when there,
+``mav0/state_groundtruth_estimate0/data.csv``. The host clock is the dataset's (nanoseconds / 1e9).
+
+Frames (mavvo's conventions, see docs/replay.md):
+- the body frame is the IMU's turned so that z points down at the start (the mean accelerometer over
+  the first second) and x along the camera's view (or the image's up for a camera looking down);
+  ``mounting.R_body_cam`` and ``lever_arm_m`` follow from ``T_BS``;
+- roll/pitch come from the IMU through an attitude filter (gyro integration, tilt pulled toward the
+  accelerometer's gravity with gain ``ATTITUDE_GAIN``; what a flight controller computes), or from the
+  ground truth plus Gaussian noise; yaw is the filter's (it drifts, as a magnetometer-less one does);
+- height above the start comes from the ground truth with barometer-like noise (the datasets have no
+  barometer or rangefinder), so ``odometry.scale.source`` defaults to ``altitude``.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import yaml
+
+from mavvo.errors import ConfigError
+from mavvo.geometry.frames import R_from_quat_wxyz, euler321_from_R, quat_wxyz_from_R, skew
+from mavvo.service.settings import parse_config
+from sim.replay.fc_logs import FcSeries, series_messages
+from sim.evaluation.metrics import PoseSeries
+from sim.replay.recording import merge
+from sim.replay.driver import ReplayFrame, ReplayInput, image_loader
+
+__all__ = ["load_euroc", "read_euroc_groundtruth"]
+
+ATTITUDE_GAIN = 0.1  # rad/s per rad of tilt error: the filter's pull toward the accelerometer
+ATTITUDE_RATE_HZ = 100.0
+HEIGHT_RATE_HZ = 10.0
+HEIGHT_NOISE_M = 0.1
+_D = np.diag([1.0, -1.0, -1.0])  # the datasets' z-up world to mavvo's level frame (z down)
+
+
+def _rows(path: Path) -> Iterator[tuple[int, list[str]]]:
+    """(line number, fields) of a dataset CSV, comments and blank lines skipped."""
+    if not path.is_file():
+        raise ConfigError(f"{path}: missing (expected a EuRoC/ASL dataset file)")
+    with path.open(newline="", encoding="utf-8") as f:
+        for n, row in enumerate(csv.reader(f), 1):
+            if row and not row[0].startswith("#"):
+                yield n, row
+
+
+def _csv(path: Path, min_columns: int) -> np.ndarray:
+    rows = []
+    for n, row in _rows(path):
+        try:
+            values = [float(x) for x in row[:min_columns]]
+        except ValueError:
+            raise ConfigError(f"{path}:{n}: expected {min_columns} numbers, got {','.join(row)!r}") from None
+        if len(values) < min_columns:
+            raise ConfigError(f"{path}:{n}: expected {min_columns} columns, got {len(row)}")
+        rows.append(values)
+    return np.array(rows).reshape(-1, min_columns)
+
+
+def _frame_rows(path: Path) -> list[tuple[str, str]]:
+    out = []
+    for n, row in _rows(path):
+        if len(row) < 2 or not row[0].strip().isdigit():
+            raise ConfigError(f"{path}:{n}: expected 'timestamp_ns,filename', got {','.join(row)!r}")
+        out.append((row[0].strip(), row[1].strip()))
+    return out
+
+
+def _sensor_yaml(path: Path) -> dict[str, Any]:
+    try:
+        text = path.read_text(encoding="utf-8")
+        data = yaml.safe_load("\n".join(line for line in text.splitlines() if not line.startswith("%")))  # OpenCV's %YAML:1.0
+    except (OSError, yaml.YAMLError) as e:
+        raise ConfigError(f"{path}: cannot read: {e}") from e
+    if not isinstance(data, dict) or "T_BS" not in data:
+        raise ConfigError(f"{path}: expected a EuRoC sensor.yaml with T_BS, got {type(data).__name__}")
+    return data
+
+
+def read_euroc_groundtruth(path: Path) -> PoseSeries:
+    """The ground truth of the IMU (``p_RS_R``, ``q_RS`` wxyz) as a series in mavvo's level frame."""
+    a = _csv(path, 8)
+    R = np.array([_D @ R_from_quat_wxyz(q) for q in a[:, 4:8]])
+    return PoseSeries.from_rotations(a[:, 0] * 1e-9, a[:, 1:4] @ _D.T, R)
+
+
+def _body_from_imu(acc_imu: np.ndarray, R_imu_cam: np.ndarray) -> np.ndarray:
+    """R_imu_body: body z down (against the mean specific force), x along the view (see the module docstring)."""
+    z = -acc_imu / np.linalg.norm(acc_imu)
+    x = R_imu_cam[:, 2] if abs(R_imu_cam[:, 2] @ z) < 0.9 else -R_imu_cam[:, 1]
+    x = x - (x @ z) * z
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(z, x), z])
+
+
+def _exp(w: np.ndarray) -> np.ndarray:
+    th = float(np.linalg.norm(w))
+    K = skew(w)
+    if th < 1e-9:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * K @ K
+
+
+def imu_attitude(imu: np.ndarray, R_imu_body: np.ndarray, gain: float = ATTITUDE_GAIN) -> np.ndarray:
+    """(N,4) t_s, roll, pitch, yaw of the body from (M,7) IMU rows (t_ns, gyro xyz, accel xyz): a
+    complementary filter (gyro integration, tilt pulled toward the accelerometer), at ATTITUDE_RATE_HZ."""
+    t = imu[:, 0] * 1e-9
+    R = R_imu_body.T.copy()  # R_lvl_imu at the start: the body frame is level there by its definition
+    out = []
+    next_t = t[0]
+    for i in range(1, len(t)):
+        dt = t[i] - t[i - 1]
+        u_meas = imu[i, 4:7] / max(np.linalg.norm(imu[i, 4:7]), 1e-9)
+        u_est = R.T @ np.array([0.0, 0.0, -1.0])
+        R = R @ _exp((imu[i, 1:4] + gain * np.cross(u_meas, u_est)) * dt)
+        if t[i] >= next_t:
+            U, _, Vt = np.linalg.svd(R)
+            R = U @ Vt
+            out.append((t[i], *euler321_from_R(R @ R_imu_body)))
+            next_t = t[i] + 1.0 / ATTITUDE_RATE_HZ
+    return np.array(out)
+
+
+def load_euroc(root: Path, overrides: dict[str, Any], *, attitude: str = "imu", attitude_noise_deg: float = 0.1, seed: int = 0) -> ReplayInput:
+    """The dataset at ``root`` (the folder holding mav0, or mav0 itself); ``overrides``: settings that
+    replace the ones derived from the dataset."""
+    mav0 = root if root.name == "mav0" else root / "mav0"
+    cam = _sensor_yaml(mav0 / "cam0" / "sensor.yaml")
+    try:
+        T_imu_cam = np.array(cam["T_BS"]["data"], dtype=float).reshape(4, 4)
+        fu, fv, cu, cv = (float(x) for x in cam["intrinsics"])
+        width, height = (int(x) for x in cam["resolution"])
+        dist = tuple(float(x) for x in cam.get("distortion_coefficients", ()))
+        rate = float(cam.get("rate_hz", 20.0))
+    except (KeyError, TypeError, ValueError) as e:
+        raise ConfigError(f"{mav0 / 'cam0' / 'sensor.yaml'}: expected T_BS (4x4), intrinsics [fu, fv, cu, cv], resolution [w, h]: {e}") from e
+    if cam.get("distortion_model", "radial-tangential") != "radial-tangential":
+        raise ConfigError(f"{mav0 / 'cam0' / 'sensor.yaml'}: distortion_model: expected radial-tangential, got {cam.get('distortion_model')!r}")
+    imu = _csv(mav0 / "imu0" / "data.csv", 7)
+    if len(imu) < 10:
+        raise ConfigError(f"{mav0 / 'imu0' / 'data.csv'}: expected IMU samples, found {len(imu)}")
+    R_imu_cam, t_imu_cam = T_imu_cam[:3, :3], T_imu_cam[:3, 3]
+    first_s = imu[:, 0] * 1e-9 <= imu[0, 0] * 1e-9 + 1.0
+    R_imu_body = _body_from_imu(imu[first_s, 4:7].mean(axis=0), R_imu_cam)
+    R_body_cam = R_imu_body.T @ R_imu_cam
+    lever = R_imu_body.T @ t_imu_cam
+    data = merge({
+        "camera": {"source": "euroc", "width_px": width, "height_px": height, "rate_hz": rate, "fx_px": fu, "fy_px": fv, "cx_px": cu, "cy_px": cv,
+                   "model": "pinhole", "distortion": list(dist)},
+        "mounting": {"R_body_cam": R_body_cam.round(9).tolist(), "lever_arm_m": lever.round(6).tolist()},
+        "odometry": {"scale": {"source": "altitude"}},
+    }, overrides)
+    config = parse_config(data, f"{mav0} (with --config)")
+
+    gt_path = mav0 / "state_groundtruth_estimate0" / "data.csv"
+    gt = _csv(gt_path, 8) if gt_path.is_file() else None
+    rng = np.random.default_rng(seed)
+    notes: dict[str, Any] = {"attitude": attitude}
+    if attitude == "truth":
+        if gt is None:
+            raise ConfigError(f"{gt_path}: missing; --attitude truth needs the ground truth")
+        att = []
+        for row in gt[:: max(int(round(len(gt) / ((gt[-1, 0] - gt[0, 0]) * 1e-9 * ATTITUDE_RATE_HZ))), 1)]:
+            r, p, y = euler321_from_R(_D @ R_from_quat_wxyz(row[4:8]) @ R_imu_body)
+            n = np.radians(attitude_noise_deg) * rng.standard_normal(2)
+            att.append((row[0] * 1e-9, r + n[0], p + n[1], y))
+        attitude_rows = np.array(att)
+        notes["attitude_noise_deg"] = attitude_noise_deg
+    else:
+        attitude_rows = imu_attitude(imu, R_imu_body)
+    heights = np.zeros((0, 2))
+    reference = None
+    if gt is not None:
+        t_gt = gt[:, 0] * 1e-9
+        step = max(int(round(len(gt) / ((t_gt[-1] - t_gt[0]) * HEIGHT_RATE_HZ))), 1)
+        z = gt[::step, 3]
+        heights = np.column_stack([t_gt[::step], z - z[0] + HEIGHT_NOISE_M * rng.standard_normal(len(z))])
+        R_lvl_imu = np.array([_D @ R_from_quat_wxyz(q) for q in gt[:, 4:8]])
+        p_cam = gt[:, 1:4] @ _D.T + R_lvl_imu @ t_imu_cam  # the camera centre: what mavvo estimates
+        reference = PoseSeries(t_gt, p_cam, np.array([quat_wxyz_from_R(R @ R_imu_body) for R in R_lvl_imu]))
+    series = FcSeries(str(root), "euroc", attitude_rows, np.zeros((0, 2)), heights)
+    frames_csv = _frame_rows(mav0 / "cam0" / "data.csv")
+    problems: list[str] = []
+    frames = []
+    gap = config.timing.max_attitude_gap_s
+    for k, (t_ns, name) in enumerate(frames_csv):
+        path = mav0 / "cam0" / "data" / name
+        if not path.is_file():
+            problems.append(f"{path}: missing; the frames after it are not replayed")
+            break
+        t = int(t_ns) * 1e-9
+        frames.append(ReplayFrame(k, t, t + gap, None, image_loader(path)))
+    return ReplayInput("euroc", str(root), config, series_messages(series, boot_epoch_s=float(np.floor(imu[0, 0] * 1e-9))), frames, reference,
+                       "ground truth" if reference is not None else "", notes=notes, problems=problems)

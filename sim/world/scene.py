@@ -1,0 +1,143 @@
+"""The simulated world: a textured ground plane (z = 0 in NED) and optional raised textured boxes.
+
+The ground is textured by several periodic layers, each 8 times coarser than the one before, so that
+a camera finds corners at every altitude from 2 m to well above 100 m; the renderer cross-fades the
+layers by the ground distance of each pixel, as mip-mapping does. Every texture is procedural and
+seeded: the same spec gives the same world, byte for byte.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from mavvo.options import bounded
+
+TextureKind = Literal["corners", "checker", "flat"]
+
+_TILE_PX = 1024
+_LAYER_RATIO = 8.0
+_BOX_TILE_PX = 256
+_CHECKER_SQUARE_PX = 64
+
+
+@dataclass(frozen=True)
+class BoxSpec:
+    """A raised box standing on the ground; ``length_m`` runs north before ``yaw_deg`` turns it."""
+
+    north_m: float = bounded(0.0, "centre of the footprint, north of the origin")
+    east_m: float = bounded(0.0, "centre of the footprint, east of the origin")
+    length_m: float = bounded(4.0, "footprint along north (before yaw)", gt=0)
+    width_m: float = bounded(4.0, "footprint along east (before yaw)", gt=0)
+    height_m: float = bounded(3.0, "height above the ground", gt=0)
+    yaw_deg: float = bounded(0.0, "rotation of the footprint about down")
+
+
+@dataclass(frozen=True)
+class WorldSpec:
+    """What the ground looks like and what stands on it."""
+
+    texture: TextureKind = bounded("corners", "corners: multi-scale corners; checker: a checkerboard; flat: featureless grey")
+    texture_seed: int = bounded(0, "seed of the procedural texture", ge=0)
+    finest_m_per_px: float = bounded(0.004, "ground size of one texel of the finest layer", gt=0)
+    layers: int = bounded(5, "number of texture layers, each 8x coarser", ge=1, le=8)
+    checker_size_m: float = bounded(1.0, "side of one checkerboard square", gt=0)
+    boxes: tuple[BoxSpec, ...] = field(default=(), metadata={"help": "raised textured boxes"})
+
+
+@dataclass(frozen=True)
+class TextureLayer:
+    """One periodic ground texture: ``tile`` (T,T) uint8 covering ``T * m_per_px`` metres each way.
+
+    Texel (col, row) is centred at north = -(row + 0.5) * m_per_px, east = (col + 0.5) * m_per_px,
+    modulo the period: a top view with north up.
+    """
+
+    tile: np.ndarray
+    m_per_px: float
+
+
+@dataclass(frozen=True)
+class Box:
+    """A box ready to draw: ``corners_ned`` (8,3), bottom four then top four; ``faces`` index quads
+    (top and four sides, corners in order around the face); ``texture`` (S,S) uint8."""
+
+    corners_ned: np.ndarray
+    texture: np.ndarray
+
+    faces: tuple[tuple[int, int, int, int], ...] = ((4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7))
+
+
+@dataclass(frozen=True)
+class World:
+    """The built world: ground layers, finest first, and boxes."""
+
+    layers: tuple[TextureLayer, ...]
+    boxes: tuple[Box, ...]
+    spec: WorldSpec
+
+    @classmethod
+    def build(cls, spec: WorldSpec = WorldSpec()) -> "World":
+        rng = np.random.default_rng(spec.texture_seed)
+        if spec.texture == "checker":
+            tile = checker_tile(_CHECKER_SQUARE_PX)
+            layers = (TextureLayer(tile, spec.checker_size_m / _CHECKER_SQUARE_PX),)
+        elif spec.texture == "flat":
+            layers = (TextureLayer(np.full((8, 8), 128, np.uint8), spec.finest_m_per_px),)
+        else:
+            layers = tuple(
+                TextureLayer(corner_tile(_TILE_PX, rng), spec.finest_m_per_px * _LAYER_RATIO**k) for k in range(spec.layers)
+            )
+        boxes = tuple(_build_box(b, np.random.default_rng([spec.texture_seed, i])) for i, b in enumerate(spec.boxes))
+        return cls(layers, boxes, spec)
+
+
+def corner_tile(size_px: int, rng: np.random.Generator) -> np.ndarray:
+    """A periodic (size,size) uint8 texture of random rectangles and triangles of 6 to 64 texels.
+
+    Shapes that cross an edge are drawn again on the opposite side, so the tile repeats seamlessly.
+    """
+    img = np.full((size_px, size_px), 128, np.uint8)
+    mean_area = 700.0
+    n = int(1.6 * size_px * size_px / mean_area)
+    sizes = np.exp(rng.uniform(np.log(6.0), np.log(64.0), n))
+    centres = rng.uniform(0, size_px, (n, 2))
+    angles = rng.uniform(0, np.pi, n)
+    aspect = rng.uniform(0.4, 1.0, n)
+    levels = rng.integers(0, 256, n)
+    triangle = rng.random(n) < 0.3
+    unit_square = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]])
+    unit_triangle = np.array([[-0.5, 0.4], [0.5, 0.4], [0.0, -0.5]])
+    shifts = [(dx, dy) for dx in (-size_px, 0, size_px) for dy in (-size_px, 0, size_px)]
+    for i in range(n):
+        shape = unit_triangle if triangle[i] else unit_square
+        c, s = np.cos(angles[i]), np.sin(angles[i])
+        pts = (shape * [sizes[i], sizes[i] * aspect[i]]) @ np.array([[c, s], [-s, c]]) + centres[i]
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        for dx, dy in shifts:
+            if hi[0] + dx < 0 or lo[0] + dx >= size_px or hi[1] + dy < 0 or lo[1] + dy >= size_px:
+                continue
+            q = np.round((pts + [dx, dy]) * 16).astype(np.int32)
+            cv2.fillConvexPoly(img, q, int(levels[i]), lineType=cv2.LINE_AA, shift=4)
+    return img
+
+
+def checker_tile(square_px: int) -> np.ndarray:
+    """A (2s,2s) uint8 tile of a 2x2 checkerboard, dark top-left: X-corners at multiples of s."""
+    tile = np.full((2 * square_px, 2 * square_px), 230, np.uint8)
+    tile[:square_px, :square_px] = 25
+    tile[square_px:, square_px:] = 25
+    return tile
+
+
+def _build_box(b: BoxSpec, rng: np.random.Generator) -> Box:
+    yaw = np.radians(b.yaw_deg)
+    c, s = np.cos(yaw), np.sin(yaw)
+    half = np.array([[1, -1], [1, 1], [-1, 1], [-1, -1]]) * [b.length_m / 2, b.width_m / 2]
+    ne = half @ np.array([[c, s], [-s, c]]) + [b.north_m, b.east_m]
+    bottom = np.column_stack([ne, np.zeros(4)])
+    top = np.column_stack([ne, np.full(4, -b.height_m)])
+    return Box(np.vstack([bottom, top]), corner_tile(_BOX_TILE_PX, rng))

@@ -1,0 +1,179 @@
+"""The layers of mavvo and sim: every import points down, and each outside library has one importer.
+
+Layers, lowest first (``docs/design.md``): the shared vocabulary (``mavvo.errors``, ``mavvo.options``,
+``mavvo.types``), ``mavvo.geometry``, ``mavvo.estimation``, ``mavvo.odometry``, ``mavvo.service``, then
+the simulator's ``sim.evaluation``, ``sim.world``, ``sim.flight_controller``, ``sim.scenarios``,
+``sim.replay``, and at the top the command line (``mavvo.cli``, ``mavvo.commands``). The commands
+may import ``sim``, but only inside the function of a command that needs it, so that ``mavvo run``
+never loads the simulator.
+"""
+
+from __future__ import annotations
+
+import ast
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+LAYERS = (
+    ("mavvo.errors", "mavvo.options", "mavvo.types", "mavvo"),
+    ("mavvo.geometry",),
+    ("mavvo.estimation",),
+    ("mavvo.odometry",),
+    ("mavvo.service",),
+    ("sim.evaluation", "sim"),
+    ("sim.world",),
+    ("sim.flight_controller",),
+    ("sim.scenarios",),
+    ("sim.replay",),
+    ("mavvo.cli", "mavvo.commands", "mavvo.__main__"),
+)
+# Outside libraries with exactly one importer.
+SOLE_IMPORTER = {"pymavlink": "mavvo.service.mavlink", "filterpy": "mavvo.odometry.filter"}
+
+
+@dataclass(frozen=True)
+class Edge:
+    importer: str
+    imported: str
+    line: int
+    in_function: bool
+
+
+def layer_of(module: str) -> int:
+    """Index in LAYERS of the longest prefix that names ``module``'s layer."""
+    best, rank = -1, -1
+    for i, names in enumerate(LAYERS):
+        for name in names:
+            if (module == name or module.startswith(name + ".")) and len(name) > best:
+                best, rank = len(name), i
+    if rank < 0:
+        raise AssertionError(f"{module}: in no layer; add it to LAYERS and docs/design.md")
+    return rank
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def imports_of(source: str, importer: str, package: bool) -> list[Edge]:
+    """Every absolute or relative import in ``source``, with whether it sits inside a function."""
+    tree = ast.parse(source)
+    edges: list[Edge] = []
+
+    def visit(node: ast.AST, in_function: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            inner = in_function or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))
+            if isinstance(child, ast.Import):
+                edges.extend(Edge(importer, a.name, child.lineno, in_function) for a in child.names)
+            elif isinstance(child, ast.ImportFrom):
+                if child.level:
+                    base = importer.split(".")[: len(importer.split(".")) - child.level + (1 if package else 0)]
+                    mod = ".".join(base + ([child.module] if child.module else []))
+                else:
+                    mod = child.module or ""
+                edges.append(Edge(importer, mod, child.lineno, in_function))
+            visit(child, inner)
+
+    visit(tree, False)
+    return edges
+
+
+def violations(edges: list[Edge]) -> list[str]:
+    """What breaks the layering: an upward import, sim imported by mavvo outside a command's function,
+    or a second importer of pymavlink or filterpy."""
+    out = []
+    for e in edges:
+        top = e.imported.split(".")[0]
+        if top in SOLE_IMPORTER:
+            if e.importer != SOLE_IMPORTER[top]:
+                out.append(f"{e.importer}:{e.line} imports {top}; only {SOLE_IMPORTER[top]} may")
+            continue
+        if top not in ("mavvo", "sim"):
+            continue
+        if e.importer.startswith("mavvo") and top == "sim":
+            if not (e.importer.startswith("mavvo.commands.") and e.in_function):
+                out.append(f"{e.importer}:{e.line} imports {e.imported}: mavvo loads sim only inside a command's function")
+            continue
+        if layer_of(e.imported) > layer_of(e.importer):
+            out.append(f"{e.importer}:{e.line} imports {e.imported}, a higher layer")
+    return out
+
+
+def all_modules() -> dict[str, Path]:
+    paths = sorted((ROOT / "mavvo").rglob("*.py")) + sorted((ROOT / "sim").rglob("*.py"))
+    return {module_name(p): p for p in paths}
+
+
+def all_edges() -> list[Edge]:
+    return [e for name, p in all_modules().items() for e in imports_of(p.read_text(encoding="utf-8"), name, p.name == "__init__.py")]
+
+
+def test_every_import_points_down() -> None:
+    assert violations(all_edges()) == []
+
+
+def test_no_import_cycles_among_modules() -> None:
+    modules = all_modules()
+    graph: dict[str, set[str]] = {m: set() for m in modules}
+    for e in all_edges():
+        if not e.in_function and e.imported in modules and e.imported != e.importer:
+            graph[e.importer].add(e.imported)
+    # A package's __init__ importing its own submodules is not a cycle of the layering.
+    for m in graph:
+        graph[m] = {d for d in graph[m] if not d.startswith(m + ".")}
+    done: set[str] = set()
+
+    def visit(m: str, stack: list[str]) -> None:
+        if m in stack:
+            raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(m):] + [m]))
+        if m in done:
+            return
+        for d in sorted(graph[m]):
+            visit(d, stack + [m])
+        done.add(m)
+
+    for m in sorted(graph):
+        visit(m, [])
+
+
+def test_every_module_says_its_job_in_its_first_docstring_line() -> None:
+    missing = []
+    for name, p in all_modules().items():
+        doc = ast.get_docstring(ast.parse(p.read_text(encoding="utf-8")))
+        if not doc or not doc.splitlines()[0].strip():
+            missing.append(name)
+    assert missing == []
+
+
+@pytest.mark.parametrize(
+    "importer, source, package, expected",
+    [
+        ("mavvo.geometry.frames", "from mavvo.odometry.filter import wrap_angle\n", False, "a higher layer"),
+        ("mavvo.service.daemon", "import sim.world.scene\n", False, "mavvo loads sim only"),
+        ("mavvo.commands.run", "from sim.world.camera import x\n", False, "mavvo loads sim only"),
+        ("sim.world.camera", "from pymavlink import mavutil\n", False, "only mavvo.service.mavlink may"),
+        ("mavvo.service.link", "import filterpy.kalman\n", False, "only mavvo.odometry.filter may"),
+        ("mavvo.geometry.essential", "from ..odometry import pipeline\n", False, "a higher layer"),
+        ("mavvo.odometry", "from .pipeline import Odometry\nfrom ..service import daemon\n", True, "a higher layer"),
+    ],
+)
+def test_the_checker_finds_each_kind_of_violation(importer: str, source: str, package: bool, expected: str) -> None:
+    found = violations(imports_of(source, importer, package))
+    assert len(found) == 1 and expected in found[0]
+
+
+def test_the_checker_allows_what_the_layering_allows() -> None:
+    allowed = [
+        ("mavvo.commands.sim", "def main():\n    from sim.scenarios.loader import load_scenario\n", False),
+        ("sim.replay.driver", "from mavvo.service.daemon import Daemon\nfrom sim.world.clock import LockstepClock\n", False),
+        ("mavvo.odometry.pipeline", "from mavvo.geometry.frames import R_lvl_cam\nfrom mavvo.types import PairedFrame\n", False),
+    ]
+    for importer, source, package in allowed:
+        assert violations(imports_of(source, importer, package)) == []
