@@ -96,6 +96,9 @@ class PairedFrame:
             there is no valid reading (out of range, stale, no sensor).
         height_m: height of the vehicle above the ground it took off from (the flight controller's
             altitude, positive up), or None when unknown.
+        fc_position_ned_m: (3,) the flight controller's own estimate of the vehicle's position at the
+            exposure (LOCAL_POSITION_NED, its EKF's belief), or None: where tracking is anchored when
+            it starts or restarts, so the EKF sees no step.
     """
 
     image: np.ndarray
@@ -106,6 +109,7 @@ class PairedFrame:
     yaw_rad: float = float("nan")
     range_m: float | None = None
     height_m: float | None = None
+    fc_position_ned_m: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -137,8 +141,7 @@ class VoDiagnostics:
 class PoseEstimate:
     """The odometry's output for one frame: the camera's pose in the world frame, filtered.
 
-    World frame: NED with north from the flight controller's heading at initialisation; the origin is
-    the camera's position at initialisation (or the anchor of the last re-initialisation).
+    World frame: the flight controller's local NED frame (see :mod:`mavvo.odometry.pipeline`).
 
     Attributes:
         t_exposure_s: the frame's exposure time (same clock as :class:`PairedFrame`).
@@ -151,8 +154,11 @@ class PoseEstimate:
         v_covariance: (3,3) of the velocity, (m/s)^2.
         quality: 1..100 (higher is better), -1 when failed (then the position is the filter's
             prediction and must not be sent as a measurement).
-        reset_counter: bumped once per discontinuity of the world frame (re-initialisation), mod 256.
+        reset_counter: bumped once per change of the pose that is not motion (re-initialisation,
+            filter restart), mod 256.
         diagnostics: :class:`VoDiagnostics`.
+        drift_m: 1-sigma long-term position error since the origin (NAMED_VALUE_FLOAT ``VO_DRIFT``), at
+            least the covariance's horizontal sigma.
     """
 
     t_exposure_s: float
@@ -165,3 +171,4 @@ class PoseEstimate:
     quality: int
     reset_counter: int
     diagnostics: VoDiagnostics
+    drift_m: float = float("nan")

@@ -8,9 +8,8 @@ import numpy as np
 import pytest
 
 from mavvo.service import messages
-from mavvo.types import StateReason, VisionState
 from mavvo.geometry.frames import R_from_euler321
-from mavvo.types import PoseEstimate, VoDiagnostics
+from mavvo.types import PoseEstimate, StateReason, VisionState, VoDiagnostics
 
 
 def estimate(yaw_rad=0.0, v=(1.0, 0.0, 0.0), quality=80, reset=3):
@@ -76,3 +75,26 @@ def test_named_value_names_are_checked():
     assert messages.named_value_float(5, "VO_QUAL", 80)["name"] == b"VO_QUAL"
     with pytest.raises(ValueError, match="longer than 10"):
         messages.named_value_float(5, "VO_QUALITY_X", 1.0)
+
+
+def test_held_back_state_changes_never_hide_a_failure():
+    failed_then_tracking = [(VisionState.FAILED, StateReason.NO_FRAMES), (VisionState.TRACKING, StateReason.NONE)]
+    t = messages.statustext_merged(failed_then_tracking)
+    assert t["text"] == b"mavvo: failed (no_frames) then tracking" and t["severity"] == 2
+    # A single change, or one that only got better, is said as it is.
+    assert messages.statustext_merged([(VisionState.DEGRADED, StateReason.FEW_INLIERS)])["text"] == b"mavvo: degraded (few_inliers)"
+    got_worse = [(VisionState.DEGRADED, StateReason.FEW_INLIERS), (VisionState.FAILED, StateReason.TRACKING_LOST)]
+    assert messages.statustext_merged(got_worse) == messages.statustext(VisionState.FAILED, StateReason.TRACKING_LOST)
+
+
+def test_odometry_speaks_the_autopilots_dialect():
+    est = estimate()
+    ardupilot = messages.odometry(est, "ardupilot")
+    px4 = messages.odometry(est, "px4", "vio")
+    # MAV_FRAME: 20 LOCAL_FRD (ArduPilot), 1 LOCAL_NED (PX4: mavvo's frame is north-aligned); 12 BODY_FRD.
+    assert (ardupilot["frame_id"], ardupilot["child_frame_id"], ardupilot["estimator_type"]) == (20, 12, 2)
+    assert (px4["frame_id"], px4["child_frame_id"], px4["estimator_type"]) == (1, 12, 3)
+    # MAV_AUTOPILOT: 12 PX4, 3 ArduPilot; configured beats detected.
+    assert messages.autopilot_of(12, "auto") == "px4" and messages.autopilot_of(3, "auto") == "ardupilot"
+    assert messages.autopilot_of(None, "auto") == "ardupilot" and messages.autopilot_of(3, "px4") == "px4"
+    assert messages.odometry(estimate(quality=-1))["quality"] == -1  # the one sent when vision fails

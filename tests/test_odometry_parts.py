@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from mavvo.odometry.filter import FilterOptions, PoseFilter, wrap_angle
+from mavvo.odometry.filter import FilterOptions, PoseFilter, Update, wrap_angle
 from mavvo.geometry.frames import rot_z
 from mavvo.odometry.keyframes import Keyframe, KeyframeOptions, carry_depths, keyframe_reason
 from mavvo.odometry.scale import ScaleOptions, estimate_scale, ground_depth, scale_from_scene_depth, triangulate_unit
@@ -110,15 +110,15 @@ def test_filter_follows_constant_velocity_and_rejects_a_jump() -> None:
         t = 0.05 * k
         f.predict(t)
         # the yaw wraps through +-pi on the way
-        assert f.update(v * t + rng.normal(0, 0.02, 3), wrap_angle(3.1 + 0.2 * t), pos_sigma_m=0.02, yaw_sigma_rad=0.005)
+        assert f.update(v * t + rng.normal(0, 0.02, 3), wrap_angle(3.1 + 0.2 * t), pos_sigma_m=0.02, yaw_sigma_rad=0.005) == Update.FUSED
     np.testing.assert_allclose(f.velocity_ned_m_s, v, atol=0.05)
     assert abs(wrap_angle(f.yaw_rad - (3.1 + 0.2 * 5.0))) < 0.01
     p_before = f.position_ned_m
     f.predict(5.05)
-    assert not f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_sigma_m=0.02, yaw_sigma_rad=0.005)
+    assert f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_sigma_m=0.02, yaw_sigma_rad=0.005) == Update.REJECTED
     assert np.linalg.norm(f.position_ned_m - (p_before + 0.05 * v)) < 0.05  # coasted, not jumped
-    assert not f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_sigma_m=0.02, yaw_sigma_rad=0.005)
-    assert f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_sigma_m=0.02, yaw_sigma_rad=0.005)  # third: believed
+    assert f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_sigma_m=0.02, yaw_sigma_rad=0.005) == Update.REJECTED
+    assert f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_sigma_m=0.02, yaw_sigma_rad=0.005) == Update.RESTARTED  # third: believed
     np.testing.assert_allclose(f.position_ned_m, v * 5.05 + [10.0, 0, 0])
     assert np.all(np.linalg.eigvalsh(f.position_covariance) > 0)
 
@@ -140,5 +140,5 @@ def test_gate_uses_the_measurement_size():
     f.reset(0.0, np.zeros(3), 0.0, pos_sigma_m=0.01, yaw_sigma_rad=1e-4)
     sigma = 0.01
     off = 3.5 * np.hypot(sigma, 1e-4)
-    assert not f.update(None, off, pos_sigma_m=0.01, yaw_sigma_rad=sigma)
-    assert f.update(np.zeros(3), off, pos_sigma_m=0.01, yaw_sigma_rad=sigma)
+    assert f.update(None, off, pos_sigma_m=0.01, yaw_sigma_rad=sigma) == Update.REJECTED
+    assert f.update(np.zeros(3), off, pos_sigma_m=0.01, yaw_sigma_rad=sigma) == Update.FUSED

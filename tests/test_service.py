@@ -110,6 +110,12 @@ def test_faults_are_survived_and_recovered_from():
     assert status[-1][1] == 4
 
 
+def _offline_config() -> ServiceConfig:
+    """Settings for a daemon with no flight controller (the link sends into the void) and no state file."""
+    base = ServiceConfig()
+    return dataclasses.replace(base, link=dataclasses.replace(base.link, url="udpout:127.0.0.1:9"), service=dataclasses.replace(base.service, state_file=""))
+
+
 class FixedClock:
     """A lockstep host clock that the test sets."""
 
@@ -128,7 +134,7 @@ def test_bad_frames_are_counted_not_fatal():
     source.push(np.zeros((10, 10), np.uint8), 0.0)
     source.push(np.zeros((480, 640), np.float32), 0.05)
     source.end()
-    cfg = dataclasses.replace(ServiceConfig(), link=dataclasses.replace(ServiceConfig().link, url="udpout:127.0.0.1:9"))
+    cfg = _offline_config()
     clock = FixedClock()
     d = Daemon(cfg, source=source, clock=clock)
     for t_ms in (0, 40, 80):  # an attitude stream around the exposures, arriving at once: boot clock = host clock
@@ -144,7 +150,7 @@ def test_lockstep_hook_reports_progress_a_driver_can_wait_for():
     from mavvo.service.daemon import Daemon
 
     source = InjectedSource()
-    cfg = dataclasses.replace(ServiceConfig(), link=dataclasses.replace(ServiceConfig().link, url="udpout:127.0.0.1:9"))
+    cfg = _offline_config()
     clock = FixedClock()
     d = Daemon(cfg, source=source, clock=clock)
     assert d.progress().frames_done == 0 and d.progress().fc_state_version == 0
@@ -263,7 +269,7 @@ def test_mavvo_run_reads_an_image_folder_and_stops_on_sigterm(tmp_path):
         lines.append(f"{i * 1.0:.3f} {i:04d}.png")
     (folder / "timestamps.txt").write_text("\n".join(lines) + "\n")
     cfg = tmp_path / "mavvo.yaml"
-    cfg.write_text(f"camera: {{source: '{folder}'}}\nlink: {{url: 'udpout:127.0.0.1:9'}}\nservice: {{health_log_interval_s: 0.5}}\n")
+    cfg.write_text(f"camera: {{source: '{folder}'}}\nlink: {{url: 'udpout:127.0.0.1:9'}}\nservice: {{health_log_interval_s: 0.5, state_file: ''}}\n")
     proc = subprocess.Popen([sys.executable, "-m", "mavvo", "run", "--config", str(cfg)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     lines: list[str] = []
     try:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import enum
 import math
 
 import numpy as np
@@ -21,11 +22,19 @@ from filterpy.kalman import KalmanFilter
 
 from mavvo.options import bounded
 
-__all__ = ["FilterOptions", "PoseFilter", "chi2_cdf", "chi2_quantile", "wrap_angle"]
+__all__ = ["FilterOptions", "PoseFilter", "Update", "chi2_cdf", "chi2_quantile", "wrap_angle"]
 
 _DIM_X, _DIM_Z = 8, 4
 _H = np.zeros((_DIM_Z, _DIM_X))
 _H[0, 0] = _H[1, 1] = _H[2, 2] = _H[3, 6] = 1.0
+
+
+class Update(enum.Enum):
+    """What :meth:`PoseFilter.update` did with a measurement."""
+
+    FUSED = "fused"
+    REJECTED = "rejected"  #: beyond the gate
+    RESTARTED = "restarted"  #: the gate rejected too many in a row: the filter restarted at this one
 
 
 def chi2_cdf(x: float, dof: int) -> float:
@@ -109,8 +118,8 @@ class PoseFilter:
         self._kf.predict(F=F, Q=Q)
         self._t_s = float(t_s)
 
-    def update(self, p_ned_m: np.ndarray | None, yaw_rad: float, *, pos_sigma_m: float, yaw_sigma_rad: float) -> bool:
-        """Fuse a measurement taken at the current time; False when it was rejected by the gate.
+    def update(self, p_ned_m: np.ndarray | None, yaw_rad: float, *, pos_sigma_m: float, yaw_sigma_rad: float) -> Update:
+        """Fuse a measurement taken at the current time (see :class:`Update`).
 
         ``p_ned_m`` None measures the yaw only (vision saw a rotation but no translation).
         """
@@ -129,13 +138,13 @@ class PoseFilter:
         if d2 > self._gate[len(z)]:
             self.rejections += 1
             if self.rejections < self.options.max_rejections:
-                return False
+                return Update.REJECTED
             p = kf.x[0:3, 0] if p_ned_m is None else p_ned_m
             self.reset(self._t_s, p, z[-1, 0], v_ned_m_s=kf.x[3:6, 0], pos_sigma_m=pos_sigma_m, yaw_sigma_rad=yaw_sigma_rad)
-            return True
+            return Update.RESTARTED
         self.rejections = 0
-        kf.update(z, R=R, H=H)
-        return True
+        kf.update(z, R=R, H=H)  # x += K y, P = (I - K H) P
+        return Update.FUSED
 
     @property
     def position_ned_m(self) -> np.ndarray:

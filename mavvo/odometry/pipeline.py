@@ -10,17 +10,30 @@ estimate yaw and translation direction against the keyframe with the 3-point RAN
 (:mod:`mavvo.estimation.relpose`), fix the baseline in metres (:mod:`mavvo.odometry.scale`), place the frame in the world
 frame through the keyframe (:mod:`mavvo.odometry.keyframes`), and smooth (:mod:`mavvo.odometry.filter`).
 
-World frame: NED, x north: the heading at initialisation is the flight controller's yaw (0 when it
-sends none); heading afterwards comes from vision, optionally pulled slowly toward the flight
-controller's (``heading_correction_time_s``). The origin is the camera at initialisation.
+World frame: the flight controller's local NED frame, so that what is sent needs no alignment. The
+first keyframe is placed where the flight controller believes the vehicle is
+(``PairedFrame.fc_position_ned_m``; the origin when it says nothing) with its yaw (0 when it sends
+none); afterwards vision carries position and heading in the short term and the heading is pulled
+toward the flight controller's yaw with the time constant ``heading_correction_time_s`` (vision's yaw
+drifts; a compass or an EKF's yaw does not).
 
 States: ``initialising`` (a keyframe was just made: the pose is the anchor), ``tracking``,
 ``degraded`` (a pose, trusted less: pure rotation, no metric scale source, few inliers; quality at most
 ``degraded_quality_max``) and ``failed`` (no pose from vision; the estimate is the filter's prediction,
 quality -1, not to be sent). Tracking is lost when fewer than ``min_tracks`` of the keyframe's tracks
 survive, or after ``max_failed_frames`` frames in a row without a pose. The next frame with enough
-features re-initialises at the last good filtered pose (heading moved on by the flight controller's yaw
-change since then) and bumps ``reset_counter`` once.
+features re-initialises where the vehicle is now: at the flight controller's own estimate when it
+sends one, else the last good pose moved on by the filter's velocity over the outage (for at most
+``dead_reckon_max_s``), else the last good pose, each with the uncertainty it has (``anchor_sigma_m``
+for the flight controller's, the filter's prediction for dead reckoning, ``max_speed_m_s`` times the
+outage for a held pose). Every change of the position that is not motion (a re-initialisation, a
+filter restart after its gate rejected too many frames) bumps ``reset_counter`` exactly once.
+
+A camera that does not move keeps measuring its position: without parallax the frame is where its
+keyframe is, within the baseline the images cannot resolve (scene depth times ``min_parallax_deg``).
+
+``PoseEstimate.drift_m`` is the 1-sigma long-term error since the origin: anchor uncertainties plus
+``drift_per_m`` of the distance flown and the heading uncertainty times the distance from the anchor.
 """
 
 from __future__ import annotations
@@ -33,7 +46,7 @@ import numpy as np
 
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.options import bounded
-from mavvo.odometry.filter import FilterOptions, PoseFilter, wrap_angle
+from mavvo.odometry.filter import FilterOptions, PoseFilter, Update, wrap_angle
 from mavvo.geometry.frames import R_lvl_body, R_lvl_cam, as_rotation
 from mavvo.odometry.frontend import Frontend, FrontendOptions, Tracks
 from mavvo.odometry.keyframes import Keyframe, KeyframeChain, KeyframeOptions, carry_depths, keyframe_reason
@@ -48,6 +61,7 @@ log = logging.getLogger(__name__)
 _TRUSTED_SCALE = frozenset({ScaleSource.RANGEFINDER, ScaleSource.ALTITUDE, ScaleSource.FIXED, ScaleSource.CARRIED})
 # An untrusted scale source -> the reason the frame is degraded.
 _UNTRUSTED_SCALE_REASON = {ScaleSource.HELD: StateReason.SCALE_HELD, ScaleSource.ASSUMED: StateReason.SCALE_ASSUMED}
+_REFERENCE_DEPTH_M = 10.0  # the scene depth position_sigma_m is given for
 # No parallax and less turn than this against the keyframe: standing still, not a degraded pure rotation.
 _STATIONARY_YAW_RAD = math.radians(2.0)
 
@@ -65,11 +79,16 @@ class OdometryOptions:
     min_inliers: int = bounded(20, "fewer inliers: no pose from this frame", ge=5)
     good_inliers: int = bounded(120, "inliers for full quality", ge=5)
     max_failed_frames: int = bounded(5, "frames in a row without a pose before the keyframe is given up", ge=1)
-    position_sigma_m: float = bounded(0.02, "vision position noise at full quality, plus the scale spread times the baseline", gt=0)
+    position_sigma_m: float = bounded(0.02, "vision position noise at full quality with the scene 10 m away (it scales with the depth, at least half of it), plus the scale spread times the baseline", gt=0, le=100)
     yaw_sigma_deg: float = bounded(0.3, "vision yaw noise at full quality", gt=0)
     attitude_sigma_deg: float = bounded(0.2, "roll/pitch uncertainty reported in the covariance", gt=0)
-    heading_correction_time_s: float = bounded(0.0, "pull the vision heading toward the flight controller's yaw with this time constant (0: off)", ge=0)
+    heading_correction_time_s: float = bounded(10.0, "pull the vision heading toward the flight controller's yaw with this time constant (0: vision's heading alone)", ge=0, le=3600)
     degraded_quality_max: int = bounded(50, "quality cap while degraded", ge=1, le=100)
+    anchor_sigma_m: float = bounded(0.3, "uncertainty of the flight controller's position estimate where tracking is (re)started", gt=0, le=100)
+    dead_reckon_max_s: float = bounded(2.0, "re-initialising without the flight controller's position: move the last good pose on by the filter's velocity over at most this long", ge=0, le=60)
+    max_speed_m_s: float = bounded(10.0, "the vehicle's top speed: how uncertain a pose held over an outage is", gt=0, le=100)
+    drift_per_m: float = bounded(0.02, "long-term drift (VO_DRIFT) per metre flown, 1 sigma", ge=0, le=1)
+    heading_sigma_deg: float = bounded(2.0, "heading uncertainty behind VO_DRIFT (the flight controller's yaw followed; without it vision's grows)", ge=0, le=180)
 
 
 @dataclass
@@ -81,6 +100,20 @@ class _Good:
     v_ned_m_s: np.ndarray
     yaw_rad: float
     fc_yaw_rad: float
+
+
+@dataclass
+class _Drift:
+    """The long-term error since the origin (see the module docstring)."""
+
+    anchor_var_m2: float = 0.0  # summed variances of the anchors
+    flown_m: float = 0.0  # distance flown since the last anchor
+    anchor_p_ned_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    last_p_ned_m: np.ndarray | None = None
+
+    def sigma_m(self, p_ned_m: np.ndarray, per_m: float, heading_rad: float) -> float:
+        away = float(np.linalg.norm(p_ned_m[:2] - self.anchor_p_ned_m[:2]))
+        return math.sqrt(self.anchor_var_m2 + (per_m * self.flown_m) ** 2 + (heading_rad * away) ** 2)
 
 
 @dataclass(frozen=True)
@@ -109,9 +142,11 @@ class Odometry:
         camera: intrinsics and distortion of the images.
         R_body_cam: (3,3) camera mounting, camera vectors into the body frame (FRD).
         options: :class:`OdometryOptions`.
+        reset_counter: the first ``reset_counter`` (0..255): one the flight controller has not seen
+            from this service, so that a restarted service's first estimate counts as a reset.
     """
 
-    def __init__(self, camera: CameraModel, R_body_cam: np.ndarray, options: OdometryOptions | None = None) -> None:
+    def __init__(self, camera: CameraModel, R_body_cam: np.ndarray, options: OdometryOptions | None = None, reset_counter: int = 0) -> None:
         self.camera = camera
         self.R_body_cam = as_rotation("R_body_cam", R_body_cam)
         self.options = opt = options or OdometryOptions()
@@ -124,7 +159,11 @@ class Odometry:
         self._carry_min_parallax_rad = math.radians(opt.scale.carry_min_parallax_deg)
         self._yaw_sigma_rad = math.radians(opt.yaw_sigma_deg)
         self._att_var = math.radians(opt.attitude_sigma_deg) ** 2
-        self.reset_counter = 0
+        if not 0 <= reset_counter <= 255:
+            raise ValueError(f"reset_counter: expected 0..255, got {reset_counter}")
+        self.reset_counter = reset_counter
+        self._drift = _Drift()
+        self._heading_sigma_rad = math.radians(opt.heading_sigma_deg)
         self._good: _Good | None = None
         self._failed_in_row = 0
         self._metric_interval = False  # a trusted scale has been carried into the current keyframe
@@ -132,6 +171,11 @@ class Odometry:
         self._last_yaw_2_1 = 0.0  # yaw of the last frame against the keyframe: the yaw prior without the FC's
 
     # ----------------------------------------------------------------------------------------------
+    def track(self, image: np.ndarray) -> None:
+        """Track features into a frame that has no attitude (a short gap in the flight controller's
+        stream): no pose, but the tracks live on, so the next paired frame still matches its keyframe."""
+        self.frontend.process(image)
+
     def step(self, frame: PairedFrame) -> PoseEstimate | None:
         """One frame (exposure times increasing). None until the first frame with enough features."""
         if not (math.isfinite(frame.roll_rad) and math.isfinite(frame.pitch_rad)):
@@ -161,23 +205,47 @@ class Odometry:
                 return None
             return self._failed(frame, StateReason.TOO_FEW_FEATURES, len(tracks.ids))
         fc_yaw = frame.yaw_rad
+        fc_p = None if frame.fc_position_ned_m is None else np.asarray(frame.fc_position_ned_m, dtype=float)
+        v = None
         if self._good is None:
-            p, yaw, v = np.zeros(3), (fc_yaw if math.isfinite(fc_yaw) else 0.0), None
+            p, yaw = (np.zeros(3) if fc_p is None else fc_p.copy()), (fc_yaw if math.isfinite(fc_yaw) else 0.0)
+            sigma = self.options.position_sigma_m if fc_p is None else self.options.anchor_sigma_m
+            if fc_p is not None:
+                self._drift.anchor_var_m2 = sigma**2
         else:
             g = self._good
             turn = wrap_angle(fc_yaw - g.fc_yaw_rad) if math.isfinite(fc_yaw) and math.isfinite(g.fc_yaw_rad) else 0.0
-            p, yaw, v = g.p_ned_m.copy(), wrap_angle(g.yaw_rad + turn), g.v_ned_m_s
+            yaw, v = wrap_angle(g.yaw_rad + turn), g.v_ned_m_s
+            p, sigma, how = self._anchor(frame.t_exposure_s, fc_p)
+            self._drift.anchor_var_m2 += sigma**2
             self.reset_counter = (self.reset_counter + 1) % 256
-            log.info("re-initialised at frame %d (reset %d), anchored at the pose of %.2f s", frame.seq, self.reset_counter, g.t_s)
+            log.info("re-initialised at frame %d (reset %d), anchored at %s", frame.seq, self.reset_counter, how)
+        self._drift.anchor_p_ned_m, self._drift.flown_m, self._drift.last_p_ned_m = p.copy(), 0.0, None
         kf = Keyframe(frame.seq, frame.t_exposure_s, tracks.ids, f_lvl, np.full(len(tracks.ids), np.nan), p, yaw, fc_yaw)
         self.chain.push(kf, self.reset_counter)
         self._last_yaw_2_1 = 0.0
         self._metric_interval = False
         self._failed_in_row = 0
-        self.filter.reset(frame.t_exposure_s, p, yaw, v_ned_m_s=v, pos_sigma_m=self.options.position_sigma_m, yaw_sigma_rad=self._yaw_sigma_rad)
+        self.filter.reset(frame.t_exposure_s, p, yaw, v_ned_m_s=v, pos_sigma_m=sigma, yaw_sigma_rad=self._yaw_sigma_rad)
         self._good = _Good(frame.t_exposure_s, p.copy(), np.zeros(3) if v is None else v.copy(), yaw, fc_yaw)
         diag = VoDiagnostics(state=VisionState.INITIALISING, reason=StateReason.NEW_KEYFRAME, tracks=len(tracks.ids), keyframe=True)
         return self._estimate(frame, diag, quality=1)
+
+    def _anchor(self, t_s: float, fc_p: np.ndarray | None) -> tuple[np.ndarray, float, str]:
+        """Where re-initialised tracking starts, its 1-sigma uncertainty, and what it came from."""
+        g = self._good
+        assert g is not None
+        opt = self.options
+        if fc_p is not None:
+            return fc_p.copy(), opt.anchor_sigma_m, "the flight controller's position"
+        dt = max(t_s - g.t_s, 0.0)
+        reckon = min(dt, opt.dead_reckon_max_s)
+        p = g.p_ned_m + g.v_ned_m_s * reckon
+        # Dead reckoning: the filter's velocity error times the time, then a pose held at top speed.
+        sigma_v = math.sqrt(max(np.trace(self.filter.velocity_covariance) / 3.0, 0.0))
+        sigma = opt.position_sigma_m + sigma_v * reckon + opt.max_speed_m_s * (dt - reckon)
+        how = f"the last good pose of {dt:.2f} s ago" + (f", moved on by its velocity for {reckon:.2f} s" if reckon > 0 else "")
+        return p, sigma, how
 
     def _measure(self, frame: PairedFrame, kf: Keyframe, i_kf: np.ndarray, i_cur: np.ndarray, f_lvl: np.ndarray) -> _Measurement | _NoPose:
         """The frame's pose against the keyframe, or the reason there is none."""
@@ -221,7 +289,7 @@ class Odometry:
                 scale = scale_from_scene_depth(pts, depth, ScaleSource.HELD if self._scene_depth_m else ScaleSource.ASSUMED, opt.scale.min_points)
             if scale is None:
                 # Too little parallax to triangulate: the baseline is below what the images resolve
-                # (about depth * min_parallax), so the frame is where the keyframe is.
+                # (about depth * min_parallax), so the frame is where the keyframe is (_accept).
                 c2 = np.zeros(3)
             else:
                 c2 = scale.baseline_m * c2_unit
@@ -246,20 +314,33 @@ class Odometry:
             reason = StateReason.FEW_INLIERS
         degraded = reason != StateReason.NONE
         quality = self._quality(rp, degraded=degraded)
-        spread = m.scale.spread if m.scale is not None else 0.0
-        pos_sigma = (opt.position_sigma_m + spread * float(np.linalg.norm(m.c2_m))) * 100.0 / quality
+        if m.scale is not None:
+            unresolved = m.scale.spread * float(np.linalg.norm(m.c2_m))
+        else:
+            # No parallax: no motion the images can resolve, so the frame is where its keyframe is,
+            # within the baseline that depth times the smallest resolvable parallax allows.
+            unresolved = (self._scene_depth_m or opt.scale.initial_depth_m) * self._min_parallax_rad  # depth x smallest parallax
+        depth = self._scene_depth_m or opt.scale.initial_depth_m
+        # Image noise moves a position by an angle times the depth: the noise scales with it.
+        pos_sigma = (opt.position_sigma_m * max(depth / _REFERENCE_DEPTH_M, 0.5) + unresolved) * 100.0 / quality
         yaw_sigma = self._yaw_sigma_rad * 100.0 / quality
         self.filter.predict(frame.t_exposure_s)
-        # Without parallax the translation is not measured (the keyframe's position would be a frozen
-        # pose for a camera moving along its axis): the filter carries the position on.
-        p_meas = m.p_ned_m if m.scale is not None else None
-        accepted = self.filter.update(p_meas, m.yaw_rad, pos_sigma_m=pos_sigma, yaw_sigma_rad=yaw_sigma)
+        outcome = self.filter.update(m.p_ned_m, m.yaw_rad, pos_sigma_m=pos_sigma, yaw_sigma_rad=yaw_sigma)
+        accepted = outcome != Update.REJECTED
+        if outcome == Update.RESTARTED:
+            # The filter jumped to the measurement: a change of the sent pose that is not motion.
+            self.reset_counter = (self.reset_counter + 1) % 256
+            log.info("filter restarted at frame %d after %d rejections (reset %d)", frame.seq, opt.filter.max_rejections, self.reset_counter)
         survival = len(i_kf) / len(kf.ids)
         why_kf = keyframe_reason(opt.keyframes, parallax_px=m.parallax_px, survival=survival, inliers=rp.num_inliers) if accepted else ""
         if why_kf:
             self._new_keyframe(frame, tracks, f_lvl, kf, i_kf, i_cur, m)
         if accepted:
             self._good = _Good(frame.t_exposure_s, self.filter.position_ned_m, self.filter.velocity_ned_m_s, self.filter.yaw_rad, frame.yaw_rad)
+            d = self._drift
+            if d.last_p_ned_m is not None:
+                d.flown_m += float(np.linalg.norm(self._good.p_ned_m - d.last_p_ned_m))
+            d.last_p_ned_m = self._good.p_ned_m
         diag = VoDiagnostics(
             state=VisionState.DEGRADED if degraded else VisionState.TRACKING, reason=reason, tracks=len(tracks.ids), inliers=rp.num_inliers,
             inlier_ratio=rp.inlier_ratio, parallax_px=m.parallax_px, residual_rms_px=rp.residual_rms_rad * self._focal_px,
@@ -309,10 +390,12 @@ class Odometry:
         cov[:3, :3] = f.position_covariance
         cov[3, 3] = cov[4, 4] = self._att_var
         cov[5, 5] = f.yaw_variance
+        p = f.position_ned_m
+        drift = self._drift.sigma_m(p, self.options.drift_per_m, self._heading_sigma_rad)
         return PoseEstimate(
             t_exposure_s=frame.t_exposure_s,
             seq=frame.seq,
-            p_ned_m=f.position_ned_m,
+            p_ned_m=p,
             rpy_rad=np.array([frame.roll_rad, frame.pitch_rad, f.yaw_rad]),
             v_ned_m_s=f.velocity_ned_m_s,
             covariance=cov,
@@ -320,5 +403,6 @@ class Odometry:
             quality=quality,
             reset_counter=self.reset_counter,
             diagnostics=diag,
+            drift_m=max(drift, math.sqrt(float(np.trace(cov[:2, :2])) / 2.0)),
         )
 

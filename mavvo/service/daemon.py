@@ -22,11 +22,15 @@ from __future__ import annotations
 import logging
 import math
 import signal
+import json
 import threading
 import time
 from collections import Counter
 from dataclasses import dataclass
-from typing import Any, Callable
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
 
 from mavvo.service import messages, sdnotify
 from mavvo.service.camera import FrameQueue, FrameSource, SourceFactory, open_source
@@ -125,7 +129,6 @@ class Daemon:
                 self.recorder.close()
             raise
         self.frames = FrameQueue(config.camera.queue_size, drop_oldest=self.clock.realtime)
-        self.odometry = Odometry(config.camera.camera_model(), config.mounting.rotation(), config.odometry)
         self.counters: Counter[str] = Counter()
         self.stop_event = threading.Event()
         self.state = VisionState.STANDBY
@@ -136,12 +139,16 @@ class Daemon:
         self._wall = MonotonicClock()
         self._last_sent_t_s = -math.inf
         self._last_text_s = -math.inf
-        self._pending_text: dict[str, Any] | None = None
+        self._pending_states: list[tuple[VisionState, StateReason]] = []  # changes not yet told (rate limit)
         self._next_health_s = -math.inf
         self._reset_counter: int | None = None
         self._errors_logged: Counter[str] = Counter()
+        self.odometry = Odometry(config.camera.camera_model(), config.mounting.rotation(), config.odometry, reset_counter=self._first_reset_counter())
         self._state_lock = threading.Lock()
         self._skipped_at_last_report = 0
+        self._first_paired_s: float | None = None  # host time of the first paired frame: the heading wait starts there
+        self._heading_wait_over = config.service.heading_wait_max_s <= 0
+        self._odometry_ok = False  # the last ODOMETRY sent had a quality >= 1
 
     # ------------------------------------------------------------------ lockstep
 
@@ -269,9 +276,20 @@ class Daemon:
         if self.recorder is not None:
             self.recorder.frame(frame, p, self.clock.now_s())
         if p.status != "paired":
+            # Never paired with a wrong attitude; tracked all the same, so a short gap in the
+            # flight controller's stream does not cost the track.
             self.counters[f"skipped_attitude_{p.status}"] += 1
+            self._track_only(frame)
             return
-        paired = PairedFrame(frame.image, frame.t_exposure_s, frame.seq, p.roll_rad, p.pitch_rad, p.yaw_rad, p.range_m, p.height_m)
+        if not self._heading_ready(p.yaw_settled, frame.t_exposure_s):
+            self.counters["waiting_for_heading"] += 1
+            self._track_only(frame)
+            return
+        fc_p = None if p.fc_position_ned_m is None else np.asarray(p.fc_position_ned_m)
+        # The flight controller's yaw steers the heading only while it is settled (not converging after
+        # a boot or reboot); meanwhile vision's heading carries on alone.
+        fc_yaw = p.yaw_rad if p.yaw_settled else math.nan
+        paired = PairedFrame(frame.image, frame.t_exposure_s, frame.seq, p.roll_rad, p.pitch_rad, fc_yaw, p.range_m, p.height_m, fc_p)
         try:
             est = self.odometry.step(paired)
         except ValueError as e:  # a malformed image (wrong size, not grey 8-bit)
@@ -282,6 +300,60 @@ class Daemon:
         if est is not None:
             self._publish(est)
 
+    def _odometry(self, est: PoseEstimate) -> dict[str, object]:
+        out = self.config.output
+        return messages.odometry(est, messages.autopilot_of(self.link.autopilot, out.autopilot), out.estimator_type)
+
+    def _track_only(self, frame: Frame) -> None:
+        try:
+            self.odometry.track(frame.image)
+        except ValueError as e:
+            self.counters["bad_frames"] += 1
+            self._log_error("frame", e)
+
+    def _heading_ready(self, yaw_settled: bool, t_s: float) -> bool:
+        """The first estimate waits until the flight controller's yaw has settled (north is taken from
+        it), at most ``service.heading_wait_max_s``; then the operator is told north may be off."""
+        if self._heading_wait_over:
+            return True
+        if self._first_paired_s is None:
+            self._first_paired_s = t_s
+        if yaw_settled:
+            self._heading_wait_over = True
+        elif t_s - self._first_paired_s >= self.config.service.heading_wait_max_s:
+            self._heading_wait_over = True
+            log.warning("the flight controller's yaw has not settled after %.0f s: starting with it; north may be off", self.config.service.heading_wait_max_s)
+            self.link.send("STATUSTEXT", messages.statustext_line("mavvo: FC yaw unsettled, north may be off", severity=messages.MAV_SEVERITY_WARNING))
+        return self._heading_wait_over
+
+    def _first_reset_counter(self) -> int:
+        """A ``reset_counter`` the flight controller has not seen from this service: one past the
+        last one kept in ``service.state_file`` (written back at once), else derived from the clock."""
+        path = self.config.service.state_file
+        if path:
+            try:
+                last = int(json.loads(Path(path).read_text(encoding="utf-8"))["reset_counter"])
+            except FileNotFoundError:
+                last = -1
+            except (OSError, ValueError, KeyError, TypeError) as e:
+                log.warning("service.state_file %s: cannot read the last reset_counter (%s); starting from the clock", path, e)
+                last = int(self.clock.now_s() * 10)
+            first = (last + 1) % 256
+            self._save_reset_counter(first)
+            return first
+        return int(self.clock.now_s() * 10) % 256
+
+    def _save_reset_counter(self, counter: int) -> None:
+        path = Path(self.config.service.state_file)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(path.name + ".tmp")
+            tmp.write_text(json.dumps({"reset_counter": counter}) + "\n", encoding="utf-8")
+            tmp.replace(path)
+        except OSError as e:
+            self.counters["state_file_errors"] += 1
+            self._log_error("state_file", e)
+
     def _publish(self, est: PoseEstimate) -> None:
         self.last_estimate = est
         if self.on_estimate is not None:
@@ -289,10 +361,15 @@ class Daemon:
         self._set_state(est.diagnostics.state, est.diagnostics.reason)
         if self._reset_counter is not None and est.reset_counter != self._reset_counter:
             self.counters["resets"] += 1
+            if self.config.service.state_file:
+                self._save_reset_counter(est.reset_counter)
         self._reset_counter = est.reset_counter
         out = self.config.output
         if est.quality < 0:
             self.counters["not_sent_failed"] += 1
+            if out.odometry and self._odometry_ok:  # once: the estimator says it has failed
+                self.link.send("ODOMETRY", self._odometry(est))
+            self._odometry_ok = False
         elif est.t_exposure_s - self._last_sent_t_s < 1.0 / out.max_rate_hz - 1e-6:
             self.counters["not_sent_rate"] += 1
         else:
@@ -301,7 +378,8 @@ class Daemon:
             if out.speed_estimate:
                 self.link.send("VISION_SPEED_ESTIMATE", messages.vision_speed_estimate(est))
             if out.odometry:
-                self.link.send("ODOMETRY", messages.odometry(est))
+                self.link.send("ODOMETRY", self._odometry(est))
+                self._odometry_ok = True
             self.counters["estimates_sent"] += 1
 
     # ------------------------------------------------------------------ the operator's view
@@ -312,7 +390,7 @@ class Daemon:
                 return
             log.info("state %s -> %s%s", self.state, state, f" ({reason})" if reason else "")
             self.state = state
-            self._pending_text = messages.statustext(state, reason)
+            self._pending_states.append((state, reason))
 
     def _report(self, now: float) -> None:
         """From the supervisor: notice when estimates stop coming, send the pending STATUSTEXT (rate
@@ -323,11 +401,10 @@ class Daemon:
             self._set_state(VisionState.FAILED, StateReason.NO_ATTITUDE if skipped > self._skipped_at_last_report else StateReason.NO_FRAMES)
         self._skipped_at_last_report = skipped
         with self._state_lock:
-            text = self._pending_text
-            if text is not None and now - self._last_text_s >= self.config.output.statustext_min_interval_s:
-                self._pending_text, self._last_text_s = None, now
-            else:
-                text = None
+            text = None
+            if self._pending_states and now - self._last_text_s >= self.config.output.statustext_min_interval_s:
+                text = messages.statustext_merged(self._pending_states)
+                self._pending_states, self._last_text_s = [], now
         if text is not None:
             self.link.send("STATUSTEXT", text)
         if now >= self._next_health_s:
@@ -340,6 +417,7 @@ class Daemon:
                 ("VO_QUAL", est.quality if fresh else -1), ("VO_INLIER", est.diagnostics.inliers if fresh else 0),
                 ("VO_STATE", messages.STATE_CODES[self.state]),
                 ("VO_LAT_MS", latency * 1e3 if latency is not None else math.nan),
+                ("VO_DRIFT", est.drift_m if est is not None else math.nan),
             )
             t_ms = int(now * 1000)
             for name, value in values:

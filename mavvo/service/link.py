@@ -76,6 +76,7 @@ class LinkOptions:
     attitude_rate_hz: float = bounded(100.0, "ATTITUDE rate to request (at least the camera rate; 100 Hz brackets every exposure closely)", gt=0, le=1000)
     range_rate_hz: float = bounded(20.0, "DISTANCE_SENSOR rate to request", gt=0, le=1000)
     height_rate_hz: float = bounded(10.0, "GLOBAL_POSITION_INT (height above home) rate to request", gt=0, le=1000)
+    local_position_rate_hz: float = bounded(10.0, "LOCAL_POSITION_NED (the flight controller's own position, where re-initialised tracking is anchored) rate to request", gt=0, le=1000)
     request_retry_s: float = bounded(2.0, "first retry of a stream request that brought nothing; doubles up to 30 s", gt=0)
     timesync_interval_s: float = bounded(1.0, "TIMESYNC request period", gt=0)
     silence_timeout_s: float = bounded(3.0, "nothing heard for this long: reconnect", gt=0)
@@ -86,7 +87,18 @@ class LinkOptions:
 class LinkListener(Protocol):
     """Receives the flight controller's state from the link thread (see :mod:`mavvo.service.timing`)."""
 
-    def on_attitude(self, t_fc_ms: int, roll_rad: float, pitch_rad: float, yaw_rad: float, t_arrival_host_s: float | None = None) -> None: ...
+    def on_attitude(
+        self,
+        t_fc_ms: int,
+        roll_rad: float,
+        pitch_rad: float,
+        yaw_rad: float,
+        t_arrival_host_s: float | None = None,
+        body_rates_rad_s: tuple[float, float, float] | None = None,
+    ) -> None: ...
+    def on_local_position(
+        self, t_fc_ms: int, p_ned_m: tuple[float, float, float], v_ned_m_s: tuple[float, float, float], t_arrival_host_s: float | None = None
+    ) -> None: ...
     def on_range(self, t_fc_ms: int, range_m: float | None, t_arrival_host_s: float | None = None) -> None: ...
     def on_height(self, t_fc_ms: int, height_m: float, t_arrival_host_s: float | None = None) -> None: ...
     def on_timesync(self, t_sent_host_s: float, t_fc_s: float, t_arrival_host_s: float | None = None) -> None: ...
@@ -190,6 +202,7 @@ class Link:
         self.counters: Counter[str] = Counter()
         self.fc_system_id: int | None = options.system_id or None
         self.fc_component_id: int | None = None
+        self.autopilot: int | None = None  # the flight controller's HEARTBEAT autopilot (MAV_AUTOPILOT)
         self.connected = threading.Event()
         self._mavutil = mavutil()  # MAVLink 2 checked here, whoever imported pymavlink first
         self._mav = self._mavutil.mavlink
@@ -206,6 +219,7 @@ class Link:
             _Stream(mav.MAVLINK_MSG_ID_ATTITUDE, options.attitude_rate_hz),
             _Stream(mav.MAVLINK_MSG_ID_DISTANCE_SENSOR, options.range_rate_hz),
             _Stream(mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, options.height_rate_hz),
+            _Stream(mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, options.local_position_rate_hz),
         ]
         self._status_map = {
             SystemStatus.STANDBY: mav.MAV_STATE_STANDBY, SystemStatus.ACTIVE: mav.MAV_STATE_ACTIVE, SystemStatus.CRITICAL: mav.MAV_STATE_CRITICAL,
@@ -393,6 +407,7 @@ class Link:
         if kind == "HEARTBEAT":
             if msg.autopilot != self._mav.MAV_AUTOPILOT_INVALID and self.fc_component_id is None and (self.fc_system_id in (None, src_sys)):
                 self.fc_system_id, self.fc_component_id = src_sys, src_comp
+                self.autopilot = int(msg.autopilot)
                 self._conn.mav.srcSystem = src_sys
                 log.info("flight controller: system %d component %d (autopilot type %d)", src_sys, src_comp, msg.autopilot)
             return
@@ -407,7 +422,9 @@ class Link:
             if s.msg_id == msg.get_msgId():
                 s.last_rx_s, s.backoff_s = now, 0.0
         if kind == "ATTITUDE":
-            self.listener.on_attitude(msg.time_boot_ms, msg.roll, msg.pitch, msg.yaw, now)
+            self.listener.on_attitude(msg.time_boot_ms, msg.roll, msg.pitch, msg.yaw, now, (msg.rollspeed, msg.pitchspeed, msg.yawspeed))
+        elif kind == "LOCAL_POSITION_NED":
+            self.listener.on_local_position(msg.time_boot_ms, (msg.x, msg.y, msg.z), (msg.vx, msg.vy, msg.vz), now)
         elif kind == "DISTANCE_SENSOR":
             if msg.orientation == self._mav.MAV_SENSOR_ROTATION_PITCH_270:
                 ok = msg.min_distance <= msg.current_distance <= msg.max_distance

@@ -14,7 +14,7 @@ import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -24,6 +24,7 @@ from mavvo.options import bounded
 from mavvo.service.yaml_loader import build, load_yaml
 from mavvo.errors import ConfigError
 from mavvo.service.link import LinkOptions, parse_url
+from mavvo.service.messages import Autopilot
 from mavvo.odometry.pipeline import OdometryOptions
 from mavvo.service.recorder import RecordOptions
 from mavvo.service.timing import TimingOptions
@@ -62,17 +63,21 @@ class OutputOptions:
 
     max_rate_hz: float = bounded(30.0, "most VISION_POSITION_ESTIMATEs per second (ArduPilot ignores faster than 50 Hz)", gt=0, le=50)
     speed_estimate: bool = bounded(True, "also send VISION_SPEED_ESTIMATE")
-    odometry: bool = bounded(False, "also send ODOMETRY (frame LOCAL_FRD, child BODY_FRD, body-frame velocity, quality)")
-    statustext_min_interval_s: float = bounded(2.0, "at most one STATUSTEXT on state changes per this interval (the latest state wins)", ge=0)
-    health_rate_hz: float = bounded(1.0, "NAMED_VALUE_FLOAT health values (VO_QUAL, VO_INLIER, VO_LAT_MS, VO_STATE) per second", gt=0, le=5)
+    odometry: bool = bounded(False, "also send ODOMETRY (child BODY_FRD, body-frame velocity, quality; -1 once when vision fails)")
+    autopilot: Autopilot = bounded("auto", "auto (from the flight controller's HEARTBEAT), ardupilot (ODOMETRY frame LOCAL_FRD) or px4 (LOCAL_NED)")
+    estimator_type: Literal["vision", "vio"] = bounded("vision", "ODOMETRY estimator_type: vision (2) or vio (3)")
+    statustext_min_interval_s: float = bounded(2.0, "at most one STATUSTEXT on state changes per this interval (merged: the latest state, and a worse one before it)", ge=0, le=60)
+    health_rate_hz: float = bounded(1.0, "NAMED_VALUE_FLOAT health values (VO_QUAL, VO_INLIER, VO_LAT_MS, VO_STATE, VO_DRIFT) per second", gt=0, le=5)
 
 
 @dataclass(frozen=True)
 class ServiceOptions:
     """The daemon itself."""
 
-    health_log_interval_s: float = bounded(5.0, "health counters in the log every this many seconds", gt=0)
-    shutdown_drain_s: float = bounded(2.0, "on stop, wait at most this long for the current frame and the queued messages", gt=0)
+    health_log_interval_s: float = bounded(5.0, "health counters in the log every this many seconds", gt=0, le=3600)
+    shutdown_drain_s: float = bounded(2.0, "on stop, wait at most this long for the current frame and the queued messages", gt=0, le=60)
+    state_file: str = bounded("/var/lib/mavvo/state.json", "where the last reset_counter is kept, so a restarted service starts with one the flight controller has not seen (empty: derived from the clock)")
+    heading_wait_max_s: float = bounded(30.0, "wait at most this long for the flight controller's yaw to settle before the first estimate (0: do not wait)", ge=0, le=600)
 
 
 @dataclass(frozen=True)

@@ -63,8 +63,20 @@ class TimingOptions:
     attitude_wait_s: float = bounded(0.1, "how long after an exposure to wait for the ATTITUDE that follows it", gt=0)
     range_max_age_s: float = bounded(0.2, "a rangefinder reading older than this at the exposure is not used", gt=0)
     height_max_age_s: float = bounded(0.5, "a height reading older than this at the exposure is not used", gt=0)
-    sync_window_s: float = bounded(30.0, "window of the clock-offset filters (tracks clock drift)", gt=0)
-    history_s: float = bounded(2.0, "ATTITUDE history kept for pairing", gt=0)
+    sync_window_s: float = bounded(30.0, "window of the clock-offset filters (tracks clock drift)", gt=0, le=3600)
+    history_s: float = bounded(2.0, "ATTITUDE history kept for pairing", gt=0, le=60)
+    local_position_max_age_s: float = bounded(0.5, "the flight controller's LOCAL_POSITION_NED older than this at the exposure is not used to anchor", gt=0, le=10)
+    yaw_settle_window_s: float = bounded(1.5, "the flight controller's yaw counts as settled once, over this long, ...", gt=0, le=60)
+    yaw_settle_rate_deg_s: float = bounded(0.1, "... it has moved against its own gyro (yaw minus integrated yaw rate, fitted slope) slower than this; an EKF's yaw converging after boot moves faster", gt=0, le=10)
+
+
+def _euler_yaw_rate(roll_rad: float, pitch_rad: float, body_rates_rad_s: tuple[float, float, float] | None) -> float:
+    """d(yaw)/dt of Euler 3-2-1 angles from body rates (p, q, r): (q sin(roll) + r cos(roll)) / cos(pitch);
+    NaN without rates."""
+    if body_rates_rad_s is None:
+        return math.nan
+    _, q, r = body_rates_rad_s
+    return (q * math.sin(roll_rad) + r * math.cos(roll_rad)) / math.cos(pitch_rad)
 
 
 class _WindowMax:
@@ -149,12 +161,20 @@ class Pairing:
     yaw_rad: float = math.nan
     range_m: float | None = None
     height_m: float | None = None
+    fc_position_ned_m: tuple[float, float, float] | None = None  # the flight controller's own estimate at the exposure
+    yaw_settled: bool = False  # the flight controller's yaw has stopped converging (see FlightControllerState)
 
 
 class FlightControllerState:
     """What the flight controller said recently, on both clocks; thread-safe (the link thread writes,
     the worker reads). Counters: ``attitude``, ``attitude_rejected`` (non-finite or not newer),
     ``reboots``.
+
+    Its own position estimate (LOCAL_POSITION_NED, the EKF's belief) is kept to anchor the odometry
+    where the flight controller thinks the vehicle is. Its yaw counts as settled once ``yaw - integral
+    of its rate`` (from the body rates ATTITUDE carries) has a fitted slope under ``yaw_settle_rate_deg_s`` over ``yaw_settle_window_s``: an
+    EKF's yaw still converging after boot moves against its own gyro; without yawspeed the yaw is
+    trusted.
 
     Each update carries the arrival time the link stamped once for its message (``t_arrival_host_s``;
     None: now on the clock), so a recorded flight replays with the same stamps. ``version`` counts the
@@ -173,6 +193,10 @@ class FlightControllerState:
         self._rpy: list[tuple[float, float, float]] = []
         self._range: tuple[float, float | None] | None = None  # (t_fc_s, metres or None for no reading)
         self._height: tuple[float, float] | None = None
+        self._local: tuple[float, tuple[float, float, float], tuple[float, float, float]] | None = None  # (t_fc_s, p, v)
+        self._yaw_drift: deque[tuple[float, float]] = deque()  # (t_fc_s, unwrapped yaw minus integrated yawspeed)
+        self._yaw_prev: tuple[float, float, float] | None = None  # (t_fc_s, unwrapped yaw, yawspeed)
+        self.yaw_settled = False
         self.version = 0
 
     def _arrival(self, t_arrival_host_s: float | None) -> float:
@@ -180,9 +204,18 @@ class FlightControllerState:
 
     # ------------------------------------------------------------------ the link's side
 
-    def on_attitude(self, t_fc_ms: int, roll_rad: float, pitch_rad: float, yaw_rad: float, t_arrival_host_s: float | None = None) -> None:
-        """An ATTITUDE message, just arrived. Non-finite roll/pitch and samples not newer than the last
-        are dropped (counted): a repeated or spoiled stream must not be interpolated."""
+    def on_attitude(
+        self,
+        t_fc_ms: int,
+        roll_rad: float,
+        pitch_rad: float,
+        yaw_rad: float,
+        t_arrival_host_s: float | None = None,
+        body_rates_rad_s: tuple[float, float, float] | None = None,
+    ) -> None:
+        """An ATTITUDE message, just arrived (``body_rates_rad_s``: its rollspeed, pitchspeed,
+        yawspeed). Non-finite roll/pitch and samples not newer than the last are dropped (counted): a
+        repeated or spoiled stream must not be interpolated."""
         now = self._arrival(t_arrival_host_s)
         t = t_fc_ms * 1e-3
         with self._new_data:
@@ -192,12 +225,48 @@ class FlightControllerState:
                 self.counters["attitude_rejected"] += 1
                 return
             self.counters["attitude"] += 1
+            self._watch_yaw(t, yaw_rad, _euler_yaw_rate(roll_rad, pitch_rad, body_rates_rad_s))
             self._t_fc.append(t)
             self._rpy.append((roll_rad, pitch_rad, yaw_rad if math.isfinite(yaw_rad) else math.nan))
             cut = bisect.bisect_left(self._t_fc, t - self.options.history_s)
             if cut > 64:  # trim in batches: list.pop(0) per sample would be quadratic
                 del self._t_fc[:cut], self._rpy[:cut]
             self._new_data.notify_all()
+
+    def _watch_yaw(self, t: float, yaw: float, yawspeed: float) -> None:
+        """Track ``yaw - integral(yawspeed)`` (unwrapped) and decide once whether the yaw has settled."""
+        if self.yaw_settled or not math.isfinite(yaw):
+            return
+        if not math.isfinite(yawspeed):
+            self.yaw_settled = True  # nothing to judge it by: trust it, as the flight controller does
+            return
+        prev = self._yaw_prev
+        if prev is None:
+            unwrapped, drift = yaw, yaw
+        else:
+            t0, y0, w0 = prev
+            unwrapped = y0 + math.remainder(yaw - y0, math.tau)
+            drift = self._yaw_drift[-1][1] + (unwrapped - y0) - 0.5 * (w0 + yawspeed) * (t - t0)  # d = yaw - int(w dt), trapezoid
+        self._yaw_prev = (t, unwrapped, yawspeed)
+        self._yaw_drift.append((t, drift))
+        window = self.options.yaw_settle_window_s
+        while self._yaw_drift[0][0] < t - window:
+            self._yaw_drift.popleft()
+        if self._yaw_drift[0][0] <= t - 0.9 * window and len(self._yaw_drift) % 8 == 0:  # a fit every few samples
+            ts = [a for a, _ in self._yaw_drift]
+            ds = [b for _, b in self._yaw_drift]
+            tm, dm = sum(ts) / len(ts), sum(ds) / len(ds)
+            slope = sum((a - tm) * (b - dm) for a, b in zip(ts, ds)) / sum((a - tm) ** 2 for a in ts)  # least squares
+            self.yaw_settled = abs(slope) <= math.radians(self.options.yaw_settle_rate_deg_s)
+
+    def on_local_position(
+        self, t_fc_ms: int, p_ned_m: tuple[float, float, float], v_ned_m_s: tuple[float, float, float], t_arrival_host_s: float | None = None
+    ) -> None:
+        """LOCAL_POSITION_NED: the flight controller's own estimate of its position and velocity."""
+        with self._lock:
+            self.version += 1
+            if all(math.isfinite(x) for x in (*p_ned_m, *v_ned_m_s)):
+                self._local = (t_fc_ms * 1e-3, tuple(p_ned_m), tuple(v_ned_m_s))  # type: ignore[assignment]
 
     def on_range(self, t_fc_ms: int, range_m: float | None, t_arrival_host_s: float | None = None) -> None:
         """A downward rangefinder reading (None: out of range or no target)."""
@@ -229,6 +298,10 @@ class FlightControllerState:
             self._rpy.clear()
             self._range = None
             self._height = None
+            self._local = None
+            self._yaw_drift.clear()
+            self._yaw_prev = None
+            self.yaw_settled = False
 
     # ------------------------------------------------------------------ the worker's side
 
@@ -263,7 +336,11 @@ class FlightControllerState:
             range_m = self._range[1]
         if self._height is not None and abs(t - self._height[0]) <= self.options.height_max_age_s:
             height_m = self._height[1]
-        return Pairing("paired", v, roll, pitch, yaw, range_m, height_m)
+        fc_p = None
+        if self._local is not None and abs(t - self._local[0]) <= self.options.local_position_max_age_s:
+            t_l, p_l, v_l = self._local
+            fc_p = (p_l[0] + v_l[0] * (t - t_l), p_l[1] + v_l[1] * (t - t_l), p_l[2] + v_l[2] * (t - t_l))  # moved on to the exposure
+        return Pairing("paired", v, roll, pitch, yaw, range_m, height_m, fc_p, self.yaw_settled)
 
     def wait_for_new_data(self, timeout_s: float) -> None:
         """Block until the next ATTITUDE arrives or ``timeout_s`` of real time passes."""

@@ -15,14 +15,17 @@ What it sends and where it comes from:
 - ATTITUDE: the truth with Gaussian noise and a bias on roll and pitch, measured ``attitude_latency_ms``
   before it is sent and stamped with the boot time of the measurement;
 - DISTANCE_SENSOR: a downward laser, height over cos(tilt) (the ground plane only; boxes are not seen);
-- LOCAL_POSITION_NED: z from a noisy barometer; x, y (and vx, vy) follow the last
-  VISION_POSITION_ESTIMATE received, as an EKF fusing vision would, or 0 before any;
+- LOCAL_POSITION_NED: z from a noisy barometer; x, y, vx, vy from its position estimator
+  (:mod:`sim.flight_controller.estimator`), which fuses the VISION_POSITION_ESTIMATEs it receives as
+  an EKF does, resets included, and dead-reckons between and without them;
+- ATTITUDE's yaw carries the estimator's yaw error, which settles over the first seconds after boot;
 - GLOBAL_POSITION_INT: the home position with the barometer altitude.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,6 +38,7 @@ from mavvo.errors import LinkError
 from sim.world.clock import Clock
 from sim.world.faults import FaultSchedule
 from sim.flight_controller.sensors import attitude_sample, baro_height_sample, range_sample
+from sim.flight_controller.estimator import SimEstimator
 from sim.flight_controller.spec import FlightControllerSpec
 from sim.world.trajectories import Trajectory
 
@@ -43,6 +47,7 @@ log = logging.getLogger(__name__)
 RECORDED_TYPES = frozenset(
     {"VISION_POSITION_ESTIMATE", "VISION_SPEED_ESTIMATE", "ODOMETRY", "HEARTBEAT", "STATUSTEXT", "NAMED_VALUE_FLOAT"}
 )
+_ESTIMATOR_STEP_S = 0.02  # dead-reckoning step of the simulated EKF
 _UNIX_EPOCH_AT_START_US = 1_790_000_000_000_000  # SYSTEM_TIME's wall clock at t = 0, fixed for repeatability
 
 
@@ -80,6 +85,8 @@ class SimFlightController:
         self.clock = clock
         self.faults = faults or FaultSchedule()
         self._rng = np.random.default_rng(seed)
+        self.estimator = SimEstimator(spec.estimator, trajectory.pose(0.0)[0], np.random.default_rng([seed, 1]))
+        self.estimates: list[tuple[float, float, float]] = []  # (t_s, north, east) of the estimator, every 50 ms
         if not url.startswith(SOCKET_SCHEMES):
             raise LinkError(f"{url}: expected a socket connection string starting with {', '.join(SOCKET_SCHEMES)}")
         try:
@@ -95,7 +102,6 @@ class SimFlightController:
         self._next_due: dict[int, float] = {}
         self._next_heartbeat_s = 0.0
         self._last_attitude: Any = None
-        self._last_vision: Any = None
         self._baro_bias_m = float(self._rng.normal(0.0, 0.5))
         self._senders = {
             self._mav.MAVLINK_MSG_ID_ATTITUDE: self._attitude,
@@ -141,6 +147,7 @@ class SimFlightController:
             if due > t_s:
                 break
             self._t_s = due
+            self._propagate(due)
             self.clock.advance_to(due)  # lockstep: nothing arrives before it was sent (a no-op in real time)
             if due == self._next_heartbeat_s:
                 self._next_heartbeat_s += 1.0
@@ -150,6 +157,15 @@ class SimFlightController:
             self._next_due[msg_id] = due + self._streams[msg_id]
             self._send(self._senders[msg_id](due))
         self._t_s = max(self._t_s, t_s)
+
+    def _propagate(self, t_s: float) -> None:
+        est = self.estimator
+        while est.t_s < t_s:  # in steps short enough to follow the true velocity
+            t = min(t_s, est.t_s + _ESTIMATOR_STEP_S)
+            est.propagate(t, self.trajectory.state(t).v_ned_m_s)
+        if not self.estimates or t_s - self.estimates[-1][0] >= 0.05:
+            p = self.estimator.position_ne_m
+            self.estimates.append((t_s, float(p[0]), float(p[1])))
 
     def _next_event_s(self) -> float:
         return min([self._next_heartbeat_s, *self._next_due.values()])
@@ -175,7 +191,9 @@ class SimFlightController:
             if kind in RECORDED_TYPES:
                 self.received.append(Received(self.clock.now_s(), kind, msg, bytes(msg.get_msgbuf())))
                 if kind == "VISION_POSITION_ESTIMATE":
-                    self._last_vision = msg
+                    now = self.clock.now_s()
+                    self._propagate(now)
+                    self.estimator.fuse_vision(now, msg.x, msg.y, msg.reset_counter)
             elif kind == "TIMESYNC" and msg.tc1 == 0:
                 tc1 = int(self._boot_time_s(self.clock.now_s()) * 1e9)
                 self._send(self._mav.MAVLink_timesync_message(tc1, msg.ts1))
@@ -238,6 +256,7 @@ class SimFlightController:
         if self.faults.active("stale_attitude", t_s) and self._last_attitude is not None:
             return self._last_attitude
         roll, pitch, yaw, w = attitude_sample(self.trajectory, t_meas, self.spec, self._rng)
+        yaw = math.remainder(yaw + self.estimator.yaw_error_rad(self._boot_time_s(t_meas)), math.tau)
         if self.faults.active("nan_attitude", t_s):
             roll = pitch = yaw = float("nan")
         msg = self._mav.MAVLink_attitude_message(self.boot_time_ms(t_meas), roll, pitch, yaw, w[0], w[1], w[2])
@@ -260,10 +279,10 @@ class SimFlightController:
 
     def _local_position(self, t_s: float) -> Any:
         s = self.trajectory.state(t_s)
-        v = self._last_vision
-        x, y = (v.x, v.y) if v is not None else (0.0, 0.0)
+        self._propagate(t_s)
+        p, v = self.estimator.position_ne_m, self.estimator.velocity_ne_m_s(s.v_ned_m_s)
         return self._mav.MAVLink_local_position_ned_message(
-            self.boot_time_ms(t_s), x, y, -self._baro_height_m(t_s), 0.0, 0.0, float(s.v_ned_m_s[2])
+            self.boot_time_ms(t_s), float(p[0]), float(p[1]), -self._baro_height_m(t_s), float(v[0]), float(v[1]), float(s.v_ned_m_s[2])
         )
 
     def _global_position(self, t_s: float) -> Any:

@@ -3,21 +3,22 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from mavvo.options import bounded
+from sim.flight_controller.estimator import EstimatorSpec
 
 
 @dataclass(frozen=True)
 class FlightControllerSpec:
-    """The simulated flight controller's sensors, clock and identity."""
+    """The simulated flight controller's sensors, clock, identity and position estimator."""
 
     system_id: int = bounded(1, "MAVLink system id", ge=1, le=255)
     attitude_default_rate_hz: float = bounded(50.0, "ATTITUDE rate when an interval of 0 (default) is requested", gt=0)
     stream_default_rate_hz: float = bounded(10.0, "default rate of the other streams", gt=0)
     attitude_noise_deg: float = bounded(0.1, "roll/pitch noise (1 sigma, per sample)", ge=0)
     attitude_bias_deg: tuple[float, float] = bounded((0.0, 0.0), "roll and pitch bias")
-    yaw_noise_deg: float = bounded(0.5, "yaw noise (1 sigma, per sample)", ge=0)
+    yaw_noise_deg: float = bounded(0.1, "yaw noise (1 sigma, per sample; an EKF's yaw output is smooth)", ge=0)
     attitude_latency_ms: float = bounded(5.0, "from measurement to sending", ge=0)
     boot_offset_s: float = bounded(30.0, "boot clock at the start of the simulation", ge=0)
     clock_drift_ppm: float = bounded(0.0, "boot clock rate error against the host clock")
@@ -29,3 +30,4 @@ class FlightControllerSpec:
     home_lat_deg: float = bounded(47.397742, "home latitude", ge=-90, le=90)
     home_lon_deg: float = bounded(8.545594, "home longitude", ge=-180, le=180)
     home_alt_m: float = bounded(488.0, "home altitude above mean sea level")
+    estimator: EstimatorSpec = field(default_factory=EstimatorSpec)

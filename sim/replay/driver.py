@@ -246,6 +246,7 @@ def replay_config(config: ServiceConfig, url: str) -> ServiceConfig:
         link=dataclasses.replace(config.link, url=url, signing_key_file=""),
         camera=dataclasses.replace(config.camera, source="replay"),
         record=dataclasses.replace(config.record, dir=""),
+        service=dataclasses.replace(config.service, state_file=""),
     )
 
 

@@ -26,6 +26,7 @@ from mavvo.service.camera import CameraOptions
 from mavvo.service.daemon import Daemon, DaemonSummary
 from mavvo.service.settings import MountingOptions, ServiceConfig, as_matrix3
 from sim.world.camera import CameraSpec
+from sim.evaluation.flight_safety import FlightSafety, VisionSample, flight_safety
 from sim.evaluation.metrics import Evaluation, PoseSeries, evaluate
 
 from sim.evaluation.report import GROUND_TRUTH_FILE, vision_estimates, write_report, write_tum
@@ -42,12 +43,14 @@ def camera_options(spec: CameraSpec, source: str) -> CameraOptions:
 
 
 def config_for(scenario: Scenario, base: ServiceConfig, url: str) -> ServiceConfig:
-    """``base`` with the scenario's camera (intrinsics, rate, mounting) and the link to ``url``."""
+    """``base`` with the scenario's camera (intrinsics, rate, mounting) and the link to ``url``; no
+    state file (a simulation leaves the host's ``/var/lib/mavvo`` alone and repeats exactly)."""
     return dataclasses.replace(
         base,
         camera=camera_options(scenario.camera, f"sim:{scenario.name}"),
         mounting=MountingOptions(as_matrix3(scenario.camera.R_body_cam()), scenario.camera.lever_arm_m),
         link=dataclasses.replace(base.link, url=url),
+        service=dataclasses.replace(base.service, state_file=""),
     )
 
 
@@ -68,6 +71,7 @@ class SimRun:
     vision_messages: list[Any]  # the VISION_POSITION_ESTIMATEs received, in order (pymavlink messages)
     statustexts: list[tuple[float, str]]  # (simulation time received, text)
     heartbeat_status: list[tuple[float, int]]  # (simulation time received, system_status) of the vision component
+    safety: FlightSafety  # what the vehicle would feel: no alignment, resets included
     recording: Path | None = None  # with record.dir: the recording (with ground_truth.tum beside it)
 
     def summary(self) -> dict[str, Any]:
@@ -87,6 +91,7 @@ class SimRun:
             "sim3_scale": None if ev is None else ev.sim3_scale,
             "ate_percent_of_path": None if ev is None else ev.ate_se3_rmse_percent_of_path,
             "path_length_m": None if ev is None else ev.path_length_m,
+            "vehicle": self.safety.to_dict(),
             "final_state": self.daemon.state,
             "latency_ms": self.daemon.latency_ms,
             "received": self.received,
@@ -138,6 +143,14 @@ def run_daemon_in_sim(
         times = np.arange(0.0, sim.clock.now_s(), 0.01)
         write_tum(recording / GROUND_TRUTH_FILE, sim.truth_at(times))
     counters = np.array([r.msg.reset_counter for r in vpe])
+    safety = flight_safety(
+        [_vision_sample(r.msg) for r in vpe],
+        lambda t: sim.truth_at(t).positions_xyz_m,
+        lambda t: _yaw(sim.truth_at(t).rotations),
+        np.array(sim.fc.estimates).reshape(-1, 3),
+        [st.step_m for st in sim.fc.estimator.steps],
+        [(r.t_s, r.msg.value) for r in sim.fc.received if r.type == "NAMED_VALUE_FLOAT" and r.msg.name == "VO_DRIFT"],
+    )
     received: dict[str, int] = {}
     for r in sim.fc.received:
         received[r.type] = received.get(r.type, 0) + 1
@@ -145,5 +158,17 @@ def run_daemon_in_sim(
         scenario.name, realtime, sim.clock.now_s(), wall, summary, dict(sorted(received.items())), est, truth, ev,
         int(np.count_nonzero(np.diff(counters))) if len(counters) else 0, [r.msg for r in vpe],
         [(r.t_s, r.msg.text) for r in sim.fc.received if r.type == "STATUSTEXT"],
-        [(r.t_s, r.msg.system_status) for r in sim.fc.received if r.type == "HEARTBEAT"], recording,
+        [(r.t_s, r.msg.system_status) for r in sim.fc.received if r.type == "HEARTBEAT"], safety, recording,
     )
+
+
+def _vision_sample(msg: Any) -> VisionSample:
+    """A received VISION_POSITION_ESTIMATE: the position block of its upper-triangle covariance."""
+    c = msg.covariance
+    cov = np.array([[c[0], c[1], c[2]], [c[1], c[6], c[7]], [c[2], c[7], c[11]]], dtype=float)
+    return VisionSample(msg.usec * 1e-6, np.array([msg.x, msg.y, msg.z]), cov, msg.yaw, msg.reset_counter)
+
+
+def _yaw(R: np.ndarray) -> np.ndarray:
+    """Yaw (Euler 3-2-1) of rotations (N, 3, 3)."""
+    return np.arctan2(R[:, 1, 0], R[:, 0, 0])
