@@ -48,7 +48,7 @@ def recorded(tmp_path_factory):
 
 def test_round_trip_replays_the_recorded_flight_bit_for_bit(recorded, tmp_path, capsys):
     live = [payload(m.get_msgbuf()) for m in recorded.vision_messages]
-    assert len(live) >= 80
+    assert len(live) >= 60  # from the first estimate (once the flight controller's yaw is seen settled) on
     inp = load_recording(recorded.recording)
     assert inp.problems == [] and inp.expected_vpe == live  # the recording holds what the flight controller got
     res = replay(inp)

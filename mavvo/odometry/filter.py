@@ -146,6 +146,10 @@ class PoseFilter:
         kf.update(z, R=R, H=H)  # x += K y, P = (I - K H) P
         return Update.FUSED
 
+    def shift_yaw(self, delta_rad: float) -> None:
+        """Turn the yaw state by ``delta_rad`` (the world heading was corrected; nothing measured)."""
+        self._kf.x[6, 0] += delta_rad
+
     @property
     def position_ned_m(self) -> np.ndarray:
         return self._kf.x[0:3, 0].copy()

@@ -24,13 +24,15 @@ quality -1, not to be sent). Tracking is lost when fewer than ``min_tracks`` of 
 survive, or after ``max_failed_frames`` frames in a row without a pose. The next frame with enough
 features re-initialises where the vehicle is now: at the flight controller's own estimate when it
 sends one, else the last good pose moved on by the filter's velocity over the outage (for at most
-``dead_reckon_max_s``), else the last good pose, each with the uncertainty it has (``anchor_sigma_m``
-for the flight controller's, the filter's prediction for dead reckoning, ``max_speed_m_s`` times the
-outage for a held pose). Every change of the position that is not motion (a re-initialisation, a
+``dead_reckon_max_s``), else the last good pose. The flight controller's own belief is no step for its
+EKF, so the stream goes on with its usual sigma while ``anchor_sigma_m`` goes into the drift; a
+dead-reckoned or held pose is sent with the uncertainty it has (the filter's velocity sigma times the
+outage, ``max_speed_m_s`` times the outage beyond ``dead_reckon_max_s``). Every change of the position that is not motion (a re-initialisation, a
 filter restart after its gate rejected too many frames) bumps ``reset_counter`` exactly once.
 
-A camera that does not move keeps measuring its position: without parallax the frame is where its
-keyframe is, within the baseline the images cannot resolve (scene depth times ``min_parallax_deg``).
+A camera that does not move keeps measuring its position: with under a pixel of median parallax and
+nothing to triangulate the frame is where its keyframe is, within the baseline a pixel at the scene's
+depth allows.
 
 ``PoseEstimate.drift_m`` is the 1-sigma long-term error since the origin: anchor uncertainties plus
 ``drift_per_m`` of the distance flown and the heading uncertainty times the distance from the anchor.
@@ -62,6 +64,7 @@ _TRUSTED_SCALE = frozenset({ScaleSource.RANGEFINDER, ScaleSource.ALTITUDE, Scale
 # An untrusted scale source -> the reason the frame is degraded.
 _UNTRUSTED_SCALE_REASON = {ScaleSource.HELD: StateReason.SCALE_HELD, ScaleSource.ASSUMED: StateReason.SCALE_ASSUMED}
 _REFERENCE_DEPTH_M = 10.0  # the scene depth position_sigma_m is given for
+_STILL_PARALLAX_PX = 1.0  # median parallax below this and nothing triangulated: the camera has not moved
 # No parallax and less turn than this against the keyframe: standing still, not a degraded pure rotation.
 _STATIONARY_YAW_RAD = math.radians(2.0)
 
@@ -79,12 +82,12 @@ class OdometryOptions:
     min_inliers: int = bounded(20, "fewer inliers: no pose from this frame", ge=5)
     good_inliers: int = bounded(120, "inliers for full quality", ge=5)
     max_failed_frames: int = bounded(5, "frames in a row without a pose before the keyframe is given up", ge=1)
-    position_sigma_m: float = bounded(0.02, "vision position noise at full quality with the scene 10 m away (it scales with the depth, at least half of it), plus the scale spread times the baseline", gt=0, le=100)
+    position_sigma_m: float = bounded(0.015, "vision position noise at full quality with the scene 10 m away (it scales with the depth, at least half of it), plus the scale spread times the baseline", gt=0, le=100)
     yaw_sigma_deg: float = bounded(0.3, "vision yaw noise at full quality", gt=0)
     attitude_sigma_deg: float = bounded(0.2, "roll/pitch uncertainty reported in the covariance", gt=0)
     heading_correction_time_s: float = bounded(10.0, "pull the vision heading toward the flight controller's yaw with this time constant (0: vision's heading alone)", ge=0, le=3600)
     degraded_quality_max: int = bounded(50, "quality cap while degraded", ge=1, le=100)
-    anchor_sigma_m: float = bounded(0.3, "uncertainty of the flight controller's position estimate where tracking is (re)started", gt=0, le=100)
+    anchor_sigma_m: float = bounded(0.3, "how far the flight controller's own position estimate, where tracking is (re)started, may be from the truth (VO_DRIFT)", gt=0, le=100)
     dead_reckon_max_s: float = bounded(2.0, "re-initialising without the flight controller's position: move the last good pose on by the filter's velocity over at most this long", ge=0, le=60)
     max_speed_m_s: float = bounded(10.0, "the vehicle's top speed: how uncertain a pose held over an outage is", gt=0, le=100)
     drift_per_m: float = bounded(0.02, "long-term drift (VO_DRIFT) per metre flown, 1 sigma", ge=0, le=1)
@@ -209,15 +212,17 @@ class Odometry:
         v = None
         if self._good is None:
             p, yaw = (np.zeros(3) if fc_p is None else fc_p.copy()), (fc_yaw if math.isfinite(fc_yaw) else 0.0)
-            sigma = self.options.position_sigma_m if fc_p is None else self.options.anchor_sigma_m
+            sigma = self.options.position_sigma_m
             if fc_p is not None:
-                self._drift.anchor_var_m2 = sigma**2
+                self._drift.anchor_var_m2 = self.options.anchor_sigma_m**2
         else:
             g = self._good
             turn = wrap_angle(fc_yaw - g.fc_yaw_rad) if math.isfinite(fc_yaw) and math.isfinite(g.fc_yaw_rad) else 0.0
             yaw, v = wrap_angle(g.yaw_rad + turn), g.v_ned_m_s
             p, sigma, how = self._anchor(frame.t_exposure_s, fc_p)
-            self._drift.anchor_var_m2 += sigma**2
+            # The flight controller's own belief is no step for its EKF (the stream's sigma), but it
+            # is only as true as that belief: its uncertainty goes into the long-term drift.
+            self._drift.anchor_var_m2 += self.options.anchor_sigma_m**2 if fc_p is not None else sigma**2
             self.reset_counter = (self.reset_counter + 1) % 256
             log.info("re-initialised at frame %d (reset %d), anchored at %s", frame.seq, self.reset_counter, how)
         self._drift.anchor_p_ned_m, self._drift.flown_m, self._drift.last_p_ned_m = p.copy(), 0.0, None
@@ -237,7 +242,7 @@ class Odometry:
         assert g is not None
         opt = self.options
         if fc_p is not None:
-            return fc_p.copy(), opt.anchor_sigma_m, "the flight controller's position"
+            return fc_p.copy(), opt.position_sigma_m, "the flight controller's position"
         dt = max(t_s - g.t_s, 0.0)
         reckon = min(dt, opt.dead_reckon_max_s)
         p = g.p_ned_m + g.v_ned_m_s * reckon
@@ -314,18 +319,22 @@ class Odometry:
             reason = StateReason.FEW_INLIERS
         degraded = reason != StateReason.NONE
         quality = self._quality(rp, degraded=degraded)
+        depth = self._scene_depth_m or opt.scale.initial_depth_m
+        p_meas: np.ndarray | None = m.p_ned_m
         if m.scale is not None:
             unresolved = m.scale.spread * float(np.linalg.norm(m.c2_m))
-        else:
+        elif m.parallax_px < _STILL_PARALLAX_PX:
             # No parallax: no motion the images can resolve, so the frame is where its keyframe is,
-            # within the baseline that depth times the smallest resolvable parallax allows.
-            unresolved = (self._scene_depth_m or opt.scale.initial_depth_m) * self._min_parallax_rad  # depth x smallest parallax
-        depth = self._scene_depth_m or opt.scale.initial_depth_m
+            # within the baseline that a pixel of parallax at the scene's depth allows.
+            unresolved = depth * _STILL_PARALLAX_PX / self._focal_px
+        else:
+            # Parallax, but too few points to triangulate: the translation is not measured.
+            p_meas, unresolved = None, 0.0
         # Image noise moves a position by an angle times the depth: the noise scales with it.
         pos_sigma = (opt.position_sigma_m * max(depth / _REFERENCE_DEPTH_M, 0.5) + unresolved) * 100.0 / quality
         yaw_sigma = self._yaw_sigma_rad * 100.0 / quality
         self.filter.predict(frame.t_exposure_s)
-        outcome = self.filter.update(m.p_ned_m, m.yaw_rad, pos_sigma_m=pos_sigma, yaw_sigma_rad=yaw_sigma)
+        outcome = self.filter.update(p_meas, m.yaw_rad, pos_sigma_m=pos_sigma, yaw_sigma_rad=yaw_sigma)
         accepted = outcome != Update.REJECTED
         if outcome == Update.RESTARTED:
             # The filter jumped to the measurement: a change of the sent pose that is not motion.
@@ -355,7 +364,9 @@ class Odometry:
         yaw = wrap_angle(m.yaw_rad)
         tau = self.options.heading_correction_time_s
         if tau > 0 and math.isfinite(frame.yaw_rad):
-            yaw = wrap_angle(yaw + min(1.0, (frame.t_exposure_s - kf.t_s) / tau) * wrap_angle(frame.yaw_rad - yaw))
+            nudge = min(1.0, (frame.t_exposure_s - kf.t_s) / tau) * wrap_angle(frame.yaw_rad - yaw)
+            yaw = wrap_angle(yaw + nudge)
+            self.filter.shift_yaw(nudge)  # a correction of the frame's heading, not a measurement to gate
         # Without a measured translation (mostly a turn on the spot) the keyframe stays where the old
         # one was: taking the filter's coasted position instead let its velocity noise into the chain.
         self.chain.push(Keyframe(frame.seq, frame.t_exposure_s, tracks.ids, f_lvl, depth, m.p_ned_m, yaw, frame.yaw_rad), self.reset_counter)

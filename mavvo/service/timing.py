@@ -196,6 +196,7 @@ class FlightControllerState:
         self._local: tuple[float, tuple[float, float, float], tuple[float, float, float]] | None = None  # (t_fc_s, p, v)
         self._yaw_drift: deque[tuple[float, float]] = deque()  # (t_fc_s, unwrapped yaw minus integrated yawspeed)
         self._yaw_prev: tuple[float, float, float] | None = None  # (t_fc_s, unwrapped yaw, yawspeed)
+        self._yaw_samples = 0
         self.yaw_settled = False
         self.version = 0
 
@@ -252,7 +253,8 @@ class FlightControllerState:
         window = self.options.yaw_settle_window_s
         while self._yaw_drift[0][0] < t - window:
             self._yaw_drift.popleft()
-        if self._yaw_drift[0][0] <= t - 0.9 * window and len(self._yaw_drift) % 8 == 0:  # a fit every few samples
+        self._yaw_samples += 1
+        if self._yaw_drift[0][0] <= t - 0.9 * window and self._yaw_samples % 8 == 0:  # a fit every few samples
             ts = [a for a, _ in self._yaw_drift]
             ds = [b for _, b in self._yaw_drift]
             tm, dm = sum(ts) / len(ts), sum(ds) / len(ds)

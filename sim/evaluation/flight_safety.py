@@ -42,6 +42,7 @@ class FlightSafety:
     fc_max_error_m: float | None
     largest_reset_step_m: float | None  # how far a reset moved the flight controller's estimate
     reset_steps_m: list[float]
+    reset_step_excess_m: float | None  # the largest step minus what it may be: 0.3 m + 10% of the motion since the previous estimate
     heading_end_error_deg: float | None  # the sent yaw against the truth's
     heading_median_error_deg: float | None
     nees_median: float | None  # 1 s windows without a reset: motion error against the difference's covariance
@@ -91,7 +92,7 @@ def flight_safety(
     truth_p: Callable[[np.ndarray], np.ndarray],
     truth_yaw: Callable[[np.ndarray], np.ndarray],
     fc_estimates: np.ndarray,
-    reset_steps_m: list[float],
+    reset_steps: list[tuple[float, float]],
     drift_reports: list[tuple[float, float]],
 ) -> FlightSafety:
     """The figures of :class:`FlightSafety`.
@@ -101,7 +102,7 @@ def flight_safety(
         truth_p: times (N,) -> true positions (N, 3) NED.
         truth_yaw: times (N,) -> true yaw (N,), radians.
         fc_estimates: (M, 3) rows (t_s, north, east) of the flight controller's estimate.
-        reset_steps_m: how far each reset moved the flight controller's estimate.
+        reset_steps: (t_s, metres): when and how far each reset moved the flight controller's estimate.
         drift_reports: (t_s, VO_DRIFT metres) as received.
     """
     sent_end = sent_max = fc_end = fc_max = hd_end = hd_med = None
@@ -124,6 +125,15 @@ def flight_safety(
             ferr = np.linalg.norm(fc_estimates[keep, 1:3] - truth_p(tf[keep])[:, :2], axis=1)
             fc_end, fc_max = float(ferr[-1]), float(ferr.max())
     nees_med, inside = motion_consistency(samples, truth_p)
+    excess = None
+    if reset_steps and samples:
+        t = np.array([s.t_s for s in samples])
+        over = []
+        for t_step, step in reset_steps:
+            i = max(int(np.searchsorted(t, t_step - 1e-6)) - 1, 0)  # the last estimate before the one that reset
+            motion = float(np.linalg.norm(truth_p(np.array([t_step]))[0, :2] - truth_p(np.array([t[i]]))[0, :2]))
+            over.append(step - (0.3 + 0.1 * motion))
+        excess = max(over)
     within = None
     if drift_reports and samples:
         t = np.array([s.t_s for s in samples])
@@ -136,6 +146,6 @@ def flight_safety(
             ok.append(e <= 3.0 * drift)
         within = float(np.mean(ok)) if ok else None
     return FlightSafety(
-        sent_end, sent_max, fc_end, fc_max, max(reset_steps_m) if reset_steps_m else None, list(reset_steps_m),
+        sent_end, sent_max, fc_end, fc_max, max((m for _, m in reset_steps), default=None), [m for _, m in reset_steps], excess,
         hd_end, hd_med, nees_med, inside, within, path,
     )

@@ -155,7 +155,9 @@ class SimFlightController:
                 continue
             msg_id = min(m for m, d in self._next_due.items() if d == due)
             self._next_due[msg_id] = due + self._streams[msg_id]
-            self._send(self._senders[msg_id](due))
+            msg = self._senders[msg_id](due)
+            if msg is not None:
+                self._send(msg)
         self._t_s = max(self._t_s, t_s)
 
     def _propagate(self, t_s: float) -> None:
@@ -178,6 +180,7 @@ class SimFlightController:
         self._next_due.clear()
         self._next_heartbeat_s = t_s
         self._last_attitude = None
+        self.estimator.reboot()
 
     def poll(self) -> None:
         """Read and handle every message waiting on the socket (non-blocking)."""
@@ -217,8 +220,9 @@ class SimFlightController:
                 self._next_due[msg_id] = self._t_s + interval_s
         elif msg.command == mav.MAV_CMD_REQUEST_MESSAGE:
             msg_id = int(msg.param1)
-            if msg_id in self._senders:
-                self._send(self._senders[msg_id](self._t_s))
+            reply = self._senders[msg_id](self._t_s) if msg_id in self._senders else None
+            if reply is not None:
+                self._send(reply)
             else:
                 result = mav.MAV_RESULT_DENIED
         else:
@@ -278,8 +282,11 @@ class SimFlightController:
         return baro_height_sample(self.trajectory, t_s, self.spec, self._baro_bias_m, self._rng)
 
     def _local_position(self, t_s: float) -> Any:
+        """LOCAL_POSITION_NED, or None while the estimator has no position (after a reboot)."""
         s = self.trajectory.state(t_s)
         self._propagate(t_s)
+        if not self.estimator.has_position:
+            return None
         p, v = self.estimator.position_ne_m, self.estimator.velocity_ne_m_s(s.v_ned_m_s)
         return self._mav.MAVLink_local_position_ned_message(
             self.boot_time_ms(t_s), float(p[0]), float(p[1]), -self._baro_height_m(t_s), float(v[0]), float(v[1]), float(s.v_ned_m_s[2])

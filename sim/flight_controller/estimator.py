@@ -12,6 +12,7 @@ enough to judge what mavvo sends the way the vehicle would:
   estimate to the sent position at once, as EKF3 does on a reset: a stale pose sent with a new counter
   becomes a step the vehicle feels (recorded in :attr:`SimEstimator.steps`);
 - vision is unhealthy 300 ms after the last sample (ArduPilot's timeout); the estimate dead-reckons on;
+- a reboot loses the position (:meth:`SimEstimator.reboot`): none is reported until vision gives one;
 - its yaw starts ``yaw_initial_error_deg`` off at boot and settles exponentially
   (``yaw_settle_time_s``), as an EKF's does while its yaw converges.
 
@@ -73,6 +74,7 @@ class SimEstimator:
         self._last_counter: int | None = None
         self.steps: list[Step] = []
         self.fused = 0
+        self.has_position = True  # at boot the estimate starts at its origin, where the vehicle is
 
     def propagate(self, t_s: float, v_true_ned_m_s: np.ndarray) -> None:
         """Dead-reckon to ``t_s`` on the true velocity plus the IMU's error and the learnt correction."""
@@ -82,6 +84,12 @@ class SimEstimator:
         self._v_err += self._rng.normal(0.0, self.spec.imu_drift_m_s_per_sqrt_s * math.sqrt(dt), 2)
         self._p += (np.asarray(v_true_ned_m_s[:2], dtype=float) + self._v_err + self._v_corr) * dt
         self._t_s = t_s
+
+    def reboot(self) -> None:
+        """The flight controller restarted: its position is gone until the next vision sample."""
+        self.has_position = False
+        self._last_counter = None
+        self._v_corr = np.zeros(2)
 
     def fuse_vision(self, t_s: float, x_m: float, y_m: float, reset_counter: int) -> None:
         """A VISION_POSITION_ESTIMATE arrived at ``t_s`` (after :meth:`propagate` to ``t_s``)."""
@@ -93,6 +101,7 @@ class SimEstimator:
                 self.steps.append(Step(t_s, float(np.linalg.norm(z - self._p)), reset_counter))
             self._p = z  # EKF3 moves to the sent position on a reset
             self._last_counter = reset_counter
+            self.has_position = True
         else:
             y = z - self._p  # innovation
             self._p += self.spec.position_gain * y

@@ -148,7 +148,7 @@ def run_daemon_in_sim(
         lambda t: sim.truth_at(t).positions_xyz_m,
         lambda t: _yaw(sim.truth_at(t).rotations),
         np.array(sim.fc.estimates).reshape(-1, 3),
-        [st.step_m for st in sim.fc.estimator.steps],
+        [(st.t_s, st.step_m) for st in sim.fc.estimator.steps],
         [(r.t_s, r.msg.value) for r in sim.fc.received if r.type == "NAMED_VALUE_FLOAT" and r.msg.name == "VO_DRIFT"],
     )
     received: dict[str, int] = {}

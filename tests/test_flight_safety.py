@@ -1,0 +1,152 @@
+"""What the autopilot fuses stays right: judged by the simulated flight controller's own estimator,
+with no alignment, through resets, restarts, an EKF yaw that settles after boot, and on the ground."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from mavvo.odometry.pipeline import Odometry, OdometryOptions
+from mavvo.service.daemon import Daemon
+from mavvo.service.settings import ServiceConfig
+from mavvo.service.timing import FlightControllerState, TimingOptions
+from sim.flight_controller.estimator import EstimatorSpec, SimEstimator
+from sim.scenarios.flight import Simulation
+from sim.scenarios.loader import load_scenario
+from sim.scenarios.service_run import config_for, run_daemon_in_sim
+from sim.world.camera import SimCamera
+
+
+class FixedClock:
+    realtime = False
+    t = 0.0
+
+    def now_s(self) -> float:
+        return self.t
+
+
+# ------------------------------------------------------------------------------------------ units
+
+
+def test_the_simulated_ekf_snaps_on_a_new_reset_counter_and_fuses_otherwise():
+    est = SimEstimator(EstimatorSpec(imu_drift_m_s_per_sqrt_s=0.0), np.zeros(3), np.random.default_rng(0))
+    est.propagate(1.0, np.zeros(3))
+    est.fuse_vision(1.0, 0.0, 0.0, reset_counter=7)  # the first sample: taken as it is, not a step
+    est.fuse_vision(1.05, 1.0, 0.0, reset_counter=7)
+    assert est.position_ne_m[0] == pytest.approx(EstimatorSpec().position_gain)  # fused, not snapped
+    est.fuse_vision(1.1, 5.0, 2.0, reset_counter=8)
+    assert np.allclose(est.position_ne_m, [5.0, 2.0])  # a new counter: the sent position, at once
+    assert len(est.steps) == 1 and est.steps[0].step_m == pytest.approx(math.hypot(5.0 - 0.3, 2.0))
+    assert est.vision_healthy(1.3) and not est.vision_healthy(1.45)  # ArduPilot's 300 ms
+
+
+def _attitude_stream(state: FlightControllerState, yaw_error, seconds: float, yaw_rate=0.2, roll=0.3):
+    """100 Hz ATTITUDE of a vehicle turning steadily while banked, with the EKF's yaw error added."""
+    for k in range(int(seconds * 100)):
+        t = k * 0.01
+        true_yaw = yaw_rate * t
+        # Body rates of a steady turn at bank `roll`: the Euler yaw rate spread over q and r.
+        q, r = yaw_rate * math.sin(roll), yaw_rate * math.cos(roll)
+        state.on_attitude(int(t * 1000), roll, 0.0, math.remainder(true_yaw + yaw_error(t), math.tau), t, (0.0, q, r))
+
+
+def test_fc_yaw_counts_as_settled_only_once_it_follows_its_gyro():
+    converging = FlightControllerState(FixedClock(), TimingOptions())
+    _attitude_stream(converging, lambda t: math.radians(-10.0) * math.exp(-t / 5.0), 5.0)
+    assert not converging.yaw_settled  # still moving 0.7 deg/s against its gyro after 5 s
+    steady = FlightControllerState(FixedClock(), TimingOptions())
+    _attitude_stream(steady, lambda t: math.radians(3.0), 3.0)  # a constant offset is settled: nothing to wait for
+    assert steady.yaw_settled
+    later = FlightControllerState(FixedClock(), TimingOptions())
+    _attitude_stream(later, lambda t: math.radians(-10.0) * math.exp(-t / 5.0), 25.0)
+    assert later.yaw_settled
+
+
+def test_reinitialisation_is_anchored_at_the_flight_controllers_position():
+    from sim.scenarios.paired_frames import PairedSequence
+
+    sc = dataclasses.replace(load_scenario("hover"), duration_s=3.0)
+    frames = list(PairedSequence(sc))
+    odo = Odometry(sc.camera.camera_model(), sc.camera.R_body_cam(), OdometryOptions(), reset_counter=250)
+    first = None
+    for f in frames[:20]:
+        first = first or odo.step(f)
+    odo.chain.drop()  # tracking lost
+    there = np.array([3.0, -4.0, -10.0])
+    est = odo.step(dataclasses.replace(frames[20], fc_position_ned_m=there))
+    assert first is not None and first.reset_counter == 250
+    assert np.allclose(est.p_ned_m, there) and est.reset_counter == 251
+    assert math.sqrt(est.covariance[0, 0]) < 0.1  # the EKF's own belief: no step, the stream's sigma
+    assert est.drift_m >= OdometryOptions().anchor_sigma_m  # but only as true as that belief
+
+
+# ------------------------------------------------------------------------------------ simulated
+
+
+def test_faults_scenario_is_what_the_vehicle_can_fly_on():
+    run = run_daemon_in_sim(load_scenario("faults"))
+    v = run.safety
+    assert run.resets >= 1 and v.reset_steps_m, "the scenario's faults should force a re-initialisation"
+    # No jump back at a reset: at most 0.3 m plus 10% of the motion during the outage.
+    assert v.reset_step_excess_m <= 0.0, (v.reset_steps_m, v.reset_step_excess_m)
+    assert v.fc_end_error_m < 0.01 * v.path_length_m, (v.fc_end_error_m, v.path_length_m)
+    assert 0.3 <= v.nees_median <= 3.0 and v.nees_inside_99_fraction >= 0.95, (v.nees_median, v.nees_inside_99_fraction)
+    assert v.drift_within_3x_fraction >= 0.95
+
+
+def test_a_service_restart_in_flight_is_a_non_event_for_the_ekf(tmp_path):
+    sc = load_scenario("square")
+    sim = Simulation(sc, "udpin:127.0.0.1:0")
+    host, port = sim.fc.address
+    cfg = config_for(sc, ServiceConfig(), f"udpout:{host}:{port}")
+    cfg = dataclasses.replace(cfg, service=dataclasses.replace(cfg.service, state_file=str(tmp_path / "state.json")))
+
+    def camera(until_s: float) -> SimCamera:
+        return SimCamera(sc.camera, sim.world, sim.trajectory, sim.clock, faults=sim.faults, seed=1, advance=sim.advance_to, duration_s=until_s)
+
+    try:
+        Daemon(cfg, clock=sim.clock, source=camera(12.0)).run()  # flies, then dies at 12 s
+        second = camera(20.0)
+        second.skip_to(13.0)  # systemd restarts it a second later
+        Daemon(cfg, clock=sim.clock, source=second).run()
+        sim.fc.poll()
+    finally:
+        sim.close()
+    counters = [r.msg.reset_counter for r in sim.fc.received if r.type == "VISION_POSITION_ESTIMATE"]
+    assert len(set(counters)) == 2 and counters[0] != counters[-1]  # the new process did not reuse the counter
+    steps = sim.fc.estimator.steps
+    assert len(steps) == 1 and steps[0].step_m < 0.3, steps
+
+
+def test_heading_is_taken_from_the_fc_once_its_yaw_has_settled():
+    sc = load_scenario("square")
+    sc = dataclasses.replace(
+        sc, trajectory=dataclasses.replace(sc.trajectory, yaw_deg=30.0), duration_s=40.0,
+        flight_controller=dataclasses.replace(sc.flight_controller, boot_offset_s=0.0),  # mavvo starts with the FC
+    )
+    run = run_daemon_in_sim(sc)
+    assert run.safety.heading_end_error_deg < 1.0 and run.safety.heading_median_error_deg < 1.0
+    # Control: starting at once, with the heading never following the flight controller's, north is off.
+    base = ServiceConfig()
+    blind = dataclasses.replace(
+        base, service=dataclasses.replace(base.service, heading_wait_max_s=0.0), odometry=dataclasses.replace(base.odometry, heading_correction_time_s=0.0)
+    )
+    off = run_daemon_in_sim(sc, blind)
+    assert off.safety.heading_end_error_deg > 5.0
+
+
+def test_on_the_ground_before_take_off_the_sent_sigma_stays_small():
+    from sim.world.trajectories import HoverSpec
+
+    # Standing on its landing gear: the camera 0.3 m above the ground, not moving at all.
+    sc = dataclasses.replace(load_scenario("hover"), trajectory=HoverSpec(altitude_m=0.3, drift_m=0.0, duration_s=10.0), duration_s=10.0)
+    run = run_daemon_in_sim(sc)
+    sigma = np.array([math.sqrt(m.covariance[0]) for m in run.vision_messages])
+    assert len(sigma) > 100, "the vehicle on the ground should be tracked"
+    assert sigma.max() < 0.1, sigma.max()
+    # ... and the position it keeps sending stays where it stands.
+    p = np.array([[m.x, m.y] for m in run.vision_messages])
+    assert np.abs(p - p[0]).max() < 0.05
