@@ -294,3 +294,52 @@ def test_mavvo_run_reads_an_image_folder_and_stops_on_sigterm(tmp_path):
     n = int(final[0].split("frames ")[1].split(",")[0])
     # Every frame was skipped and counted, and SIGTERM stopped the service before the folder's end.
     assert 3 <= n < 29 and f"skipped_attitude_missing {n}" in final[0]
+
+
+class StoppedWallClock:
+    """Real time that does not move: processing takes no time (the test injects it, not measures it)."""
+
+    realtime = True
+
+    def now_s(self) -> float:
+        return 0.0
+
+
+def test_latency_advice_follows_the_cameras_latency():
+    """In lockstep the capture-to-send latency is the simulated camera's readout latency plus the
+    processing time (injected here as zero), not the frame period: 40 ms more readout, 40 ms more advice."""
+    def advice(readout_ms: float):
+        sc = load_scenario("hover")
+        sc = dataclasses.replace(sc, camera=dataclasses.replace(sc.camera, readout_latency_ms=readout_ms))
+        return run_daemon_in_sim(sc, duration_s=5.0, wall_clock=StoppedWallClock()).daemon.latency
+
+    fast, slow = advice(20.0), advice(60.0)
+    assert fast is not None and slow is not None and fast.samples > 20
+    assert fast.min_ms == pytest.approx(20.0) and fast.p95_ms == pytest.approx(20.0)  # not the 50 ms frame period
+    assert (fast.ardupilot_delay_ms, fast.px4_delay_ms) == (20, 20)
+    assert (slow.ardupilot_delay_ms, slow.px4_delay_ms) == (60, 60)
+    assert fast.transfer_ms == 0.0  # a socket: nothing on the wire to add
+
+
+def test_serial_transfer_time_is_bytes_over_baud():
+    from mavvo.service.latency import VPE_FRAME_BYTES, LatencyTracker
+
+    t = LatencyTracker(baud=57600)
+    for ms in (30, 32, 35, 60):
+        t.add(ms * 1e-3)
+    s = t.stats()
+    assert s.transfer_ms == pytest.approx(VPE_FRAME_BYTES * 10 / 57600 * 1e3)  # 22 ms at 57600 baud
+    assert s.min_ms == pytest.approx(30.0) and s.p50_ms == pytest.approx(33.5)
+    assert s.ardupilot_delay_ms == round(30.0 + s.transfer_ms) and s.px4_delay_ms == round(33.5 + s.transfer_ms)
+
+
+def test_the_operator_is_told_why_frames_do_not_pair():
+    """ATTITUDE at 10 Hz for a 20 fps camera (a flight controller that sends less than asked, or a
+    configuration check-config would refuse): every frame goes unpaired, and after 2 s the operator
+    reads the cause and the key to change."""
+    base = ServiceConfig()
+    cfg = dataclasses.replace(base, link=dataclasses.replace(base.link, attitude_rate_hz=10.0))
+    run = run_daemon_in_sim(load_scenario("hover"), cfg, duration_s=6.0)
+    assert run.daemon.counters.get("paired", 0) == 0 and run.daemon.counters["skipped_attitude_stale"] > 40
+    told = [text for _, text in run.statustexts if "link.attitude_rate_hz" in text]
+    assert told == ["mavvo: ATTITUDE 10 Hz; link.attitude_rate_hz 20"], run.statustexts

@@ -52,6 +52,11 @@ def test_sim_yaml_loads():
         ("link: {url: 'udpout:127.0.0.1:99999'}", "link.url: expected udpout:HOST:PORT with a port 1-65535"),
         ("camera: {model: fisheye, distortion: [0.1]}", "camera:"),
         ("- just a list", "expected a mapping of keys at the top level, got list"),
+        # Mistakes across keys, with what to set.
+        ("link: {attitude_rate_hz: 10}\ncamera: {rate_hz: 20}", "link.attitude_rate_hz (10) is below camera.rate_hz (20)"),
+        ("link: {attitude_rate_hz: 20}\ntiming: {max_attitude_gap_s: 0.04}", "timing.max_attitude_gap_s (0.04) is shorter than the ATTITUDE period (0.05 s"),
+        ("camera: {cx_px: 900}", "camera: cx_px, cy_px: expected the principal point inside the 640x480 image"),
+        ("camera: {fx_px: 20}", "camera.fx_px (20) gives a 172.8 deg horizontal field of view on a 640 px wide image"),
         ("camera: {source: [", "not valid YAML"),
     ],
 )

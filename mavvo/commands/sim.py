@@ -94,6 +94,18 @@ def _sim_service(scenario: Any, args: argparse.Namespace) -> int:
         f"ATE {ev.ate_se3_m['rmse']:.3f} m RMSE ({ev.ate_se3_rmse_percent_of_path:.2f}% of {ev.path_length_m:.1f} m), "
         f"Sim(3) {ev.ate_sim3_m['rmse']:.3f} m at scale {ev.sim3_scale:.3f}"
     )
+    v = run.safety
+    if v.fc_end_error_m is not None and v.path_length_m > 0:
+        step = "no reset" if v.largest_reset_step_m is None else f"largest step at a reset {v.largest_reset_step_m:.2f} m"
+        print(
+            f"what the vehicle felt (no alignment): its EKF {v.fc_end_error_m:.2f} m off at the end "
+            f"({100 * v.fc_end_error_m / v.path_length_m:.2f}% of the path), {step}, heading {v.heading_end_error_deg:.2f} deg off"
+        )
+    if v.nees_median is not None and v.drift_within_3x_fraction is not None:
+        print(
+            f"covariance over 1 s: median NEES {v.nees_median:.2f}, {100 * v.nees_inside_99_fraction:.0f}% inside the 99% ellipse; "
+            f"true error within 3x VO_DRIFT for {100 * v.drift_within_3x_fraction:.0f}% of reports"
+        )
     print(f"plot: {summary['plot']}")
     if run.recording is not None:
         print(f"recording: {run.recording} (replay it: mavvo replay {run.recording})")

@@ -323,10 +323,12 @@ class Odometry:
         p_meas: np.ndarray | None = m.p_ned_m
         if m.scale is not None:
             unresolved = m.scale.spread * float(np.linalg.norm(m.c2_m))
-        elif m.parallax_px < _STILL_PARALLAX_PX:
-            # No parallax: no motion the images can resolve, so the frame is where its keyframe is,
-            # within the baseline that a pixel of parallax at the scene's depth allows.
-            unresolved = depth * _STILL_PARALLAX_PX / self._focal_px
+        elif rp.reason == RelposeFailure.PURE_ROTATION or m.parallax_px < _STILL_PARALLAX_PX:
+            # No parallax the images resolve (the relative pose says pure rotation, or under a pixel
+            # with nothing triangulated): the frame is where its keyframe is, within the baseline the
+            # largest unresolved parallax allows at the scene's depth.
+            still_px = max(_STILL_PARALLAX_PX, opt.ransac.min_parallax_ratio * opt.ransac.max_err_px)
+            unresolved = depth * still_px / self._focal_px
         else:
             # Parallax, but too few points to triangulate: the translation is not measured.
             p_meas, unresolved = None, 0.0

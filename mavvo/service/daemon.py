@@ -25,7 +25,7 @@ import signal
 import json
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -35,6 +35,7 @@ import numpy as np
 from mavvo.service import messages, sdnotify
 from mavvo.service.camera import FrameQueue, FrameSource, SourceFactory, open_source
 from mavvo.errors import CameraEnded
+from mavvo.service.latency import LatencyStats, LatencyTracker
 from mavvo.service.link import Link, SystemStatus
 from mavvo.odometry.pipeline import Odometry
 from mavvo.service.recorder import Recorder
@@ -47,6 +48,14 @@ __all__ = ["Daemon", "DaemonSummary", "LockstepProgress"]
 log = logging.getLogger(__name__)
 
 _SUPERVISE_TICK_S = 0.1
+_ARRIVALS_KEPT = 64
+_UNPAIRED_TELL_S = 2.0  # frames unpaired for one cause this long: the operator is told which and what to change
+_UNPAIRED_CAUSES = {
+    "skipped_attitude_stale": "ATTITUDE too sparse; raise link.attitude_rate_hz",
+    "skipped_attitude_missing": "no ATTITUDE; check link.url",
+    "skipped_attitude_wait": "ATTITUDE late; raise timing.attitude_wait_s",
+    "waiting_for_heading": "waiting for the FC's yaw to settle",
+}
 _LOCKSTEP_POLL_S = 1e-4  # how often wait_progress looks (real time)
 _NO_ESTIMATE_S = 1.0  # no estimate for this long (host clock): the operator is told vision failed
 _ERROR_LOG_EVERY = 100  # after the first few, log one repeated error in this many
@@ -89,7 +98,12 @@ class DaemonSummary:
 
     counters: dict[str, int]
     state: VisionState
-    latency_ms: float | None
+    latency: LatencyStats | None
+
+    @property
+    def latency_ms(self) -> float | None:
+        """The median capture-to-send latency."""
+        return None if self.latency is None else self.latency.p50_ms
 
 
 class Daemon:
@@ -102,6 +116,8 @@ class Daemon:
         schemes: extra ``camera.source`` schemes (the CLI registers ``sim:``).
         on_estimate: called on the worker thread with every estimate (replay's quality timeline); it
             must be quick.
+        wall_clock: real time (``time.monotonic`` by default): the watchdog, bounded waits, and the
+            processing time in a lockstep run's latency.
 
     With ``config.record.dir`` set, the run is recorded (:mod:`mavvo.service.recorder`).
     """
@@ -114,6 +130,7 @@ class Daemon:
         source: FrameSource | None = None,
         schemes: dict[str, SourceFactory] | None = None,
         on_estimate: Callable[[PoseEstimate], None] | None = None,
+        wall_clock: Clock | None = None,
     ) -> None:
         self.config = config
         self.clock = clock or MonotonicClock()
@@ -136,7 +153,7 @@ class Daemon:
         self._camera_done = threading.Event()
         self._worker_done = threading.Event()
         self._worker_beat_s = 0.0
-        self._wall = MonotonicClock()
+        self._wall = wall_clock or MonotonicClock()
         self._last_sent_t_s = -math.inf
         self._last_text_s = -math.inf
         self._pending_states: list[tuple[VisionState, StateReason]] = []  # changes not yet told (rate limit)
@@ -149,6 +166,11 @@ class Daemon:
         self._first_paired_s: float | None = None  # host time of the first paired frame: the heading wait starts there
         self._heading_wait_over = config.service.heading_wait_max_s <= 0
         self._odometry_ok = False  # the last ODOMETRY sent had a quality >= 1
+        self.latency = LatencyTracker(self.link.baud)
+        self._unpaired_history: deque[tuple[float, int, dict[str, int]]] = deque()  # (t, paired, unpaired causes)
+        self._unpaired_told = False
+        self._arrival_s: dict[int, float] = {}  # frame seq -> host time the camera thread got it
+        self._frame_in: tuple[float, float] = (0.0, 0.0)  # (host clock when it arrived, real time the worker took it)
 
     # ------------------------------------------------------------------ lockstep
 
@@ -245,6 +267,9 @@ class Daemon:
                     continue
                 backoff = 0.1
                 if frame is not None:
+                    if len(self._arrival_s) > _ARRIVALS_KEPT:  # frames dropped from the queue never come back
+                        self._arrival_s.clear()
+                    self._arrival_s[frame.seq] = self.clock.now_s()
                     self.frames.put(frame, self.stop_event)
         finally:
             self._camera_done.set()
@@ -272,6 +297,7 @@ class Daemon:
 
     def _process(self, frame: Frame) -> None:
         self.counters["frames"] += 1
+        self._frame_in = (self._arrival_s.pop(frame.seq, self.clock.now_s()), self._wall.now_s())
         p = wait_for_pairing(self.fc, frame.t_exposure_s)
         if self.recorder is not None:
             self.recorder.frame(frame, p, self.clock.now_s())
@@ -299,6 +325,14 @@ class Daemon:
         self.counters["paired"] += 1
         if est is not None:
             self._publish(est)
+
+    def _latency_s(self, t_exposure_s: float) -> float:
+        """Exposure to now; on a lockstep clock (which stands still while the worker computes, and runs
+        ahead with the camera thread), to the frame's arrival plus the real time the worker took."""
+        if self.clock.realtime:
+            return self.clock.now_s() - t_exposure_s
+        t_in, wall_in = self._frame_in
+        return (t_in - t_exposure_s) + (self._wall.now_s() - wall_in)
 
     def _odometry(self, est: PoseEstimate) -> dict[str, object]:
         out = self.config.output
@@ -341,7 +375,9 @@ class Daemon:
             first = (last + 1) % 256
             self._save_reset_counter(first)
             return first
-        return int(self.clock.now_s() * 10) % 256
+        # No state file: a real clock's tenths of a second since the host's boot differ between two
+        # starts of the service; a simulated one starts at 0, so runs repeat.
+        return int(self.clock.now_s() * 10) % 256 if self.clock.realtime else 0
 
     def _save_reset_counter(self, counter: int) -> None:
         path = Path(self.config.service.state_file)
@@ -374,7 +410,8 @@ class Daemon:
             self.counters["not_sent_rate"] += 1
         else:
             self._last_sent_t_s = est.t_exposure_s
-            self.link.send("VISION_POSITION_ESTIMATE", messages.vision_position_estimate(est), t_capture_s=est.t_exposure_s)
+            self.link.send("VISION_POSITION_ESTIMATE", messages.vision_position_estimate(est))
+            self.latency.add(self._latency_s(est.t_exposure_s))
             if out.speed_estimate:
                 self.link.send("VISION_SPEED_ESTIMATE", messages.vision_speed_estimate(est))
             if out.odometry:
@@ -396,7 +433,9 @@ class Daemon:
         """From the supervisor: notice when estimates stop coming, send the pending STATUSTEXT (rate
         limited) and the health values."""
         est = self.last_estimate
-        skipped = sum(v for k, v in _snapshot(self.counters).items() if k.startswith("skipped_attitude"))
+        counters = _snapshot(self.counters)
+        skipped = sum(v for k, v in counters.items() if k.startswith("skipped_attitude"))
+        self._tell_why_unpaired(now, counters)
         if est is not None and self.state != VisionState.FAILED and now - est.t_exposure_s > _NO_ESTIMATE_S:
             self._set_state(VisionState.FAILED, StateReason.NO_ATTITUDE if skipped > self._skipped_at_last_report else StateReason.NO_FRAMES)
         self._skipped_at_last_report = skipped
@@ -411,17 +450,44 @@ class Daemon:
             period = 1.0 / self.config.output.health_rate_hz
             # On the period's grid, so the rate holds however coarse the supervisor's ticks are.
             self._next_health_s = self._next_health_s + period if now < self._next_health_s + period else now + period
-            latency = self.link.latency_s()
+            latency = self.latency.stats()
             fresh = est is not None and now - est.t_exposure_s <= _NO_ESTIMATE_S
             values = (
                 ("VO_QUAL", est.quality if fresh else -1), ("VO_INLIER", est.diagnostics.inliers if fresh else 0),
                 ("VO_STATE", messages.STATE_CODES[self.state]),
-                ("VO_LAT_MS", latency * 1e3 if latency is not None else math.nan),
+                ("VO_LAT_MS", latency.p50_ms if latency is not None else math.nan),
                 ("VO_DRIFT", est.drift_m if est is not None else math.nan),
             )
             t_ms = int(now * 1000)
             for name, value in values:
                 self.link.send("NAMED_VALUE_FLOAT", messages.named_value_float(t_ms, name, value))
+
+    def _tell_why_unpaired(self, now: float, counters: dict[str, int]) -> None:
+        """When no frame has paired for ``_UNPAIRED_TELL_S`` and one cause alone grew meanwhile, say
+        which and the key to change (STATUSTEXT and log), once until frames pair again."""
+        snap = (now, counters.get("paired", 0), {k: counters.get(k, 0) for k in _UNPAIRED_CAUSES})
+        history = self._unpaired_history
+        history.append(snap)
+        while len(history) > 1 and history[1][0] <= now - _UNPAIRED_TELL_S:
+            history.popleft()
+        t0, paired0, causes0 = history[0]
+        if snap[1] != paired0:
+            self._unpaired_told = False
+            return
+        grown = [k for k, v in snap[2].items() if v > causes0[k]]
+        if self._unpaired_told or now - t0 < _UNPAIRED_TELL_S or len(grown) != 1:
+            return
+        self._unpaired_told = True
+        cause = grown[0]
+        text = short = _UNPAIRED_CAUSES[cause]
+        if cause == "skipped_attitude_stale":
+            rate = self.fc.attitude_rate_hz()
+            if rate is not None:
+                want = max(self.config.camera.rate_hz, 2 * rate)
+                text = f"ATTITUDE arrives at {rate:.0f} Hz; raise link.attitude_rate_hz to {want:.0f}"
+                short = f"ATTITUDE {rate:.0f} Hz; link.attitude_rate_hz {want:.0f}"  # STATUSTEXT holds 50 characters
+        log.warning("no frame paired for %.0f s: %s", now - t0, text)
+        self.link.send("STATUSTEXT", messages.statustext_line(f"mavvo: {short}", severity=messages.MAV_SEVERITY_WARNING))
 
     # ------------------------------------------------------------------ health
 
@@ -440,16 +506,12 @@ class Daemon:
         return dict(sorted(c.items()))
 
     def summary(self) -> DaemonSummary:
-        latency = self.link.latency_s()
-        return DaemonSummary(self.health(), self.state, None if latency is None else latency * 1e3)
+        return DaemonSummary(self.health(), self.state, self.latency.stats())
 
     def _log_health(self, final: bool = False) -> None:
         h = self.health()
-        latency = self.link.latency_s()
-        lat = "" if latency is None else (
-            f"; capture-to-send {latency * 1e3:.0f} ms: set VISO_DELAY_MS={round(latency * 1e3)} (ArduPilot) "
-            f"or EKF2_EV_DELAY={round(latency * 1e3)} (PX4)"
-        )
+        latency = self.latency.stats()
+        lat = "" if latency is None else f"; {latency.advice()}"
         keys = ("frames", "paired", "estimates_sent", "not_sent_failed", "resets", "frames_dropped", "bad_frames",
                 "skipped_attitude_wait", "skipped_attitude_stale", "skipped_attitude_missing", "fc_attitude_rejected",
                 "link_bad_data", "link_reconnects", "link_reboots", "camera_errors", "camera_reconnects", "errors",

@@ -29,9 +29,8 @@ import os
 import queue
 import select
 import stat
-import statistics
 import threading
-from collections import Counter, deque
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Protocol
@@ -207,12 +206,10 @@ class Link:
         self._mavutil = mavutil()  # MAVLink 2 checked here, whoever imported pymavlink first
         self._mav = self._mavutil.mavlink
         self._conn: Any = None
-        self._queue: queue.Queue[tuple[str, dict[str, Any], float | None]] = queue.Queue(_SEND_QUEUE)
+        self._queue: queue.Queue[tuple[str, dict[str, Any]]] = queue.Queue(_SEND_QUEUE)
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
-        self._latencies_s: deque[float] = deque(maxlen=200)
-        self._latency_lock = threading.Lock()
         self._last_boot_ms: int | None = None
         mav = self._mav
         self._streams = [
@@ -227,11 +224,10 @@ class Link:
 
     # ------------------------------------------------------------------ other threads
 
-    def send(self, name: str, fields: dict[str, Any], t_capture_s: float | None = None) -> None:
+    def send(self, name: str, fields: dict[str, Any]) -> None:
         """Queue message ``name`` (e.g. ``VISION_POSITION_ESTIMATE``) with its fields; thread-safe,
-        never blocks (when the queue is full the oldest message is dropped and counted).
-        ``t_capture_s``: the exposure it reports, for the capture-to-send latency."""
-        item = (name, fields, t_capture_s)
+        never blocks (when the queue is full the oldest message is dropped and counted)."""
+        item = (name, fields)
         while True:
             try:
                 self._queue.put_nowait(item)
@@ -246,11 +242,6 @@ class Link:
             os.write(self._wake_w, b"x")
         except BlockingIOError:
             pass  # the pipe is full: the link thread is already awake
-
-    def latency_s(self) -> float | None:
-        """Median capture-to-send latency over the last 200 estimates, seconds."""
-        with self._latency_lock:
-            return statistics.median(self._latencies_s) if self._latencies_s else None
 
     # ------------------------------------------------------------------ the link thread
 
@@ -329,21 +320,18 @@ class Link:
         while (msg := self._conn.recv_msg()) is not None:
             self._handle(msg)
         now = self.clock.now_s()
-        self._flush(now)
+        self._flush()
         self._keep_alive(now)
         if now - self._last_rx_s > self.options.silence_timeout_s:
             raise LinkError(f"nothing heard for {now - self._last_rx_s:.1f} s")
 
-    def _flush(self, now: float) -> None:
+    def _flush(self) -> None:
         while True:
             try:
-                name, fields, t_capture = self._queue.get_nowait()
+                name, fields = self._queue.get_nowait()
             except queue.Empty:
                 return
             self._write(name, fields)
-            if t_capture is not None:
-                with self._latency_lock:
-                    self._latencies_s.append(now - t_capture)
 
     def _write(self, name: str, fields: dict[str, Any]) -> None:
         msg = getattr(self._conn.mav, f"{name.lower()}_encode")(**fields)
@@ -356,7 +344,7 @@ class Link:
         """Send what is still queued (the stop's bounded drain: one pass, no waiting)."""
         if self._conn is not None:
             try:
-                self._flush(self.clock.now_s())
+                self._flush()
             except OSError:
                 pass
 

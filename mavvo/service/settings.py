@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -99,9 +100,38 @@ def parse_config(data: Any, source: str) -> ServiceConfig:
     cfg = build(ServiceConfig, data, source)
     try:
         parse_url(cfg.link.url)
+        check_across_keys(cfg)
     except ConfigError as e:
         raise ConfigError(f"{source}: {e}") from e
     return cfg
+
+
+# A pinhole camera's horizontal field of view outside this is a typo in fx_px, not a lens.
+_PINHOLE_FOV_DEG = (5.0, 170.0)
+
+
+def check_across_keys(cfg: ServiceConfig) -> None:
+    """Mistakes no single key shows: ConfigError naming the keys and what to set."""
+    link, cam, timing = cfg.link, cfg.camera, cfg.timing
+    if link.attitude_rate_hz < cam.rate_hz:
+        raise ConfigError(
+            f"link.attitude_rate_hz ({link.attitude_rate_hz:g}) is below camera.rate_hz ({cam.rate_hz:g}): frames would go "
+            f"unpaired; set link.attitude_rate_hz to at least {cam.rate_hz:g} (100 brackets every exposure closely)"
+        )
+    period_s = 1.0 / link.attitude_rate_hz
+    if timing.max_attitude_gap_s < period_s:
+        raise ConfigError(
+            f"timing.max_attitude_gap_s ({timing.max_attitude_gap_s:g}) is shorter than the ATTITUDE period ({period_s:g} s at "
+            f"link.attitude_rate_hz {link.attitude_rate_hz:g}): no frame would pair; set it to at least {period_s:g}"
+        )
+    if cam.model == "pinhole":
+        fov = math.degrees(2.0 * math.atan(cam.width_px / (2.0 * cam.fx_px)))
+        lo, hi = _PINHOLE_FOV_DEG
+        if not lo <= fov <= hi:
+            raise ConfigError(
+                f"camera.fx_px ({cam.fx_px:g}) gives a {fov:.1f} deg horizontal field of view on a {cam.width_px} px wide image: "
+                f"expected {lo:g} to {hi:g} deg (fx_px is in pixels of this image size)"
+            )
 
 
 def load_config(path: str | Path) -> ServiceConfig:

@@ -344,6 +344,13 @@ class FlightControllerState:
             fc_p = (p_l[0] + v_l[0] * (t - t_l), p_l[1] + v_l[1] * (t - t_l), p_l[2] + v_l[2] * (t - t_l))  # moved on to the exposure
         return Pairing("paired", v, roll, pitch, yaw, range_m, height_m, fc_p, self.yaw_settled)
 
+    def attitude_rate_hz(self) -> float | None:
+        """The ATTITUDE rate over the kept history (its samples' own clock), or None with too few."""
+        with self._lock:
+            if len(self._t_fc) < 3 or self._t_fc[-1] <= self._t_fc[0]:
+                return None
+            return (len(self._t_fc) - 1) / (self._t_fc[-1] - self._t_fc[0])
+
     def wait_for_new_data(self, timeout_s: float) -> None:
         """Block until the next ATTITUDE arrives or ``timeout_s`` of real time passes."""
         with self._new_data:

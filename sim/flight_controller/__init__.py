@@ -1,2 +1,3 @@
-"""The simulated flight controller: an ArduPilot-like autopilot speaking MAVLink 2 on a socket, and
-the sensors it reports (attitude, rangefinder, barometer) drawn from the truth."""
+"""The simulated flight controller: an ArduPilot-like autopilot speaking MAVLink 2 on a socket, the
+sensors it reports (attitude, rangefinder, barometer) drawn from the truth, and the position estimator
+(its EKF) that fuses the vision it receives."""

@@ -24,6 +24,7 @@ import numpy as np
 from mavvo.geometry.camera_model import CameraIntrinsics
 from mavvo.service.camera import CameraOptions
 from mavvo.service.daemon import Daemon, DaemonSummary
+from mavvo.service.timing import Clock
 from mavvo.service.settings import MountingOptions, ServiceConfig, as_matrix3
 from sim.world.camera import CameraSpec
 from sim.evaluation.flight_safety import FlightSafety, VisionSample, flight_safety
@@ -107,6 +108,7 @@ def run_daemon_in_sim(
     realtime: bool = False,
     duration_s: float | None = None,
     out_dir: str | Path | None = None,
+    wall_clock: Clock | None = None,
 ) -> SimRun:
     """Fly ``scenario`` with the daemon (see the module docstring) until the scenario ends or the
     daemon is stopped (SIGTERM or SIGINT when called from the main thread); evaluate, and with
@@ -120,7 +122,7 @@ def run_daemon_in_sim(
     fc_thread = None
     wall0 = time.perf_counter()
     try:
-        daemon = Daemon(config, clock=sim.clock, source=sim.camera)
+        daemon = Daemon(config, clock=sim.clock, source=sim.camera, wall_clock=wall_clock)
         if realtime:
             fc_thread = threading.Thread(target=sim.serve, args=(stop_fc,), kwargs={"until_s": float("inf")}, name="sim-fc", daemon=True)
             fc_thread.start()
