@@ -58,6 +58,8 @@ def test_sim_yaml_loads():
         ("camera: {cx_px: 900}", "camera: cx_px, cy_px: expected the principal point inside the 640x480 image"),
         ("camera: {fx_px: 20}", "camera.fx_px (20) gives a 172.8 deg horizontal field of view on a 640 px wide image"),
         ("camera: {source: [", "not valid YAML"),
+        ("link: {url: 'udpout:127.0.0.1:9'}\nlink: {url: 'udpout:127.0.0.1:10'}", "duplicate key 'link'"),
+        ("a: &x [1, 2]\nb: [*x, *x]", "aliases (*name) are not allowed"),
     ],
 )
 def test_each_kind_of_bad_value_names_the_key(tmp_path, text, message):
@@ -103,3 +105,14 @@ def test_version_and_help_exit_zero():
     with pytest.raises(SystemExit) as e:
         main(["run"])  # --config is required
     assert e.value.code == 2
+
+
+def test_a_settings_file_must_be_utf8_and_of_a_sane_size(tmp_path):
+    bad = tmp_path / "latin1.yaml"
+    bad.write_bytes("camera: {source: '/dev/vid\xe9o0'}\n".encode("latin-1"))
+    with pytest.raises(ConfigError, match="latin1.yaml: expected UTF-8 text, got byte 0xe9 at offset 26"):
+        load_config(bad)
+    big = tmp_path / "big.yaml"
+    big.write_bytes(b"#" * (10 * 1024 * 1024 + 1))
+    with pytest.raises(ConfigError, match="big.yaml: expected a settings file of at most 10 MiB"):
+        load_config(big)

@@ -27,15 +27,46 @@ from mavvo.options import BOUNDS
 
 T = TypeVar("T")
 
+MAX_CONFIG_BYTES = 10 * 1024 * 1024  # a settings file is a few kB; anything near this is not one
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """PyYAML's safe loader without aliases (a few hundred bytes of nested aliases expand to
+    gigabytes) and without duplicate keys (a second ``link:`` would silently replace the first)."""
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.constructor.ConstructorError(None, None, "aliases (*name) are not allowed in a settings file", event.start_mark)
+        return super().compose_node(parent, index)
+
+    def construct_mapping(self, node: Any, deep: bool = False) -> Any:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}", key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
 def load_yaml(path: str | Path) -> dict[str, Any]:
-    """Read a YAML mapping; ConfigError naming the file if it is missing, unparsable or not a mapping."""
+    """Read a YAML mapping; ConfigError naming the file if it is missing, larger than 10 MiB, not
+    UTF-8, unparsable (aliases and duplicate keys included) or not a mapping."""
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        size = p.stat().st_size
+        if size > MAX_CONFIG_BYTES:
+            raise ConfigError(f"{p}: expected a settings file of at most 10 MiB, got {size} bytes")
+        raw = p.read_bytes()
     except OSError as e:
         raise ConfigError(f"{p}: cannot read: {e.strerror or e}") from e
     try:
-        data = yaml.safe_load(text)
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{p}: expected UTF-8 text, got byte 0x{raw[e.start]:02x} at offset {e.start}") from e
+    try:
+        data = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
     except yaml.YAMLError as e:
         raise ConfigError(f"{p}: not valid YAML: {e}") from e
     if data is None:
