@@ -124,7 +124,7 @@ def test_a_service_restart_in_flight_is_a_non_event_for_the_ekf(tmp_path):
 def test_heading_is_taken_from_the_fc_once_its_yaw_has_settled():
     sc = load_scenario("square")
     sc = dataclasses.replace(
-        sc, trajectory=dataclasses.replace(sc.trajectory, yaw_deg=30.0), duration_s=40.0,
+        sc, trajectory=dataclasses.replace(sc.trajectory, yaw_deg=30.0), duration_s=28.0,
         flight_controller=dataclasses.replace(sc.flight_controller, boot_offset_s=0.0),  # mavvo starts with the FC
     )
     run = run_daemon_in_sim(sc)

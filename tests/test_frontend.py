@@ -6,6 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import cv2
+
+from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import R_from_euler321
 from mavvo.odometry.frontend import Frontend, FrontendOptions
 from sim.world.camera import CameraSpec
@@ -86,3 +89,17 @@ def test_textureless_image_gives_no_tracks() -> None:
 def test_bad_images_are_refused(image: np.ndarray, match: str) -> None:
     with pytest.raises(ValueError, match=match):
         Frontend(CAMERA).process(image)
+
+
+def test_pixels_without_a_bearing_never_become_tracks() -> None:
+    """A strongly distorted lens whose corners the camera model cannot undistort (about 4% of the
+    image here): those corners' tracks are dropped, counted, and the rest carry on."""
+    cam = CameraModel(640, 480, 500, 500, 319.5, 239.5, "pinhole", (0.3, -0.8, 0.0, 0.0))
+    rng = np.random.default_rng(5)
+    image = cv2.GaussianBlur(rng.integers(0, 255, (480, 640), dtype=np.uint8), (5, 5), 1.5)
+    fe = Frontend(cam, FrontendOptions(max_features=600))
+    tracks = [fe.process(image) for _ in range(3)]
+    assert fe.dropped_unmappable > 0
+    for t in tracks:
+        assert len(t.ids) > 100 and np.all(np.isfinite(t.f_cam)) and len(t.ids) == len(t.uv_px) == len(t.f_cam)
+        assert 0 <= t.tracked <= len(t.ids)

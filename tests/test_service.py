@@ -343,3 +343,41 @@ def test_the_operator_is_told_why_frames_do_not_pair():
     assert run.daemon.counters.get("paired", 0) == 0 and run.daemon.counters["skipped_attitude_stale"] > 40
     told = [text for _, text in run.statustexts if "link.attitude_rate_hz" in text]
     assert told == ["mavvo: ATTITUDE 10 Hz; link.attitude_rate_hz 20"], run.statustexts
+
+
+def test_a_bug_inside_the_odometry_restarts_tracking_not_the_service():
+    from mavvo.service.daemon import Daemon
+
+    class Flaky:
+        """An odometry that fails once, unexpectedly, then works (it records what it was asked)."""
+
+        def __init__(self) -> None:
+            self.steps, self.restarts = 0, 0
+
+        def step(self, frame):
+            self.steps += 1
+            if self.steps == 2:
+                raise RuntimeError("index out of range somewhere deep")
+            return None
+
+        def track(self, image) -> None:
+            pass
+
+        def restart(self) -> None:
+            self.restarts += 1
+
+    source = InjectedSource()
+    for k in range(4):
+        source.push(np.zeros((480, 640), np.uint8), 0.05 * k)
+    source.end()
+    clock = FixedClock()
+    cfg = _offline_config()
+    cfg = dataclasses.replace(cfg, service=dataclasses.replace(cfg.service, heading_wait_max_s=0.0))  # no yaw to wait for here
+    d = Daemon(cfg, source=source, clock=clock)
+    d.odometry = flaky = Flaky()
+    for t_ms in range(0, 250, 10):  # attitude around every exposure, boot clock = host clock
+        clock.t = t_ms * 1e-3
+        d.fc.on_attitude(t_ms, 0.0, 0.0, 0.0, body_rates_rad_s=(0.0, 0.0, 0.0))
+    summary = d.run()
+    assert flaky.steps == 4 and flaky.restarts == 1  # every frame reached it; the failure restarted tracking
+    assert summary.counters["odometry_errors"] == 1 and summary.counters.get("errors", 0) == 0

@@ -72,6 +72,7 @@ class FilterOptions:
     accel_sigma_m_s2: float = bounded(3.0, "process noise: white acceleration, 1 sigma", gt=0)
     yaw_accel_sigma_rad_s2: float = bounded(2.0, "process noise: white yaw acceleration, 1 sigma", gt=0)
     initial_velocity_sigma_m_s: float = bounded(1.0, "velocity uncertainty at a (re)start", gt=0)
+    initial_yaw_rate_sigma_rad_s: float = bounded(2.0, "yaw rate uncertainty at a start (a start mid-turn must not be gated away)", gt=0, le=20)
     gate_probability: float = bounded(0.999, "reject a measurement whose squared Mahalanobis distance exceeds the chi2 quantile of this probability (dof: the measurement's size)", gt=0, lt=1)
     max_rejections: int = bounded(5, "after this many rejections in a row, restart at the measurement", ge=1)
 
@@ -88,16 +89,22 @@ class PoseFilter:
         # Gate per measurement size: position and yaw (4), yaw alone (1).
         self._gate = {k: chi2_quantile(self.options.gate_probability, k) for k in (1, _DIM_Z)}
 
-    def reset(self, t_s: float, p_ned_m: np.ndarray, yaw_rad: float, *, v_ned_m_s: np.ndarray | None = None, pos_sigma_m: float, yaw_sigma_rad: float) -> None:
-        """Start at a pose (velocity zero with ``initial_velocity_sigma_m_s`` unless given)."""
+    def reset(
+        self, t_s: float, p_ned_m: np.ndarray, yaw_rad: float, *, v_ned_m_s: np.ndarray | None = None, yaw_rate_rad_s: float | None = None,
+        pos_sigma_m: float, yaw_sigma_rad: float,
+    ) -> None:
+        """Start at a pose (velocity and yaw rate zero, with their initial sigmas, unless given)."""
         x = np.zeros((_DIM_X, 1))
         x[0:3, 0] = p_ned_m
         if v_ned_m_s is not None:
             x[3:6, 0] = v_ned_m_s
         x[6, 0] = yaw_rad
-        sv = self.options.initial_velocity_sigma_m_s
+        opt = self.options
+        sw = opt.initial_yaw_rate_sigma_rad_s
+        if yaw_rate_rad_s is not None:
+            x[7, 0], sw = yaw_rate_rad_s, 0.1
         self._kf.x = x
-        self._kf.P = np.diag([pos_sigma_m**2] * 3 + [sv**2] * 3 + [yaw_sigma_rad**2, 0.1**2])
+        self._kf.P = np.diag([pos_sigma_m**2] * 3 + [opt.initial_velocity_sigma_m_s**2] * 3 + [yaw_sigma_rad**2, sw**2])
         self._t_s = float(t_s)
         self.rejections = 0
 
@@ -140,7 +147,7 @@ class PoseFilter:
             if self.rejections < self.options.max_rejections:
                 return Update.REJECTED
             p = kf.x[0:3, 0] if p_ned_m is None else p_ned_m
-            self.reset(self._t_s, p, z[-1, 0], v_ned_m_s=kf.x[3:6, 0], pos_sigma_m=pos_sigma_m, yaw_sigma_rad=yaw_sigma_rad)
+            self.reset(self._t_s, p, z[-1, 0], v_ned_m_s=kf.x[3:6, 0], yaw_rate_rad_s=float(kf.x[7, 0]), pos_sigma_m=pos_sigma_m, yaw_sigma_rad=yaw_sigma_rad)
             return Update.RESTARTED
         self.rejections = 0
         kf.update(z, R=R, H=H)  # x += K y, P = (I - K H) P

@@ -76,6 +76,7 @@ class Frontend:
         self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, opt.klt_iterations, 0.03)
         self._per_cell = max(1, -(-opt.max_features // (opt.grid_cols * opt.grid_rows)))
         self._next_id = 0
+        self.dropped_unmappable = 0  # tracks dropped because their pixel has no bearing
         self.reset()
 
     def reset(self) -> None:
@@ -99,9 +100,17 @@ class Frontend:
                 self._next_id += len(new_uv)
                 ids = np.concatenate([ids, new_ids])
                 uv = np.concatenate([uv, new_uv])
-        self._prev, self._ids, self._uv = img, ids, uv
         uv64 = uv.astype(np.float64)
-        return Tracks(ids=ids, uv_px=uv64, f_cam=self.camera.pixels_to_bearings(uv64), tracked=tracked)
+        f_cam = self.camera.pixels_to_bearings(uv64)
+        # A pixel the camera model cannot undistort (the corners of a strongly distorted lens) has no
+        # bearing: its track is dropped here, so no NaN ever reaches a keyframe or the estimator.
+        valid = np.all(np.isfinite(f_cam), axis=1)
+        if not np.all(valid):
+            self.dropped_unmappable += int(np.count_nonzero(~valid))
+            ids, uv, uv64, f_cam = ids[valid], uv[valid], uv64[valid], f_cam[valid]
+            tracked = int(np.count_nonzero(valid[:tracked]))
+        self._prev, self._ids, self._uv = img, ids, uv
+        return Tracks(ids=ids, uv_px=uv64, f_cam=f_cam, tracked=tracked)
 
     def _check(self, image: np.ndarray) -> np.ndarray:
         a = np.asarray(image)

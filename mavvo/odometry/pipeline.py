@@ -82,7 +82,7 @@ class OdometryOptions:
     min_inliers: int = bounded(20, "fewer inliers: no pose from this frame", ge=5)
     good_inliers: int = bounded(120, "inliers for full quality", ge=5)
     max_failed_frames: int = bounded(5, "frames in a row without a pose before the keyframe is given up", ge=1)
-    position_sigma_m: float = bounded(0.015, "vision position noise at full quality with the scene 10 m away (it scales with the depth, at least half of it), plus the scale spread times the baseline", gt=0, le=100)
+    position_sigma_m: float = bounded(0.015, "vision position noise at full quality with the scene 10 m away (it scales with the depth, down to a fifth of it), plus the scale spread times the baseline", gt=0, le=100)
     yaw_sigma_deg: float = bounded(0.3, "vision yaw noise at full quality", gt=0)
     attitude_sigma_deg: float = bounded(0.2, "roll/pitch uncertainty reported in the covariance", gt=0)
     heading_correction_time_s: float = bounded(10.0, "pull the vision heading toward the flight controller's yaw with this time constant (0: vision's heading alone)", ge=0, le=3600)
@@ -174,6 +174,11 @@ class Odometry:
         self._last_yaw_2_1 = 0.0  # yaw of the last frame against the keyframe: the yaw prior without the FC's
 
     # ----------------------------------------------------------------------------------------------
+    def restart(self) -> None:
+        """Give up the current keyframe: the next frame re-initialises (anchored as after a loss)."""
+        self.chain.drop()
+        self._failed_in_row = 0
+
     def track(self, image: np.ndarray) -> None:
         """Track features into a frame that has no attitude (a short gap in the flight controller's
         stream): no pose, but the tracks live on, so the next paired frame still matches its keyframe."""
@@ -333,7 +338,7 @@ class Odometry:
             # Parallax, but too few points to triangulate: the translation is not measured.
             p_meas, unresolved = None, 0.0
         # Image noise moves a position by an angle times the depth: the noise scales with it.
-        pos_sigma = (opt.position_sigma_m * max(depth / _REFERENCE_DEPTH_M, 0.5) + unresolved) * 100.0 / quality
+        pos_sigma = (opt.position_sigma_m * max(depth / _REFERENCE_DEPTH_M, 0.2) + unresolved) * 100.0 / quality
         yaw_sigma = self._yaw_sigma_rad * 100.0 / quality
         self.filter.predict(frame.t_exposure_s)
         outcome = self.filter.update(p_meas, m.yaw_rad, pos_sigma_m=pos_sigma, yaw_sigma_rad=yaw_sigma)

@@ -322,6 +322,11 @@ class Daemon:
             self.counters["bad_frames"] += 1
             self._log_error("frame", e)
             return
+        except Exception as e:  # a bug in the odometry: counted, logged, and tracking starts afresh
+            self.counters["odometry_errors"] += 1
+            self._log_error("odometry", e, traceback=True)
+            self.odometry.restart()
+            return
         self.counters["paired"] += 1
         if est is not None:
             self._publish(est)
