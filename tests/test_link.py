@@ -222,3 +222,26 @@ def test_serial_port_unplugged_and_back(mavutil):
         t.join(10)
         os.close(slave)
     assert not t.is_alive()
+
+
+def test_mavlink2_whoever_imported_pymavlink_first():
+    """A program that imported pymavlink (MAVLink 1 by default) before mavvo still gets MAVLink 2:
+    VISION_POSITION_ESTIMATE keeps its covariance and reset_counter."""
+    import subprocess
+    import sys
+
+    code = (
+        "import os; os.environ.pop('MAVLINK20', None)\n"
+        "from pymavlink import mavutil as early\n"
+        "assert early.mavlink.WIRE_PROTOCOL_VERSION == '1.0', early.mavlink.WIRE_PROTOCOL_VERSION\n"
+        "from mavvo.service.mavlink import mavutil\n"
+        "mu = mavutil()\n"
+        "m = mu.mavlink.MAVLink(None, srcSystem=1, srcComponent=197)\n"
+        "buf = m.vision_position_estimate_encode(1, 0, 0, 0, 0, 0, 0, [0.0] * 21, 7).pack(m)\n"
+        "print(mu.mavlink.WIRE_PROTOCOL_VERSION, hex(buf[0]), buf[-3])\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "MAVLINK20"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, env=env)
+    assert out.returncode == 0, out.stderr
+    version, magic, reset_counter = out.stdout.split()
+    assert (version, magic, reset_counter) == ("2.0", "0xfd", "7")  # MAVLink 2 frame, reset_counter last in the payload
