@@ -245,3 +245,22 @@ def test_mavlink2_whoever_imported_pymavlink_first():
     assert out.returncode == 0, out.stderr
     version, magic, reset_counter = out.stdout.split()
     assert (version, magic, reset_counter) == ("2.0", "0xfd", "7")  # MAVLink 2 frame, reset_counter last in the payload
+
+
+def test_send_after_the_link_stopped_writes_nowhere():
+    """A late send() (a worker finishing its frame after the stop) must not write into the closed wake
+    pipe's descriptor, which the system may already have given to another file."""
+    link = Link(LinkOptions(url="udpout:127.0.0.1:9"), MonotonicClock(), Recorder())
+    stop = threading.Event()
+    stop.set()
+    link.run(stop)  # stops at once, closing its descriptors
+    r, w = os.pipe()  # likely reuses the numbers just freed
+    try:
+        os.set_blocking(r, False)
+        link.send("STATUSTEXT", {"severity": 6, "text": b"late"})
+        with pytest.raises(BlockingIOError):
+            os.read(r, 10)  # nothing arrived in the new pipe
+        assert link.counters["sent_after_stop"] == 1
+    finally:
+        os.close(r)
+        os.close(w)

@@ -208,6 +208,8 @@ class Link:
         self._conn: Any = None
         self._queue: queue.Queue[tuple[str, dict[str, Any]]] = queue.Queue(_SEND_QUEUE)
         self._wake_r, self._wake_w = os.pipe()
+        self._closed = False  # the link has stopped: send() is a no-op (its pipe's descriptors may be reused)
+        self._close_lock = threading.Lock()
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
         self._last_boot_ms: int | None = None
@@ -226,7 +228,11 @@ class Link:
 
     def send(self, name: str, fields: dict[str, Any]) -> None:
         """Queue message ``name`` (e.g. ``VISION_POSITION_ESTIMATE``) with its fields; thread-safe,
-        never blocks (when the queue is full the oldest message is dropped and counted)."""
+        never blocks (when the queue is full the oldest message is dropped and counted). After the link
+        has stopped it does nothing (counted as ``sent_after_stop``)."""
+        if self._closed:
+            self.counters["sent_after_stop"] += 1
+            return
         item = (name, fields)
         while True:
             try:
@@ -238,10 +244,13 @@ class Link:
                     self.counters["send_dropped"] += 1
                 except queue.Empty:
                     pass
-        try:
-            os.write(self._wake_w, b"x")
-        except BlockingIOError:
-            pass  # the pipe is full: the link thread is already awake
+        with self._close_lock:  # never write to a descriptor the stop has closed (it may be another file's now)
+            if self._closed:
+                return
+            try:
+                os.write(self._wake_w, b"x")
+            except BlockingIOError:
+                pass  # the pipe is full: the link thread is already awake
 
     # ------------------------------------------------------------------ the link thread
 
@@ -267,11 +276,13 @@ class Link:
             self._drain()
         finally:
             self._disconnect()
-            for fd in (self._wake_r, self._wake_w):
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
+            with self._close_lock:
+                self._closed = True
+                for fd in (self._wake_r, self._wake_w):
+                    try:
+                        os.close(fd)
+                    except OSError:
+                        pass
 
     def _connect(self) -> bool:
         try:
