@@ -53,13 +53,10 @@ class Recorder:
 
 
 class Running:
-    """A simulated flight controller on a UDP port and a Link to it, each in a thread. Real time, or,
-    with ``gate``, simulated time paced like real time that stops while ``gate(self, t_next)`` is false (so a
-    fault is not reached before the link is ready, however loaded the machine)."""
+    """A real-time simulated flight controller on a UDP port and a Link to it, each in a thread."""
 
-    def __init__(self, faults=(), gate=None, **link_options) -> None:
-        self.gate = gate
-        self.clock = RealClock() if gate is None else LockstepClock()
+    def __init__(self, faults=(), **link_options) -> None:
+        self.clock = RealClock()
         self.fc = SimFlightController("udpin:127.0.0.1:0", make_trajectory(HoverSpec()), self.clock, FlightControllerSpec(), FaultSchedule(tuple(faults)))
         host, port = self.fc.address
         self.listener = Recorder()

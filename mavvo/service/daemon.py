@@ -19,10 +19,10 @@ what is queued, and every thread is joined within ``service.shutdown_drain_s``.
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import signal
-import json
 import threading
 import time
 from collections import Counter, deque

@@ -68,6 +68,7 @@ def motion_consistency(samples: list[VisionSample], truth_p: Callable[[np.ndarra
     if len(samples) < 2:
         return None, None
     t = np.array([s.t_s for s in samples])
+    tp = truth_p(t)
     nees = []
     for i, s in enumerate(samples):
         j = int(np.searchsorted(t, s.t_s + window_s))
@@ -75,7 +76,7 @@ def motion_consistency(samples: list[VisionSample], truth_p: Callable[[np.ndarra
             continue
         if any(samples[k].reset_counter != s.reset_counter for k in range(i, j + 1)):
             continue
-        e = (samples[j].p_ned_m - s.p_ned_m) - (truth_p(np.array([t[j]]))[0] - truth_p(np.array([s.t_s]))[0])
+        e = (samples[j].p_ned_m - s.p_ned_m) - (tp[j] - tp[i])
         C = samples[j].cov_m2 + s.cov_m2
         try:
             nees.append(float(e @ np.linalg.solve(C, e)))
@@ -137,12 +138,13 @@ def flight_safety(
     within = None
     if drift_reports and samples:
         t = np.array([s.t_s for s in samples])
+        tp = truth_p(t)
         ok = []
         for t_r, drift in drift_reports:
             i = int(np.searchsorted(t, t_r, side="right")) - 1
             if i < 0 or not math.isfinite(drift) or t_r - t[i] > 1.0:
                 continue  # no estimate sent lately: nothing the vehicle fuses
-            e = float(np.linalg.norm(samples[i].p_ned_m[:2] - truth_p(np.array([t[i]]))[0, :2]))
+            e = float(np.linalg.norm(samples[i].p_ned_m[:2] - tp[i, :2]))
             ok.append(e <= 3.0 * drift)
         within = float(np.mean(ok)) if ok else None
     return FlightSafety(
