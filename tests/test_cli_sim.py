@@ -69,7 +69,7 @@ def test_sim_arguments_are_checked(capsys):
 
 def test_sim_realtime_json_summary(tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-m", "mavvo", "sim", "--scenario", "hover", "--duration", "3", "--realtime", "--json", "--out", str(tmp_path)],
+        [sys.executable, "-m", "mavvo", "sim", "--scenario", "hover", "--duration", "5", "--realtime", "--json", "--out", str(tmp_path)],
         capture_output=True, text=True, timeout=120,
     )
     assert proc.returncode == 0, proc.stderr

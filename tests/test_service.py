@@ -234,20 +234,29 @@ def test_sigterm_during_work_stops_cleanly_with_systemd_notifications(tmp_path):
         [sys.executable, "-m", "mavvo", "sim", "--scenario", "hover", "--json", "--out", str(tmp_path / "out")],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
     )
+    lines: list[str] = []
     try:
         states = []
         while "WATCHDOG=1" not in states:
             states.append(sock.recv(100).decode())
         assert states[0] == "READY=1"
-        time.sleep(1.0)  # the daemon is at work: tracking, sending
+        # Wait (generously) until the daemon is at work, tracking and sending: its log says so.
+        reader = threading.Thread(target=lambda: lines.extend(iter(proc.stderr.readline, "")), daemon=True)
+        reader.start()
+        deadline = time.monotonic() + 60.0
+        while not any("-> tracking" in line for line in lines) and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
         proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=30)
+        out = proc.stdout.read()
+        proc.wait(timeout=30)
+        reader.join(10)
         while "STOPPING=1" not in states:
             states.append(sock.recv(100).decode())
     finally:
         if proc.poll() is None:
             proc.kill()
         sock.close()
+    err = "".join(lines)
     assert proc.returncode == 0, err
     summary = json.loads(out)
     assert summary["estimates_received"] > 0 and summary["duration_s"] < 29.0  # stopped before the 30 s hover ended
