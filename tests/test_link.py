@@ -192,7 +192,7 @@ def test_serial_port_unplugged_and_back(mavutil):
     master, slave = os.openpty()
     path = os.ttyname(slave)
     listener = Recorder()
-    link = Link(LinkOptions(url=f"{path}:115200", silence_timeout_s=1.0), MonotonicClock(), listener)
+    link = Link(LinkOptions(url=f"{path}:115200", silence_timeout_s=1.0, fc_system_id=1), MonotonicClock(), listener)  # pinned: one HEARTBEAT chooses it
     stop = threading.Event()
     t = threading.Thread(target=link.run, args=(stop,), daemon=True)
     t.start()

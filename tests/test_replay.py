@@ -42,7 +42,7 @@ def _replay_cli(capsys, *args: str) -> tuple[int, dict, str]:
 def recorded(tmp_path_factory):
     """A 6 s simulated flight flown by the daemon while recording."""
     rec_dir = tmp_path_factory.mktemp("recordings")
-    run = run_daemon_in_sim(load_scenario("figure_eight"), ServiceConfig(record=RecordOptions(dir=str(rec_dir))), duration_s=6.0)
+    run = run_daemon_in_sim(load_scenario("figure_eight"), ServiceConfig(record=RecordOptions(dir=str(rec_dir))), duration_s=8.0)
     return run
 
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from mavvo.geometry.camera_model import CameraIntrinsics
 from mavvo.options import bounded
-from mavvo.errors import CameraEnded, CameraError
+from mavvo.errors import CameraEnded, CameraError, CameraLost, FrameRefused
 from mavvo.service.timing import Clock
 from mavvo.types import Frame
 
@@ -40,6 +40,7 @@ log = logging.getLogger(__name__)
 
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".tif", ".tiff")
 _DRIVER_STAMP_PLAUSIBLE_S = 1.0
+_V4L2_READ_TIMEOUT_MS = 1000.0
 
 
 @dataclass(frozen=True)
@@ -51,7 +52,8 @@ class CameraOptions(CameraIntrinsics):
     timestamps: Literal["auto", "driver", "grab"] = bounded("auto", "exposure time from the driver's timestamp (auto: when plausible) or the grab time minus latency_ms")
     latency_ms: float = bounded(30.0, "grab time minus this is the exposure time, when the driver gives none", ge=0)
     queue_size: int = bounded(2, "frames waiting for the worker; the oldest is dropped when full", ge=1, le=64)
-    reconnect_max_s: float = bounded(5.0, "longest back-off between attempts to reopen a lost camera", gt=0)
+    reconnect_max_s: float = bounded(5.0, "longest back-off between attempts to reopen a lost camera", gt=0, le=600)
+    lost_after_s: float = bounded(30.0, "a camera that fails and cannot be reopened for this long ends the service non-zero, for systemd to restart it", gt=0, le=3600)
 
 
 @runtime_checkable
@@ -161,12 +163,15 @@ class V4L2Source:
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, options.height_px)
         cap.set(cv2.CAP_PROP_FPS, options.rate_hz)
         cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # the newest frame, not a backlog
+        # OpenCV's V4L2 read waits up to 10 s for a frame unless told otherwise (where the build honours it).
+        self._timeout_honoured = bool(cap.set(cv2.CAP_PROP_READ_TIMEOUT_MSEC, _V4L2_READ_TIMEOUT_MS))
         self._cap = cap
         self._seq = 0
 
     def read(self, timeout_s: float) -> Frame | None:
-        """The next frame. ``timeout_s`` is not honoured: OpenCV's read blocks until the driver
-        delivers a frame or its own select() timeout (10 s) expires, which raises CameraError."""
+        """The next frame. OpenCV's read blocks until the driver delivers a frame or its own timeout
+        expires (1 s where the build honours ``CAP_PROP_READ_TIMEOUT_MSEC``, else 10 s), which raises
+        CameraError; ``timeout_s`` is not used."""
         if self._cap is None:
             raise CameraError(f"camera.source {self.device}: read after close")
         ok, img = self._cap.read()
@@ -256,6 +261,28 @@ class VideoFileSource(_PacedSource):
             self._cap = None
 
 
+def image_size_px(path: Path) -> tuple[int, int] | None:
+    """(width, height) of a PNG, JPEG, BMP or PGM/PPM file from its header, without decoding it; None
+    for other formats or a header that does not parse. OSError if the file cannot be read."""
+    with path.open("rb") as f:
+        head = f.read(1 << 16)
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+        return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    if head[:2] == b"BM" and len(head) >= 26:
+        return int.from_bytes(head[18:22], "little", signed=True), abs(int.from_bytes(head[22:26], "little", signed=True))
+    if head[:2] in (b"P2", b"P5", b"P3", b"P6"):
+        tokens = [t for line in head[2:].split(b"\n") for t in line.split(b"#", 1)[0].split()]
+        return (int(tokens[0]), int(tokens[1])) if len(tokens) >= 2 and tokens[0].isdigit() and tokens[1].isdigit() else None
+    if head[:2] == b"\xff\xd8":  # JPEG: walk the segments to the first start-of-frame
+        i = 2
+        while i + 9 <= len(head) and head[i] == 0xFF:
+            marker, length = head[i + 1], int.from_bytes(head[i + 2:i + 4], "big")
+            if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+                return int.from_bytes(head[i + 7:i + 9], "big"), int.from_bytes(head[i + 5:i + 7], "big")
+            i += 2 + length
+    return None
+
+
 def read_frame_index(folder: Path) -> list[tuple[int, float, Path]]:
     """The frames listed in ``folder/timestamps.txt``: (line number, time in seconds, image path), one
     ``TIMESTAMP_S FILENAME`` per line, ``#`` comments, increasing times; CameraError naming the file and
@@ -285,17 +312,32 @@ def read_frame_index(folder: Path) -> list[tuple[int, float, Path]]:
 
 class ImageFolderSource(_PacedSource):
     """A folder of images listed in its ``timestamps.txt``: ``TIMESTAMP_S FILENAME`` per line, ``#``
-    comments; timestamps must increase."""
+    comments; timestamps must increase.
 
-    def __init__(self, folder: Path, clock: Clock) -> None:
+    An image larger than ``max_size_px`` (width, height) is refused from its header, before it is
+    decoded (:class:`FrameRefused`); one that does not decode is skipped with a warning; a file that has
+    vanished (the folder was unmounted) raises CameraError and is tried again on the next read.
+    """
+
+    def __init__(self, folder: Path, clock: Clock, max_size_px: tuple[int, int] | None = None) -> None:
         super().__init__(str(folder), clock)
         self._items = [(t, path) for _, t, path in read_frame_index(folder)]
         self._i = 0
+        self.max_size_px = max_size_px
 
     def _next(self) -> tuple[np.ndarray, float] | None:
         while self._i < len(self._items):
             t, path = self._items[self._i]
+            try:
+                size = image_size_px(path)
+            except OSError as e:  # not advanced: the next read tries this file again
+                raise CameraError(f"camera.source {self.name}: cannot read {path.name}: {e.strerror or e}") from e
             self._i += 1
+            if size is not None and self.max_size_px is not None and (size[0] > self.max_size_px[0] or size[1] > self.max_size_px[1]):
+                raise FrameRefused(
+                    f"camera.source {self.name}: {path.name} is {size[0]}x{size[1]} px, larger than camera.width_px x height_px "
+                    f"= {self.max_size_px[0]}x{self.max_size_px[1]}; refused"
+                )
             img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
             if img is not None:
                 return img, t
@@ -305,20 +347,27 @@ class ImageFolderSource(_PacedSource):
 
 class ReconnectingSource:
     """Reopens a source that failed (not one that ended), with back-off; ``read`` returns None while
-    the camera is away. Counts ``reconnects``."""
+    the camera is away, and raises :class:`CameraLost` once it has been away for ``lost_after_s``.
+    Counts ``reconnects``."""
 
-    def __init__(self, open_source: Callable[[], FrameSource], clock: Clock, *, reconnect_max_s: float = 5.0, name: str = "camera") -> None:
+    def __init__(
+        self, open_source: Callable[[], FrameSource], clock: Clock, *, reconnect_max_s: float = 5.0, lost_after_s: float = math.inf, name: str = "camera",
+    ) -> None:
         self._open = open_source
         self.clock = clock
         self.name = name
         self.reconnect_max_s = reconnect_max_s
+        self.lost_after_s = lost_after_s
         self.reconnects = 0
         self._source: FrameSource | None = open_source()
         self._backoff_s = 0.25
         self._retry_at_s = -math.inf
+        self._away_since_s = math.nan
 
     def read(self, timeout_s: float) -> Frame | None:
         if self._source is None:
+            if self.clock.now_s() - self._away_since_s > self.lost_after_s:
+                raise CameraLost(f"camera.source {self.name}: away for {self.clock.now_s() - self._away_since_s:.0f} s (camera.lost_after_s)")
             if self.clock.now_s() < self._retry_at_s:
                 time.sleep(min(timeout_s, 0.05))
                 return None
@@ -338,11 +387,14 @@ class ReconnectingSource:
             return self._source.read(timeout_s)
         except CameraEnded:
             raise
+        except FrameRefused:
+            raise
         except CameraError as e:
             log.warning("%s: %s; reopening", self.name, e)
             self._source.close()
             self._source = None
-            self._retry_at_s = self.clock.now_s() + self._backoff_s
+            self._away_since_s = self.clock.now_s()
+            self._retry_at_s = self._away_since_s + self._backoff_s
             return None
 
     def close(self) -> None:
@@ -362,10 +414,12 @@ def open_source(options: CameraOptions, clock: Clock, schemes: dict[str, SourceF
     if sep and schemes and scheme in schemes:
         return schemes[scheme](arg, options, clock)
     if spec.startswith("/dev/video"):
-        return ReconnectingSource(lambda: V4L2Source(spec, options, clock), clock, reconnect_max_s=options.reconnect_max_s, name=spec)
+        return ReconnectingSource(
+            lambda: V4L2Source(spec, options, clock), clock, reconnect_max_s=options.reconnect_max_s, lost_after_s=options.lost_after_s, name=spec,
+        )
     p = Path(spec)
     if p.is_dir():
-        return ImageFolderSource(p, clock)
+        return ImageFolderSource(p, clock, (options.width_px, options.height_px))
     if p.is_file():
         return VideoFileSource(p, clock)
     known = ", ".join(f"{s}:" for s in (schemes or {}))

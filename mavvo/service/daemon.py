@@ -34,11 +34,11 @@ import numpy as np
 
 from mavvo.service import messages, sdnotify
 from mavvo.service.camera import FrameQueue, FrameSource, SourceFactory, open_source
-from mavvo.errors import CameraEnded
+from mavvo.errors import CameraEnded, CameraLost, FrameRefused
 from mavvo.service.latency import LatencyStats, LatencyTracker
 from mavvo.service.link import Link, SystemStatus
 from mavvo.odometry.pipeline import Odometry
-from mavvo.service.recorder import Recorder
+from mavvo.service.recorder import Recorder, RecordingError
 from mavvo.service.settings import ServiceConfig, config_yaml
 from mavvo.service.timing import Clock, FlightControllerState, MonotonicClock, wait_for_pairing
 from mavvo.types import Frame, PairedFrame, PoseEstimate, StateReason, VisionState
@@ -59,6 +59,9 @@ _UNPAIRED_CAUSES = {
 _LOCKSTEP_POLL_S = 1e-4  # how often wait_progress looks (real time)
 _NO_ESTIMATE_S = 1.0  # no estimate for this long (host clock): the operator is told vision failed
 _ERROR_LOG_EVERY = 100  # after the first few, log one repeated error in this many
+_STUCK_MIN_S = 2.0  # a thread whose loop has not turned for this long (at least) stops the watchdog's feeding
+_PAUSE_SLICE_S = 0.25  # long waits are cut into slices, each a turn of the thread's loop
+_THREADS = ("link", "camera", "worker")
 _SYSTEM_STATUS = {
     VisionState.STANDBY: SystemStatus.STANDBY, VisionState.INITIALISING: SystemStatus.ACTIVE, VisionState.TRACKING: SystemStatus.ACTIVE,
     VisionState.DEGRADED: SystemStatus.CRITICAL, VisionState.FAILED: SystemStatus.CRITICAL,
@@ -94,11 +97,13 @@ class LockstepProgress:
 
 @dataclass(frozen=True)
 class DaemonSummary:
-    """How a run went: every counter, the last state, and the capture-to-send latency."""
+    """How a run went: every counter, the last state, the capture-to-send latency, and why the
+    service could not go on (``failure``; empty after a clean stop)."""
 
     counters: dict[str, int]
     state: VisionState
     latency: LatencyStats | None
+    failure: str = ""
 
     @property
     def latency_ms(self) -> float | None:
@@ -137,8 +142,10 @@ class Daemon:
         self.on_estimate = on_estimate
         self.fc = FlightControllerState(self.clock, config.timing)
         self.source = source if source is not None else open_source(config.camera, self.clock, schemes)
+        self.counters: Counter[str] = Counter()
+        self._pending_texts: deque[dict[str, object]] = deque()  # STATUSTEXTs other threads ask the supervisor to send
         try:
-            self.recorder = Recorder(config.record, config_yaml(config), self.clock) if config.record.dir else None
+            self.recorder = self._open_recorder()
             self.link = Link(config.link, self.clock, self.fc, self._system_status, tap=self.recorder.mavlink if self.recorder else None)
         except BaseException:
             self.source.close()
@@ -146,13 +153,16 @@ class Daemon:
                 self.recorder.close()
             raise
         self.frames = FrameQueue(config.camera.queue_size, drop_oldest=self.clock.realtime)
-        self.counters: Counter[str] = Counter()
         self.stop_event = threading.Event()
         self.state = VisionState.STANDBY
         self.last_estimate: PoseEstimate | None = None
         self._camera_done = threading.Event()
         self._worker_done = threading.Event()
-        self._worker_beat_s = 0.0
+        self._reopen = threading.Event()  # SIGHUP: the recording's files are to be reopened
+        self._force_stop = threading.Event()  # a second stop signal: no drain
+        self._failure = ""  # why the service cannot go on (a thread died); empty while it can
+        self.turns: Counter[str] = Counter()  # loop turns of the camera and worker threads (the link counts its own)
+        self._turns_seen: dict[str, tuple[int, float]] = {}  # thread -> (turns, real time they last changed)
         self._wall = wall_clock or MonotonicClock()
         self._last_sent_t_s = -math.inf
         self._last_text_s = -math.inf
@@ -194,17 +204,33 @@ class Daemon:
         """Ask the service to stop (thread- and signal-safe)."""
         self.stop_event.set()
 
+    def request_reopen(self) -> None:
+        """Close and reopen the recording's files (SIGHUP, as daemons do for log rotation); signal-safe."""
+        self._reopen.set()
+
+    def _on_signal(self, signum: int, _frame: object) -> None:
+        """SIGTERM/SIGINT: the first stops cleanly (bounded drain), a second skips the drain. SIGHUP:
+        reopen the recording. Handlers only set flags; the supervisor acts on them."""
+        if signum == signal.SIGHUP:
+            self.request_reopen()
+        elif self.stop_event.is_set():
+            self._force_stop.set()
+        else:
+            self.request_stop()
+
     def run(self) -> DaemonSummary:
-        """Run until stopped (signal, :meth:`request_stop`) or until a finite source ends and its
-        frames are processed. Installs SIGTERM/SIGINT handlers when called from the main thread."""
+        """Run until stopped (signal, :meth:`request_stop`), until a finite source ends and its frames
+        are processed, or until the service cannot go on (a thread died, the camera is lost: the
+        summary's ``failure`` says which). Installs SIGTERM/SIGINT/SIGHUP handlers when called from
+        the main thread."""
         previous = {}
         if threading.current_thread() is threading.main_thread():
-            previous = {s: signal.signal(s, lambda *_: self.request_stop()) for s in (signal.SIGTERM, signal.SIGINT)}
+            previous = {s: signal.signal(s, self._on_signal) for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
         link_stop = threading.Event()
         threads = [
-            threading.Thread(target=self.link.run, args=(link_stop,), name="mavvo-link", daemon=True),
-            threading.Thread(target=self._camera_loop, name="mavvo-camera", daemon=True),
-            threading.Thread(target=self._worker_loop, name="mavvo-worker", daemon=True),
+            threading.Thread(target=self._guarded, args=("link", self.link.run, link_stop), name="mavvo-link", daemon=True),
+            threading.Thread(target=self._guarded, args=("camera", self._camera_loop), name="mavvo-camera", daemon=True),
+            threading.Thread(target=self._guarded, args=("worker", self._worker_loop), name="mavvo-worker", daemon=True),
         ]
         try:
             for t in threads:
@@ -220,29 +246,89 @@ class Daemon:
             sdnotify.notify("STOPPING=1")
             self.stop_event.set()
             deadline = self._wall.now_s() + self.config.service.shutdown_drain_s
-            for t in threads[1:]:
-                t.join(max(deadline - self._wall.now_s(), 0.0))
+            self._join(threads[1:], deadline)
             link_stop.set()  # after the worker: its last messages go out in the link's drain
-            threads[0].join(max(deadline - self._wall.now_s(), 0.1))
+            self._join(threads[:1], max(deadline, self._wall.now_s() + 0.1))
             self.source.close()
             if self.recorder is not None:
-                self.recorder.close()
+                self.recorder.close(drain=not self._force_stop.is_set())
             for s, h in previous.items():
                 signal.signal(s, h)
         summary = self.summary()
         self._log_health(final=True)
+        if summary.failure:
+            log.error("mavvo cannot go on: %s", summary.failure)
         return summary
+
+    def _join(self, threads: list[threading.Thread], deadline: float) -> None:
+        """Join until ``deadline`` (real time), in slices, so that a second signal cuts the wait short."""
+        for t in threads:
+            while t.is_alive() and not self._force_stop.is_set():
+                left = deadline - self._wall.now_s()
+                if left <= 0:
+                    break
+                t.join(min(left, _PAUSE_SLICE_S))
+        if self._force_stop.is_set():
+            log.warning("second stop signal: not waiting for the drain")
+
+    def _guarded(self, name: str, target: Callable[..., None], *args: object) -> None:
+        """A thread's body: if it dies, the service stops and its run ends with ``failure`` set (the
+        process exits non-zero and systemd restarts it)."""
+        try:
+            target(*args)
+        except BaseException as e:  # noqa: BLE001 - whatever killed the thread, the service must not go on without it
+            log.critical("the %s thread died: %s: %s", name, type(e).__name__, e, exc_info=not isinstance(e, CameraLost))
+            with self._state_lock:
+                self._failure = self._failure or f"the {name} thread stopped: {type(e).__name__}: {e}"
+            self.stop_event.set()
+
+    def _pause(self, name: str, seconds: float) -> None:
+        """Wait (real time) for ``seconds`` or the stop, in slices that each count as a turn of thread
+        ``name``'s loop: a thread that waits on purpose is not stuck."""
+        end = self._wall.now_s() + seconds
+        while not self.stop_event.is_set():
+            self.turns[name] += 1
+            left = end - self._wall.now_s()
+            if left <= 0:
+                return
+            self.stop_event.wait(min(left, _PAUSE_SLICE_S))
+
+    def stuck_threads(self, now_wall_s: float, limit_s: float) -> list[str]:
+        """The threads whose loops have not turned for more than ``limit_s`` (real time) as of
+        ``now_wall_s``; the camera thread of a finite source that ended is not stuck. Called by the
+        supervisor on every tick; thread-safe reads."""
+        turns = {"link": self.link.turns, "camera": self.turns["camera"], "worker": self.turns["worker"]}
+        stuck = []
+        for name in _THREADS:
+            seen, t_seen = self._turns_seen.get(name, (-1, now_wall_s))
+            if turns[name] != seen:
+                self._turns_seen[name] = (turns[name], now_wall_s)
+            elif now_wall_s - t_seen > limit_s and not (name == "camera" and self._camera_done.is_set()):
+                stuck.append(name)
+        return stuck
 
     def _supervise(self) -> None:
         watchdog_s = sdnotify.watchdog_interval_s()
+        stuck_limit_s = max(2 * (watchdog_s or 0.0), _STUCK_MIN_S)
         next_ping = self._wall.now_s()
         next_log = self.clock.now_s() + self.config.service.health_log_interval_s
+        told_stuck: list[str] = []
         while not self.stop_event.wait(_SUPERVISE_TICK_S):
             if self._worker_done.is_set():
                 break  # the source ended and every frame was processed
+            if self._reopen.is_set():
+                self._reopen.clear()
+                if self.recorder is not None:
+                    self.recorder.reopen()
+            stuck = self.stuck_threads(self._wall.now_s(), stuck_limit_s)
+            if stuck != told_stuck:
+                if stuck:
+                    self.counters["threads_stuck"] += 1
+                    log.error("no progress for %.0f s in the %s thread(s): systemd's watchdog is no longer fed", stuck_limit_s, ", ".join(stuck))
+                told_stuck = stuck
+            # Only a service whose every thread makes progress keeps systemd's watchdog fed.
             if watchdog_s is not None and self._wall.now_s() >= next_ping:
-                # Only a worker that is making progress (or idling on an empty queue) keeps systemd happy.
-                if self._wall.now_s() - self._worker_beat_s < 2 * watchdog_s:
+                if not stuck:
                     sdnotify.notify("WATCHDOG=1")
                 next_ping = self._wall.now_s() + watchdog_s
             self._report(self.clock.now_s())
@@ -251,33 +337,52 @@ class Daemon:
                 next_log = self.clock.now_s() + self.config.service.health_log_interval_s
 
     def _camera_loop(self) -> None:
+        opts = self.config.camera
         backoff = 0.1
+        failing_since: float | None = None  # real time of the first error in a row
         try:
             while not self.stop_event.is_set():
+                self.turns["camera"] += 1
                 try:
                     frame = self.source.read(0.2)
                 except CameraEnded as e:
                     log.info("%s", e)
                     return
-                except Exception as e:  # a source that failed for good, or a broken driver: wait and retry
+                except CameraLost:
+                    raise  # retried for camera.lost_after_s already: the service ends, systemd restarts it
+                except FrameRefused as e:
+                    self.counters["frames_refused"] += 1
+                    self._log_error("camera", e)
+                    continue
+                except Exception as e:  # a source that failed, or a broken driver: wait and retry, for a while
+                    now = self._wall.now_s()
+                    failing_since = now if failing_since is None else failing_since
+                    if now - failing_since > opts.lost_after_s:
+                        raise CameraLost(f"camera.source {opts.source}: failing for {now - failing_since:.0f} s (camera.lost_after_s): {e}") from e
                     self.counters["camera_errors"] += 1
                     self._log_error("camera", e)
-                    self.stop_event.wait(backoff)
-                    backoff = min(2 * backoff, self.config.camera.reconnect_max_s)
+                    self._pause("camera", backoff)
+                    backoff = min(2 * backoff, opts.reconnect_max_s)
                     continue
-                backoff = 0.1
-                if frame is not None:
-                    if len(self._arrival_s) > _ARRIVALS_KEPT:  # frames dropped from the queue never come back
-                        self._arrival_s.clear()
-                    self._arrival_s[frame.seq] = self.clock.now_s()
-                    self.frames.put(frame, self.stop_event)
+                backoff, failing_since = 0.1, None
+                if frame is None:
+                    continue
+                h, w = frame.image.shape[:2]
+                if w > opts.width_px or h > opts.height_px:  # kept out of the queue: it could only fail, slowly
+                    self.counters["frames_refused"] += 1
+                    self._log_error("camera", FrameRefused(f"frame {frame.seq} is {w}x{h} px, larger than camera.width_px x height_px = {opts.width_px}x{opts.height_px}; refused"))
+                    continue
+                if len(self._arrival_s) > _ARRIVALS_KEPT:  # frames dropped from the queue never come back
+                    self._arrival_s.clear()
+                self._arrival_s[frame.seq] = self.clock.now_s()
+                self.frames.put(frame, self.stop_event)
         finally:
             self._camera_done.set()
 
     def _worker_loop(self) -> None:
         try:
             while not self.stop_event.is_set():
-                self._worker_beat_s = self._wall.now_s()
+                self.turns["worker"] += 1
                 frame = self.frames.get(0.1)
                 if frame is None:
                     if self._camera_done.is_set() and self.frames.empty():
@@ -365,6 +470,23 @@ class Daemon:
             self.link.send("STATUSTEXT", messages.statustext_line("mavvo: FC yaw unsettled, north may be off", severity=messages.MAV_SEVERITY_WARNING))
         return self._heading_wait_over
 
+    def _open_recorder(self) -> Recorder | None:
+        """The recording ``record.dir`` asks for; None without one, or when it cannot be started (the
+        service flies without it: logged, and told over MAVLink once the link is up)."""
+        if not self.config.record.dir:
+            return None
+        try:
+            return Recorder(self.config.record, config_yaml(self.config), self.clock, on_stop=self._recording_stopped)
+        except RecordingError as e:
+            self.counters["record_failed"] += 1
+            log.error("%s; running without recording", e)
+            self._pending_texts.append(messages.statustext_line("mavvo: recording failed to start", severity=messages.MAV_SEVERITY_WARNING))
+            return None
+
+    def _recording_stopped(self, reason: str) -> None:
+        """The recorder's writer thread stopped on a disk problem: the operator is told (vision goes on)."""
+        self._pending_texts.append(messages.statustext_line(f"mavvo: recording stopped: {reason}", severity=messages.MAV_SEVERITY_WARNING))
+
     def _first_reset_counter(self) -> int:
         """A ``reset_counter`` the flight controller has not seen from this service: one past the
         last one kept in ``service.state_file`` (written back at once), else derived from the clock."""
@@ -415,12 +537,13 @@ class Daemon:
             self.counters["not_sent_rate"] += 1
         else:
             self._last_sent_t_s = est.t_exposure_s
-            self.link.send("VISION_POSITION_ESTIMATE", messages.vision_position_estimate(est))
+            send_by_s = est.t_exposure_s + out.max_age_s  # later, the flight controller would fuse the past as the present
+            self.link.send("VISION_POSITION_ESTIMATE", messages.vision_position_estimate(est), send_by_s=send_by_s)
             self.latency.add(self._latency_s(est.t_exposure_s))
             if out.speed_estimate:
-                self.link.send("VISION_SPEED_ESTIMATE", messages.vision_speed_estimate(est))
+                self.link.send("VISION_SPEED_ESTIMATE", messages.vision_speed_estimate(est), send_by_s=send_by_s)
             if out.odometry:
-                self.link.send("ODOMETRY", self._odometry(est))
+                self.link.send("ODOMETRY", self._odometry(est), send_by_s=send_by_s)
                 self._odometry_ok = True
             self.counters["estimates_sent"] += 1
 
@@ -451,6 +574,8 @@ class Daemon:
                 self._pending_states, self._last_text_s = [], now
         if text is not None:
             self.link.send("STATUSTEXT", text)
+        while self._pending_texts:  # from other threads (the recorder's): sent here, in order
+            self.link.send("STATUSTEXT", self._pending_texts.popleft())
         if now >= self._next_health_s:
             period = 1.0 / self.config.output.health_rate_hz
             # On the period's grid, so the rate holds however coarse the supervisor's ticks are.
@@ -511,7 +636,7 @@ class Daemon:
         return dict(sorted(c.items()))
 
     def summary(self) -> DaemonSummary:
-        return DaemonSummary(self.health(), self.state, self.latency.stats())
+        return DaemonSummary(self.health(), self.state, self.latency.stats(), self._failure)
 
     def _log_health(self, final: bool = False) -> None:
         h = self.health()

@@ -28,8 +28,10 @@ import math
 import os
 import queue
 import select
+import socket
 import stat
 import threading
+import time
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -64,6 +66,8 @@ _MAX_REQUEST_BACKOFF_S = 30.0
 # then measures our clock whoever asked. (No dictionary of requests: a replayed answer must count as it
 # did in flight, and pymavlink's TIMESYNC has no target fields to tell requesters apart.)
 _TIMESYNC_MAX_RTT_S = 1.0
+_READ_BUDGET = 200  # messages read per loop turn at most: sending keeps its rate under any input flood
+_WAIT_SLICE_S = 0.25  # long back-off waits are cut into slices, each a turn of the loop (see ``turns``)
 
 
 @dataclass(frozen=True)
@@ -71,15 +75,16 @@ class LinkOptions:
     """The MAVLink connection."""
 
     url: str = bounded("/dev/ttyAMA0:921600", "serial DEVICE:BAUD, udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or tcpin:HOST:PORT")
-    system_id: int = bounded(0, "the flight controller's MAVLink system id (0: take it from its HEARTBEAT); mavvo uses the same", ge=0, le=255)
+    fc_system_id: int = bounded(0, "the flight controller's MAVLink system id (0: the first autopilot that sends HEARTBEAT and ATTITUDE consistently for fc_confirm_s); mavvo uses the same", ge=0, le=255)
+    fc_confirm_s: float = bounded(1.0, "without fc_system_id: an autopilot is followed once its HEARTBEAT and ATTITUDE have come for this long; another one after that is reported, not followed", gt=0, le=60)
     attitude_rate_hz: float = bounded(100.0, "ATTITUDE rate to request (at least the camera rate; 100 Hz brackets every exposure closely)", gt=0, le=1000)
     range_rate_hz: float = bounded(20.0, "DISTANCE_SENSOR rate to request", gt=0, le=1000)
     height_rate_hz: float = bounded(10.0, "GLOBAL_POSITION_INT (height above home) rate to request", gt=0, le=1000)
     local_position_rate_hz: float = bounded(10.0, "LOCAL_POSITION_NED (the flight controller's own position, where re-initialised tracking is anchored) rate to request", gt=0, le=1000)
-    request_retry_s: float = bounded(2.0, "first retry of a stream request that brought nothing; doubles up to 30 s", gt=0)
-    timesync_interval_s: float = bounded(1.0, "TIMESYNC request period", gt=0)
-    silence_timeout_s: float = bounded(3.0, "nothing heard for this long: reconnect", gt=0)
-    reconnect_max_s: float = bounded(8.0, "longest back-off between reconnection attempts", gt=0)
+    request_retry_s: float = bounded(2.0, "first retry of a stream request that brought nothing; doubles up to 30 s", gt=0, le=30)
+    timesync_interval_s: float = bounded(1.0, "TIMESYNC request period", gt=0, le=60)
+    silence_timeout_s: float = bounded(3.0, "nothing heard for this long: reconnect", gt=0, le=600)
+    reconnect_max_s: float = bounded(8.0, "longest back-off between reconnection attempts", gt=0, le=600)
     signing_key_file: str = bounded("", "MAVLink 2 signing key: 64 hex digits, 32 raw bytes or a passphrase (SHA-256); mode 0600 or stricter; empty: unsigned")
 
 
@@ -165,6 +170,31 @@ def read_signing_key(path: str | Path) -> bytes:
 
 
 @dataclass
+class _Candidate:
+    """An autopilot heard before one was chosen: (first HEARTBEAT, HEARTBEATs, ATTITUDEs, MAV_AUTOPILOT)."""
+
+    first_heartbeat_s: float
+    autopilot: int
+    heartbeats: int = 1
+    attitudes: int = 0
+
+
+def check_udp_port_free(url: str) -> None:
+    """For ``udpin:HOST:PORT``: LinkError when another socket holds the port. (pymavlink binds with
+    SO_REUSEADDR, so two services on one port would both start and split the datagrams between them.)"""
+    if not url.startswith("udpin:"):
+        return
+    host, _, port = url.split(":", 1)[1].rpartition(":")
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        probe.bind((host, int(port)))
+    except OSError as e:
+        raise LinkError(f"link.url {url}: cannot listen on {host}:{port}: {e.strerror or e} (another process has the port?)") from e
+    finally:
+        probe.close()
+
+
+@dataclass
 class _Stream:
     msg_id: int
     rate_hz: float
@@ -183,8 +213,10 @@ class Link:
         system_status: called once a second for the HEARTBEAT's ``system_status``.
 
     Counters (``counters``): ``rx`` messages, ``bad_data`` (corrupt bytes), ``sent``, ``send_dropped``
-    (queue full), ``connects``, ``reconnects``, ``reboots``, ``stream_requests``, ``denied``. ``rx``
-    counts a message once the listener has absorbed it.
+    (queue full), ``stale_dropped`` (older than their ``max_age_s`` when their turn came),
+    ``handler_errors`` (a message that raised while handled: skipped), ``connects``, ``reconnects``,
+    ``reboots``, ``stream_requests``, ``denied``. ``rx`` counts a message once the listener has absorbed
+    it. ``turns`` counts the thread's loop turns (the daemon's watchdog watches it move).
     """
 
     def __init__(
@@ -197,16 +229,22 @@ class Link:
         self.listener = listener
         self.system_status = system_status
         self.device, self.baud = parse_url(options.url)
+        check_udp_port_free(options.url)
         self.signing_key = read_signing_key(options.signing_key_file) if options.signing_key_file else None
         self.counters: Counter[str] = Counter()
-        self.fc_system_id: int | None = options.system_id or None
-        self.fc_component_id: int | None = None
+        self.fc_system_id: int | None = options.fc_system_id or None
+        self.fc_component_id: int | None = None  # set once the flight controller is chosen
+        self._candidates: dict[tuple[int, int], _Candidate] = {}
+        self._others_told: set[tuple[int, int]] = set()
+        self._datagram_from: Any = None  # the source address of the last UDP datagram read
+        self._fc_address: Any = None  # the flight controller's UDP address, once chosen
         self.autopilot: int | None = None  # the flight controller's HEARTBEAT autopilot (MAV_AUTOPILOT)
         self.connected = threading.Event()
         self._mavutil = mavutil()  # MAVLink 2 checked here, whoever imported pymavlink first
         self._mav = self._mavutil.mavlink
         self._conn: Any = None
-        self._queue: queue.Queue[tuple[str, dict[str, Any]]] = queue.Queue(_SEND_QUEUE)
+        self._queue: queue.Queue[tuple[str, dict[str, Any], float]] = queue.Queue(_SEND_QUEUE)
+        self.turns = 0
         self._wake_r, self._wake_w = os.pipe()
         self._closed = False  # the link has stopped: send() is a no-op (its pipe's descriptors may be reused)
         self._close_lock = threading.Lock()
@@ -226,14 +264,15 @@ class Link:
 
     # ------------------------------------------------------------------ other threads
 
-    def send(self, name: str, fields: dict[str, Any]) -> None:
+    def send(self, name: str, fields: dict[str, Any], *, send_by_s: float = math.inf) -> None:
         """Queue message ``name`` (e.g. ``VISION_POSITION_ESTIMATE``) with its fields; thread-safe,
-        never blocks (when the queue is full the oldest message is dropped and counted). After the link
-        has stopped it does nothing (counted as ``sent_after_stop``)."""
+        never blocks (when the queue is full the oldest message is dropped and counted). A message not
+        written by ``send_by_s`` (host clock) is dropped, never sent late (counted as ``stale_dropped``).
+        After the link has stopped it does nothing (counted as ``sent_after_stop``)."""
         if self._closed:
             self.counters["sent_after_stop"] += 1
             return
-        item = (name, fields)
+        item = (name, fields, send_by_s)
         while True:
             try:
                 self._queue.put_nowait(item)
@@ -259,9 +298,10 @@ class Link:
         backoff = 0.25
         try:
             while not stop.is_set():
+                self.turns += 1
                 if self._conn is None:
                     if not self._connect():
-                        stop.wait(backoff)
+                        self._pause(stop, backoff)
                         backoff = min(backoff * 2, self.options.reconnect_max_s)
                         continue
                     backoff = 0.25
@@ -271,7 +311,7 @@ class Link:
                     log.warning("link %s: %s; reconnecting", self.options.url, e)
                     self._disconnect()
                     self.counters["reconnects"] += 1
-                    stop.wait(backoff)
+                    self._pause(stop, backoff)
                     backoff = min(backoff * 2, self.options.reconnect_max_s)
             self._drain()
         finally:
@@ -284,12 +324,25 @@ class Link:
                     except OSError:
                         pass
 
+    def _pause(self, stop: threading.Event, seconds: float) -> None:
+        """Wait ``seconds`` (real time) or until ``stop``, in slices that each count as a turn."""
+        end = time.monotonic() + seconds
+        while not stop.is_set() and (left := end - time.monotonic()) > 0:
+            stop.wait(min(left, _WAIT_SLICE_S))
+            self.turns += 1
+
     def _connect(self) -> bool:
         try:
             kw: dict[str, Any] = {"source_system": self.fc_system_id or 1, "source_component": COMPONENT_ID}
             if self.baud is not None:
                 kw["baud"] = self.baud
             conn = self._mavutil.mavlink_connection(self.device, **kw)
+            if self.options.url.startswith("udpout:"):
+                # Connected: the kernel sends from the route's address (127.0.0.1 for a local flight
+                # controller) and drops datagrams from any other sender.
+                conn.port.connect((socket.gethostbyname(conn.destination_addr[0]), conn.destination_addr[1]))
+            elif self.options.url.startswith("udpin:"):
+                conn.recv = self._udp_reader(conn)
         except Exception as e:  # pyserial, socket and pymavlink raise many kinds; all mean "not now"
             self.counters["connect_failures"] += 1
             if self.counters["connect_failures"] in (1, 10) or self.counters["connect_failures"] % 100 == 0:
@@ -309,8 +362,35 @@ class Link:
         log.info("link %s: connected", self.options.url)
         return True
 
+    def _udp_reader(self, conn: Any) -> Callable[[int | None], bytes]:
+        """pymavlink's UDP read, keeping each datagram's sender, so the flight controller's address can
+        be pinned once it is chosen (:meth:`_pin_udp`)."""
+
+        def recv(n: int | None = None) -> bytes:
+            try:
+                data, addr = conn.port.recvfrom(65535)
+            except (BlockingIOError, ConnectionRefusedError):
+                return b""
+            self._datagram_from = addr
+            if not self._fc_address:
+                conn.clients.add(addr)  # pymavlink answers every sender until the flight controller is known
+                conn.clients_last_alive[addr] = time.monotonic()
+            return data
+
+        return recv
+
+    def _pin_udp(self) -> None:
+        """``udpin``: from now on only the flight controller's address is read and written to."""
+        if not self.options.url.startswith("udpin:") or self._datagram_from is None:
+            return
+        self._fc_address = self._datagram_from
+        self._conn.port.connect(self._fc_address)
+        self._conn.clients = {self._fc_address}
+        self._conn.clients_last_alive = {self._fc_address: time.monotonic()}
+
     def _disconnect(self) -> None:
         self.connected.clear()
+        self._fc_address = None
         if self._conn is not None:
             try:
                 self._conn.close()
@@ -328,7 +408,10 @@ class Link:
                 pass
         except BlockingIOError:
             pass
-        while (msg := self._conn.recv_msg()) is not None:
+        for _ in range(_READ_BUDGET):
+            msg = self._conn.recv_msg()
+            if msg is None:
+                break
             self._handle(msg)
         now = self.clock.now_s()
         self._flush()
@@ -337,11 +420,15 @@ class Link:
             raise LinkError(f"nothing heard for {now - self._last_rx_s:.1f} s")
 
     def _flush(self) -> None:
+        now = self.clock.now_s()
         while True:
             try:
-                name, fields = self._queue.get_nowait()
+                name, fields, send_by_s = self._queue.get_nowait()
             except queue.Empty:
                 return
+            if now > send_by_s:
+                self.counters["stale_dropped"] += 1
+                continue
             self._write(name, fields)
 
     def _write(self, name: str, fields: dict[str, Any]) -> None:
@@ -368,9 +455,10 @@ class Link:
                 "type": mav.MAV_TYPE_ONBOARD_CONTROLLER, "autopilot": mav.MAV_AUTOPILOT_INVALID,
                 "base_mode": 0, "custom_mode": 0, "system_status": status,
             })
-        if self.fc_system_id is None or self.fc_component_id is None:
+        targets = [(self.fc_system_id, self.fc_component_id)] if self.fc_component_id is not None else list(self._candidates)
+        if not targets:
             return  # requests go to a flight controller we have heard
-        if now >= self._next_timesync_s:
+        if self.fc_component_id is not None and now >= self._next_timesync_s:
             self._next_timesync_s = now + self.options.timesync_interval_s
             self._write("TIMESYNC", {"tc1": 0, "ts1": stamp_us(self.clock) * 1000})  # whole microseconds, like arrivals
         for s in self._streams:
@@ -378,12 +466,13 @@ class Link:
             if quiet and now >= s.next_request_s:
                 s.backoff_s = min(max(2 * s.backoff_s, self.options.request_retry_s), _MAX_REQUEST_BACKOFF_S)
                 s.next_request_s = now + s.backoff_s
-                self.counters["stream_requests"] += 1
-                self._write("COMMAND_LONG", {
-                    "target_system": self.fc_system_id, "target_component": self.fc_component_id,
-                    "command": mav.MAV_CMD_SET_MESSAGE_INTERVAL, "confirmation": 0,
-                    "param1": s.msg_id, "param2": 1e6 / s.rate_hz, "param3": 0, "param4": 0, "param5": 0, "param6": 0, "param7": 0,
-                })
+                for target_system, target_component in targets[:4]:  # candidates: a few at most
+                    self.counters["stream_requests"] += 1
+                    self._write("COMMAND_LONG", {
+                        "target_system": target_system, "target_component": target_component,
+                        "command": mav.MAV_CMD_SET_MESSAGE_INTERVAL, "confirmation": 0,
+                        "param1": s.msg_id, "param2": 1e6 / s.rate_hz, "param3": 0, "param4": 0, "param5": 0, "param6": 0, "param7": 0,
+                    })
 
     # ------------------------------------------------------------------ what arrives
 
@@ -397,6 +486,10 @@ class Link:
             self.tap(t_us, bytes(msg.get_msgbuf()))
         try:
             self._dispatch(msg, kind, us_to_s(t_us))
+        except (AttributeError, TypeError, ValueError, OverflowError) as e:  # a malformed message: skipped, not fatal
+            self.counters["handler_errors"] += 1
+            if self.counters["handler_errors"] <= 3:
+                log.warning("link %s: %s message skipped: %s", self.options.url, kind, e)
         finally:
             self.counters["rx"] += 1
 
@@ -404,13 +497,13 @@ class Link:
         self._last_rx_s = now
         src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
         if kind == "HEARTBEAT":
-            if msg.autopilot != self._mav.MAV_AUTOPILOT_INVALID and self.fc_component_id is None and (self.fc_system_id in (None, src_sys)):
-                self.fc_system_id, self.fc_component_id = src_sys, src_comp
-                self.autopilot = int(msg.autopilot)
-                self._conn.mav.srcSystem = src_sys
-                log.info("flight controller: system %d component %d (autopilot type %d)", src_sys, src_comp, msg.autopilot)
+            if msg.autopilot != self._mav.MAV_AUTOPILOT_INVALID:  # ground stations and companions say INVALID
+                self._autopilot_heartbeat(src_sys, src_comp, int(msg.autopilot), now)
             return
         if src_sys != self.fc_system_id or src_comp != self.fc_component_id:
+            c = self._candidates.get((src_sys, src_comp))
+            if kind == "ATTITUDE" and c is not None:
+                c.attitudes += 1
             return
         boot_ms = getattr(msg, "time_boot_ms", None)
         if boot_ms is not None:
@@ -439,6 +532,39 @@ class Link:
             self.counters["denied"] += 1
             if self.counters["denied"] <= 3:
                 log.info("flight controller refused a stream request (result %d); retrying with back-off", msg.result)
+
+    def _autopilot_heartbeat(self, sys_id: int, comp_id: int, autopilot: int, now: float) -> None:
+        """Choose the flight controller: the configured system id at its first HEARTBEAT, else the first
+        autopilot whose HEARTBEAT and ATTITUDE have both come for ``fc_confirm_s``. Any other after
+        that is reported (logged once, counted as ``other_autopilots``), never followed."""
+        key = (sys_id, comp_id)
+        if self.fc_component_id is not None:
+            if key == (self.fc_system_id, self.fc_component_id) and self._fc_address is None:
+                self._pin_udp()  # a new socket after a reconnect
+            elif key != (self.fc_system_id, self.fc_component_id):
+                self.counters["other_autopilots"] += 1
+                if key not in self._others_told and len(self._others_told) < 16:
+                    self._others_told.add(key)
+                    log.warning("another autopilot on the link (system %d component %d): ignored; following system %d component %d",
+                                sys_id, comp_id, self.fc_system_id, self.fc_component_id)
+            return
+        if self.options.fc_system_id and sys_id != self.options.fc_system_id:
+            self.counters["other_autopilots"] += 1
+            return
+        c = self._candidates.get(key)
+        if c is None:
+            if len(self._candidates) >= 16:  # a flood of forged ids must not grow this without bound
+                return
+            c = self._candidates[key] = _Candidate(now, autopilot)
+        else:
+            c.heartbeats += 1
+        consistent = c.heartbeats >= 2 and c.attitudes >= 3 and now - c.first_heartbeat_s >= self.options.fc_confirm_s
+        if self.options.fc_system_id or consistent:
+            self.fc_system_id, self.fc_component_id, self.autopilot = sys_id, comp_id, autopilot
+            self._conn.mav.srcSystem = sys_id
+            self._candidates.clear()
+            self._pin_udp()
+            log.info("flight controller: system %d component %d (autopilot type %d)", sys_id, comp_id, autopilot)
 
     def _rebooted(self, now: float) -> None:
         log.warning("flight controller rebooted (time_boot_ms went back); re-requesting streams")

@@ -14,9 +14,12 @@ A recording is a folder (``record.dir``/YYYYmmdd-HHMMSS) holding:
 
 Recording never holds the service up: the link and the worker hand items to bounded queues and a
 writer thread does the disk work; when a queue is full the item is dropped and counted. Recording
-stops (counted, logged) when the recording reaches ``max_total_mb`` or the disk's free space falls
-below ``min_free_mb``. The .tlog and frame index start a new segment every ``rotate_mb``. On close,
-the writer drains what is queued (bounded) and closes every file.
+stops (counted, logged, reported through ``on_stop``) when the recording reaches ``max_total_mb``, the
+disk's free space falls below ``min_free_mb``, or a write fails (disk full, medium gone); what was
+written stays readable, and the service goes on. The .tlog and frame index start a new segment every
+``rotate_mb`` and on :meth:`Recorder.reopen` (SIGHUP). On close, the writer drains what is queued
+(bounded) and closes every file. The folder is created 0700 and every file 0600: a flight's images and
+messages are the operator's.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from __future__ import annotations
 import csv
 import json
 import logging
+import os
 import queue
 import shutil
 import threading
@@ -31,13 +35,13 @@ import time
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any, Literal
+from typing import IO, Any, Callable, Literal
 
 import cv2
 
 from mavvo import __version__
 from mavvo.options import bounded
-from mavvo.errors import ConfigError
+from mavvo.errors import ConfigError, RecordingError
 from mavvo.service.link import COMPONENT_ID
 from mavvo.service.timing import Clock, MonotonicClock, Pairing
 from mavvo.service.tlog import write_record
@@ -80,11 +84,13 @@ class Recorder:
     or recording stopped), ``write_errors``, ``segments``.
     """
 
-    def __init__(self, options: RecordOptions, config_yaml: str, clock: Clock) -> None:
+    def __init__(self, options: RecordOptions, config_yaml: str, clock: Clock, on_stop: Callable[[str], None] | None = None) -> None:
         if not options.dir:
             raise ConfigError("record.dir: expected a directory to record into, got an empty string")
         self.options = options
         self.clock = clock
+        self.on_stop = on_stop
+        self._reopen = threading.Event()
         self._wall = MonotonicClock()
         self.counters: Counter[str] = Counter()
         self.path = self._new_folder(Path(options.dir))
@@ -99,10 +105,14 @@ class Recorder:
         self._segment = -1
         self._segment_bytes = 0
         self._next_free_check_s = 0.0
-        (self.path / "frames").mkdir()
-        (self.path / "config.yaml").write_text(config_yaml, encoding="utf-8")
-        self._write_meta()
-        self._rotate()
+        try:
+            (self.path / "frames").mkdir(mode=0o700)
+            _write_private(self.path / "config.yaml", config_yaml.encode("utf-8"))
+            self._write_meta()
+            self._rotate()
+        except OSError as e:
+            self._close_segment()
+            raise RecordingError(f"record.dir {options.dir}: cannot write the recording {self.path}: {e.strerror or e}") from e
         self._thread = threading.Thread(target=self._writer, name="mavvo-recorder", daemon=True)
         self._thread.start()
         log.info("recording into %s", self.path)
@@ -111,17 +121,17 @@ class Recorder:
     def _new_folder(parent: Path) -> Path:
         stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
         try:
-            parent.mkdir(parents=True, exist_ok=True)
+            parent.mkdir(parents=True, exist_ok=True, mode=0o700)
             for n in range(1000):
                 p = parent / (stamp if n == 0 else f"{stamp}-{n}")
                 try:
-                    p.mkdir()
+                    p.mkdir(mode=0o700)
                     return p
                 except FileExistsError:
                     continue
         except OSError as e:
-            raise ConfigError(f"record.dir {parent}: cannot create a recording folder: {e.strerror or e}") from e
-        raise ConfigError(f"record.dir {parent}: too many recordings started in the same second")
+            raise RecordingError(f"record.dir {parent}: cannot create a recording folder: {e.strerror or e}") from e
+        raise RecordingError(f"record.dir {parent}: too many recordings started in the same second")
 
     # ------------------------------------------------------------------ producers (never block)
 
@@ -144,8 +154,24 @@ class Recorder:
 
     # ------------------------------------------------------------------ the writer thread
 
+    def reopen(self) -> None:
+        """Close the current files and continue in new ones (SIGHUP); thread-safe, acted on by the writer."""
+        self._reopen.set()
+
     def _writer(self) -> None:
+        try:
+            self._write_loop()
+        except OSError as e:  # the disk failed under us: what is written stays, vision goes on
+            self.counters["write_errors"] += 1
+            self._stop(f"a write failed: {e.strerror or e}")
+
+    def _write_loop(self) -> None:
         while True:
+            if self._reopen.is_set():
+                self._reopen.clear()
+                if not self.stopped_reason:
+                    self._rotate()
+                    log.info("recording: files reopened (segment %d)", self._segment)
             self._drain_messages()
             try:
                 item = self._frames_q.get(timeout=0.05)
@@ -177,8 +203,8 @@ class Recorder:
             ok, buf = cv2.imencode(f".{self.options.frames}", frame.image, params)
             if not ok:
                 raise ValueError("the encoder refused the image")
-            (self.path / "frames" / name).write_bytes(buf.tobytes())
-        except (OSError, ValueError, cv2.error) as e:
+            _write_private(self.path / "frames" / name, buf.tobytes())
+        except (ValueError, cv2.error) as e:
             self.counters["write_errors"] += 1
             if self.counters["write_errors"] <= 3:
                 log.warning("recording: frame %d not written: %s", frame.seq, e)
@@ -218,35 +244,44 @@ class Recorder:
     def _stop(self, reason: str) -> None:
         self.stopped_reason = reason
         log.warning("recording stopped: %s (%s kept)", reason, self.path)
-        self._close_segment()
+        try:
+            self._close_segment()
+        except OSError as e:  # closing flushes; on a full disk that may fail too: the file keeps what it had
+            log.warning("recording: closing %s: %s", self.path, e.strerror or e)
+        if self.on_stop is not None:
+            self.on_stop(reason)
 
     def _rotate(self) -> None:
         self._close_segment()
         self._segment += 1
         self.counters["segments"] += 1
         self._segment_bytes = 0
-        self._tlog = (self.path / f"mavlink-{self._segment:03d}.tlog").open("wb")
-        self._csv_file = (self.path / f"frames-{self._segment:03d}.csv").open("w", newline="", encoding="utf-8")
+        self._tlog = _open_private(self.path / f"mavlink-{self._segment:03d}.tlog", "wb")
+        self._csv_file = _open_private(self.path / f"frames-{self._segment:03d}.csv", "w")
         self._csv = csv.writer(self._csv_file)
         self._csv.writerow(FRAME_COLUMNS)
 
     def _close_segment(self) -> None:
-        for f in (self._tlog, self._csv_file):
+        files, self._tlog, self._csv_file = (self._tlog, self._csv_file), None, None
+        for f in files:
             if f is not None:
                 f.close()
-        self._tlog = self._csv_file = None
 
     # ------------------------------------------------------------------ the end
 
-    def close(self) -> None:
-        """Write what is queued (at most a few seconds), close the files, write meta.json."""
+    def close(self, drain: bool = True) -> None:
+        """Write what is queued (at most a few seconds; nothing with ``drain`` False), close the files,
+        write meta.json. Never raises: a disk error here is logged."""
         self._closing.set()
-        self._thread.join(_CLOSE_DRAIN_S)
-        if self._thread.is_alive():
-            log.warning("recording: the disk did not keep up; %s closed with items still queued", self.path)
-        else:
-            self._close_segment()
-        self._write_meta()
+        self._thread.join(_CLOSE_DRAIN_S if drain else 0.0)
+        try:
+            if self._thread.is_alive():
+                log.warning("recording: the disk did not keep up; %s closed with items still queued", self.path)
+            else:
+                self._close_segment()
+            self._write_meta()
+        except OSError as e:
+            log.warning("recording: closing %s: %s", self.path, e.strerror or e)
         log.info("recording closed: %s (%d frames, %d messages, %.1f MB)", self.path, self.counters["frames"],
                  self.counters["messages"], self.counters["bytes"] / _MB)
 
@@ -257,4 +292,18 @@ class Recorder:
             "frames_format": self.options.frames, "complete": self._closing.is_set() and not self.stopped_reason,
             "stopped_reason": self.stopped_reason, "counters": dict(self.counters),
         }
-        (self.path / "meta.json").write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
+        _write_private(self.path / "meta.json", (json.dumps(meta, indent=2) + "\n").encode("utf-8"))
+
+
+def _open_private(path: Path, mode: Literal["wb", "w"]) -> IO[Any]:
+    """``path`` opened for writing, created 0600 (owner only)."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    if mode == "wb":
+        return os.fdopen(fd, "wb")
+    return os.fdopen(fd, "w", newline="", encoding="utf-8")
+
+
+def _write_private(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path``, created 0600."""
+    with _open_private(path, "wb") as f:
+        f.write(data)

@@ -68,6 +68,7 @@ class OutputOptions:
     autopilot: Autopilot = bounded("auto", "auto (from the flight controller's HEARTBEAT), ardupilot (ODOMETRY frame LOCAL_FRD) or px4 (LOCAL_NED)")
     estimator_type: Literal["vision", "vio"] = bounded("vision", "ODOMETRY estimator_type: vision (2) or vio (3)")
     statustext_min_interval_s: float = bounded(2.0, "at most one STATUSTEXT on state changes per this interval (merged: the latest state, and a worse one before it)", ge=0, le=60)
+    max_age_s: float = bounded(0.5, "an estimate the link could not send within this long of its exposure is dropped, never sent late", gt=0, le=5)
     health_rate_hz: float = bounded(1.0, "NAMED_VALUE_FLOAT health values (VO_QUAL, VO_INLIER, VO_LAT_MS, VO_STATE, VO_DRIFT) per second", gt=0, le=5)
 
 

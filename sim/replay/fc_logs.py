@@ -174,8 +174,9 @@ def series_messages(s: FcSeries, *, heartbeat_hz: float = 1.0, boot_epoch_s: flo
     t0, t1 = s.attitude[0, 0], s.attitude[-1, 0]
     for t in np.arange(t0, t1 + 1e-9, 1.0 / heartbeat_hz):
         events.append((round(t * 1e6), 0, m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, m.MAV_STATE_ACTIVE, 3)))
+    nan = float("nan")  # the log has no body rates: NaN says "unknown" (zero would claim a vehicle that never turns)
     for t, r, pch, y in s.attitude:
-        events.append((round(t * 1e6), 1, m.MAVLink_attitude_message(int(round((t - boot_epoch_s) * 1e3)), r, pch, y, 0.0, 0.0, 0.0)))
+        events.append((round(t * 1e6), 1, m.MAVLink_attitude_message(int(round((t - boot_epoch_s) * 1e3)), r, pch, y, nan, nan, nan)))
     for t, d in s.range_m:
         cm = 4001 if not np.isfinite(d) else int(round(d * 100))
         events.append((round(t * 1e6), 2, m.MAVLink_distance_sensor_message(int(round((t - boot_epoch_s) * 1e3)), 20, 4000, cm, m.MAV_DISTANCE_SENSOR_LASER, 0, m.MAV_SENSOR_ROTATION_PITCH_270, 255)))
