@@ -146,3 +146,39 @@ def test_lockstep_wait_is_bounded_by_the_data_and_real_time_by_the_clock():
     feed(state_rt, rt, [0.0, 0.01])
     rt.t = 0.3  # the host clock is past the exposure plus the wait: give up at once
     assert wait_for_pairing(state_rt, 0.05).status == "stale"
+
+
+def test_one_forged_attitude_stamped_ahead_is_refused_and_genuine_ones_go_on_pairing():
+    """Before: one ATTITUDE stamped 1 s ahead moved the clock bound for the sync window (every frame
+    then waited and was discarded) and made every genuine sample "not newer". Now it is held as a
+    suspect, refused when the next message does not agree, and counted."""
+    clock = FakeClock()
+    state = FlightControllerState(clock, TimingOptions())
+    feed(state, clock, np.arange(0.0, 2.0, 0.01))
+    clock.t = 2.0
+    state.on_attitude(int(round((2.0 + OFFSET_S + 1.0) * 1000)), 0.9, 0.9, 0.0)  # forged: 1 s ahead, a wrong roll
+    feed(state, clock, np.arange(2.01, 3.0, 0.01))
+    assert state.counters["attitude_implausible"] == 1 and state.counters["attitude_rejected"] == 0
+    p = state.pair(2.505)
+    assert p.status == "paired" and p.roll_rad == pytest.approx(0.1 * (2.505 - 0.004), abs=1e-9)  # the 4 ms path, as before the forgery
+
+
+def test_a_real_step_of_the_clock_is_followed_once_two_messages_agree():
+    """A path that became faster (or any real step) shows in every later message: accepted at the second."""
+    clock = FakeClock()
+    state = FlightControllerState(clock, TimingOptions())
+    feed(state, clock, np.arange(0.0, 2.0, 0.01), latency_s=0.030)
+    feed(state, clock, np.arange(2.0, 3.0, 0.01), latency_s=0.002)  # 28 ms faster from now on
+    assert state.counters["attitude_implausible"] == 1  # only the first message after the step waited
+    assert state.pair(2.5).status == "paired" and state.pair(2.5).roll_rad == pytest.approx(0.1 * (2.5 - 0.002), abs=1e-9)  # the bound: the 2 ms path
+
+
+def test_a_forged_timesync_answer_does_not_move_the_offset():
+    sync = ClockSync(window_s=30.0)
+    for t in np.arange(0.0, 2.0, 0.01):
+        sync.add_arrival(t + OFFSET_S, t + 0.004)
+    assert sync.add_timesync(1.0, 1.0005 + OFFSET_S, 1.001)  # genuine: 1 ms round trip
+    before = sync.offset_s()
+    assert not sync.add_timesync(1.5, 1.5 + OFFSET_S + 0.8, 1.5001)  # forged: 0.1 ms "round trip", 0.8 s off
+    assert not sync.add_timesync(1.6, 1.6 + OFFSET_S - 0.5, 1.6001)  # forged the other way
+    assert sync.offset_s() == before and sync.round_trip_s() == pytest.approx(0.001)

@@ -208,7 +208,7 @@ class Daemon:
         """Close and reopen the recording's files (SIGHUP, as daemons do for log rotation); signal-safe."""
         self._reopen.set()
 
-    def _on_signal(self, signum: int, _frame: object) -> None:
+    def on_signal(self, signum: int, _frame: object) -> None:
         """SIGTERM/SIGINT: the first stops cleanly (bounded drain), a second skips the drain. SIGHUP:
         reopen the recording. Handlers only set flags; the supervisor acts on them."""
         if signum == signal.SIGHUP:
@@ -225,7 +225,7 @@ class Daemon:
         the main thread."""
         previous = {}
         if threading.current_thread() is threading.main_thread():
-            previous = {s: signal.signal(s, self._on_signal) for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
+            previous = {s: signal.signal(s, self.on_signal) for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
         link_stop = threading.Event()
         threads = [
             threading.Thread(target=self._guarded, args=("link", self.link.run, link_stop), name="mavvo-link", daemon=True),

@@ -12,6 +12,12 @@ controller's boot clock (``t_fc_s``, ATTITUDE.time_boot_ms / 1000) stamps its me
   TIMESYNC this bound is the estimate (it assumes the fastest message took no time); with TIMESYNC it
   clamps an estimate that would put a message's arrival before its measurement.
 
+Neither moves on one say-so (an unsigned link lets anyone send a 26-byte TIMESYNC or ATTITUDE): once
+``sync_warmup_samples`` arrivals have set the bound, a message stamped more than ``clock_step_max_s``
+ahead of it is held as a suspect and used only if the next one ahead agrees with it (a real change of
+path, or a reboot, which the link handles); a TIMESYNC answer whose offset disagrees with the bound
+by more than its round trip allows is refused. Both are counted.
+
 :class:`FlightControllerState` keeps the recent ATTITUDE samples (and the latest rangefinder and
 height) and pairs a frame with roll/pitch/yaw interpolated at its exposure time. A frame is paired only
 between two samples that bracket it at most ``max_attitude_gap_s`` apart; otherwise it waits for a
@@ -64,6 +70,8 @@ class TimingOptions:
     range_max_age_s: float = bounded(0.2, "a rangefinder reading older than this at the exposure is not used", gt=0)
     height_max_age_s: float = bounded(0.5, "a height reading older than this at the exposure is not used", gt=0)
     sync_window_s: float = bounded(30.0, "window of the clock-offset filters (tracks clock drift)", gt=0, le=3600)
+    clock_step_max_s: float = bounded(0.005, "an ATTITUDE stamped this much ahead of every earlier one is used only if the next one agrees (a single forged or broken stamp is refused)", gt=0, le=1)
+    sync_warmup_samples: int = bounded(50, "ATTITUDE arrivals that set the clock bound before the step check starts", ge=1, le=10000)
     history_s: float = bounded(2.0, "ATTITUDE history kept for pairing", gt=0, le=60)
     local_position_max_age_s: float = bounded(0.5, "the flight controller's LOCAL_POSITION_NED older than this at the exposure is not used to anchor", gt=0, le=10)
     yaw_settle_window_s: float = bounded(1.5, "the flight controller's yaw counts as settled once, over this long, ...", gt=0, le=60)
@@ -77,6 +85,9 @@ def _euler_yaw_rate(roll_rad: float, pitch_rad: float, body_rates_rad_s: tuple[f
         return math.nan
     _, q, r = body_rates_rad_s
     return (q * math.sin(roll_rad) + r * math.cos(roll_rad)) / math.cos(pitch_rad)
+
+
+_MAX_LATENCY_S = 0.1  # the fastest message in a sync window took at most this long to arrive
 
 
 class _WindowMax:
@@ -110,21 +121,43 @@ class ClockSync:
     """The offset ``t_fc_s - t_host_s`` from TIMESYNC round trips and message arrivals (see the module
     docstring). Not thread-safe: :class:`FlightControllerState` holds the lock."""
 
-    def __init__(self, window_s: float = 30.0) -> None:
+    def __init__(self, window_s: float = 30.0, step_max_s: float = 0.005, warmup_samples: int = 50) -> None:
         self._arrival_bound = _WindowMax(window_s)  # max of t_fc - t_arrival
         self._round_trips = _WindowMax(window_s, sign=-1.0)  # min round trip, payload: offset
+        self.step_max_s = step_max_s
+        self.warmup_samples = warmup_samples
+        self._arrivals = 0
+        self._suspect: tuple[float, float] | None = None  # (t_arrival, t_fc - t_arrival) of a message ahead of the bound
 
-    def add_arrival(self, t_fc_s: float, t_arrival_host_s: float) -> None:
-        """A message measured at ``t_fc_s`` arrived at ``t_arrival_host_s``."""
-        self._arrival_bound.push(t_arrival_host_s, t_fc_s - t_arrival_host_s)
+    def add_arrival(self, t_fc_s: float, t_arrival_host_s: float) -> bool:
+        """A message measured at ``t_fc_s`` arrived at ``t_arrival_host_s``. False (and not used) for a
+        single message stamped implausibly far ahead of every earlier one (see the module docstring)."""
+        value = t_fc_s - t_arrival_host_s
+        bound = self._arrival_bound.best()
+        if bound is not None and self._arrivals >= self.warmup_samples and value > bound[0] + self.step_max_s:
+            s = self._suspect
+            if s is None or t_arrival_host_s - s[0] > 1.0 or abs(value - s[1]) > self.step_max_s:
+                self._suspect = (t_arrival_host_s, value)
+                return False
+        self._suspect = None
+        self._arrivals += 1
+        self._arrival_bound.push(t_arrival_host_s, value)
+        return True
 
-    def add_timesync(self, t_sent_host_s: float, t_fc_s: float, t_arrival_host_s: float) -> None:
+    def add_timesync(self, t_sent_host_s: float, t_fc_s: float, t_arrival_host_s: float) -> bool:
         """A TIMESYNC request sent at ``t_sent_host_s`` was answered with the flight controller's time
-        ``t_fc_s`` and the answer arrived at ``t_arrival_host_s``."""
+        ``t_fc_s`` and the answer arrived at ``t_arrival_host_s``. False (not used) when its offset
+        disagrees with the arrivals' bound by more than the round trip and a message's latency allow."""
         rtt = t_arrival_host_s - t_sent_host_s
         if rtt < 0:
-            return
-        self._round_trips.push(t_arrival_host_s, rtt, t_fc_s - (t_sent_host_s + 0.5 * rtt))
+            return False
+        offset = t_fc_s - (t_sent_host_s + 0.5 * rtt)
+        bound = self._arrival_bound.best()
+        # The true offset is at least the bound and at most the bound plus the fastest message's latency.
+        if bound is not None and not (bound[0] - 0.5 * rtt - self.step_max_s <= offset <= bound[0] + 0.5 * rtt + _MAX_LATENCY_S):
+            return False
+        self._round_trips.push(t_arrival_host_s, rtt, offset)
+        return True
 
     def offset_s(self) -> float | None:
         """The current estimate, or None before any measurement."""
@@ -143,6 +176,8 @@ class ClockSync:
     def reset(self) -> None:
         self._arrival_bound.clear()
         self._round_trips.clear()
+        self._arrivals = 0
+        self._suspect = None
 
 
 @dataclass(frozen=True)
@@ -168,6 +203,7 @@ class Pairing:
 class FlightControllerState:
     """What the flight controller said recently, on both clocks; thread-safe (the link thread writes,
     the worker reads). Counters: ``attitude``, ``attitude_rejected`` (non-finite or not newer),
+    ``attitude_implausible`` and ``timesync_implausible`` (refused by the clock's plausibility checks),
     ``reboots``.
 
     Its own position estimate (LOCAL_POSITION_NED, the EKF's belief) is kept to anchor the odometry
@@ -188,7 +224,7 @@ class FlightControllerState:
         self.counters: Counter[str] = Counter()
         self._lock = threading.Lock()
         self._new_data = threading.Condition(self._lock)
-        self._sync = ClockSync(options.sync_window_s)
+        self._sync = ClockSync(options.sync_window_s, options.clock_step_max_s, options.sync_warmup_samples)
         self._t_fc: list[float] = []  # ATTITUDE times, increasing
         self._rpy: list[tuple[float, float, float]] = []
         self._range: tuple[float, float | None] | None = None  # (t_fc_s, metres or None for no reading)
@@ -221,7 +257,9 @@ class FlightControllerState:
         t = t_fc_ms * 1e-3
         with self._new_data:
             self.version += 1
-            self._sync.add_arrival(t, now)
+            if not self._sync.add_arrival(t, now):
+                self.counters["attitude_implausible"] += 1
+                return
             if not (math.isfinite(roll_rad) and math.isfinite(pitch_rad)) or (self._t_fc and t <= self._t_fc[-1]):
                 self.counters["attitude_rejected"] += 1
                 return
@@ -288,7 +326,8 @@ class FlightControllerState:
         now = self._arrival(t_arrival_host_s)
         with self._lock:
             self.version += 1
-            self._sync.add_timesync(t_sent_host_s, t_fc_s, now)
+            if not self._sync.add_timesync(t_sent_host_s, t_fc_s, now):
+                self.counters["timesync_implausible"] += 1
 
     def on_reboot(self) -> None:
         """The boot clock went back: the flight controller restarted; forget its old clock and samples."""
