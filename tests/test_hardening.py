@@ -5,7 +5,6 @@ oversized images, a full disk, SIGHUP, and threads that stop making progress."""
 from __future__ import annotations
 
 import dataclasses
-import os
 import resource
 import signal
 import socket
