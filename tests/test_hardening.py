@@ -463,3 +463,63 @@ def test_the_link_thread_dying_ends_run_with_a_failure():
     d.link.run = dies
     summary = run_bounded(d)
     assert summary.failure == "the link thread stopped: MemoryError: the link thread ran out of memory"
+
+
+# ---------------------------------------------------------------------------------------------- signing
+
+
+def _signer(key: bytes, link_id: int, timestamp: int):
+    mav = mavutil().mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    mav.signing.secret_key = key
+    mav.signing.sign_outgoing = True
+    mav.signing.link_id = link_id
+    mav.signing.timestamp = timestamp
+    return mav
+
+
+def test_signing_a_forged_frame_changes_nothing_and_a_replay_from_another_link_is_refused(tmp_path):
+    """Before: one frame with a wrong signature and a huge timestamp made genuine traffic "old"; a
+    genuine frame up to 60 s old from another link id was accepted once and faked a reboot."""
+    import hashlib
+
+    key_file = tmp_path / "signing.key"
+    key_file.write_text("a passphrase\n")
+    key_file.chmod(0o600)
+    key = hashlib.sha256(b"a passphrase").digest()
+    port = free_port()
+    lt = LinkThread(url=f"udpin:127.0.0.1:{port}", signing_key_file=str(key_file), fc_system_id=1)
+    m = mavutil().mavlink
+    now_ts = int((time.time() - 1_420_070_400) * 100_000)  # 10 us units since 2015-01-01, as a signer stamps
+    fc = _signer(key, 0, now_ts)
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+
+    def attitude(mav, boot_ms: int) -> bytes:
+        return bytes(m.MAVLink_attitude_message(boot_ms, 0.1, 0.0, 0.0, 0.0, 0.0, 0.0).pack(mav))
+
+    try:
+        assert wait_for(lambda: lt.link.connected.is_set())
+        s.sendto(bytes(m.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3).pack(fc)), ("127.0.0.1", port))
+        assert wait_for(lambda: lt.link.fc_component_id == 1)
+        boot_ms = 100_000
+        for _ in range(20):
+            boot_ms += 10
+            s.sendto(attitude(fc, boot_ms), ("127.0.0.1", port))
+        assert wait_for(lambda: len(lt.listener.attitude) == 20)
+        forged = bytearray(attitude(fc, boot_ms + 5))
+        forged[-12:-6] = (2**47).to_bytes(6, "little")  # a timestamp far ahead; the signature no longer matches
+        s.sendto(bytes(forged), ("127.0.0.1", port))
+        for _ in range(20):
+            boot_ms += 10
+            s.sendto(attitude(fc, boot_ms), ("127.0.0.1", port))
+        assert wait_for(lambda: len(lt.listener.attitude) == 40), f"{len(lt.listener.attitude)} of 40 genuine frames accepted"
+        assert lt.link.counters["signature_bad"] == 1
+        # A genuine frame from link id 1, signed 5 s before the newest on link 0, with a boot time 60 s back.
+        old = _signer(key, 1, fc.signing.timestamp - 500_000)
+        s.sendto(attitude(old, boot_ms - 60_000), ("127.0.0.1", port))
+        boot_ms += 10
+        s.sendto(attitude(fc, boot_ms), ("127.0.0.1", port))
+        assert wait_for(lambda: len(lt.listener.attitude) == 41)
+        assert lt.link.counters["signature_replayed"] == 1 and lt.link.counters["reboots"] == 0
+    finally:
+        s.close()
+        lt.close()

@@ -93,6 +93,12 @@ def test_run_exit_codes(tmp_path, capsys):
     cfg = write(tmp_path, f"camera: {{source: 'sim:hover'}}\nlink: {{url: 'udpout:127.0.0.1:9', signing_key_file: '{key}'}}\n")
     assert main(["run", "--config", str(cfg)]) == 2
     assert "expected mode 0600 or stricter" in capsys.readouterr().err
+    # check-config refuses what run refuses (it passed a world-readable or missing key before)
+    assert main(["check-config", str(cfg)]) == 2
+    assert "expected mode 0600 or stricter" in capsys.readouterr().err
+    key.unlink()
+    assert main(["check-config", str(cfg)]) == 2
+    assert "link.signing_key_file" in capsys.readouterr().err
 
 
 def test_version_and_help_exit_zero():

@@ -6,11 +6,13 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from mavvo.service.link import read_signing_key
 from mavvo.service.settings import load_config
 
 
 def add_parser(sub: Any) -> None:
-    c = sub.add_parser("check-config", help="check a settings file and exit", description="Load a settings file strictly and report the first problem, with its key path.")
+    c = sub.add_parser("check-config", help="check a settings file and exit", description="Load a settings file strictly and report the first problem, with its key path "
+                         "(also the signing key file, as mavvo run reads it). Exit 0: ok; 2: a problem.")
     c.add_argument("file", type=Path, metavar="FILE")
 
     c.set_defaults(handler=main)
@@ -18,5 +20,7 @@ def add_parser(sub: Any) -> None:
 
 def main(args: argparse.Namespace) -> int:
     cfg = load_config(args.file)
+    if cfg.link.signing_key_file:  # exactly the check mavvo run makes when it opens the link
+        read_signing_key(cfg.link.signing_key_file)
     print(f"{args.file}: ok (link {cfg.link.url}, camera {cfg.camera.source} {cfg.camera.width_px}x{cfg.camera.height_px}, scale from {cfg.odometry.scale.source})")
     return 0

@@ -13,7 +13,8 @@ threads queued with :meth:`Link.send`. It also keeps the link alive:
   host clock that stamps every estimate (what PX4 needs to map ``usec``);
 - reconnect with back-off when the link dies: a read or write error (serial unplugged) or nothing heard
   for ``silence_timeout_s`` (UDP silent);
-- optional MAVLink 2 signing with a key read from a file that only its owner may read.
+- optional MAVLink 2 signing with a key read from a file that only its owner may read; incoming
+  signatures are checked before their timestamps count (:mod:`mavvo.service.signing`).
 
 Connection strings: ``/dev/ttyAMA0:921600`` (serial through pyserial; ``serial:`` prefix optional),
 ``udpin:HOST:PORT`` (listen), ``udpout:HOST:PORT`` (send first), ``tcp:HOST:PORT`` (connect),
@@ -39,6 +40,7 @@ from typing import Any, Callable, Protocol
 
 from mavvo.options import bounded
 from mavvo.errors import ConfigError, LinkError
+from mavvo.service import signing
 from mavvo.service.mavlink import SOCKET_SCHEMES, mavutil
 from mavvo.service.timing import Clock
 from mavvo.types import StrEnum
@@ -85,7 +87,7 @@ class LinkOptions:
     timesync_interval_s: float = bounded(1.0, "TIMESYNC request period", gt=0, le=60)
     silence_timeout_s: float = bounded(3.0, "nothing heard for this long: reconnect", gt=0, le=600)
     reconnect_max_s: float = bounded(8.0, "longest back-off between reconnection attempts", gt=0, le=600)
-    signing_key_file: str = bounded("", "MAVLink 2 signing key: 64 hex digits, 32 raw bytes or a passphrase (SHA-256); mode 0600 or stricter; empty: unsigned")
+    signing_key_file: str = bounded("", "MAVLink 2 signing key: 64 hex digits, 32 raw bytes or a passphrase (SHA-256); mode 0600 or stricter; keep it at /var/lib/mavvo/signing.key (the unit's 0700 state directory); empty: unsigned")
 
 
 class LinkListener(Protocol):
@@ -350,6 +352,7 @@ class Link:
             return False
         if self.signing_key is not None:
             conn.setup_signing(self.signing_key, sign_outgoing=True, link_id=0)
+            signing.install(conn.mav, self.counters)  # the signature is checked before its timestamp counts
         self._conn = conn
         self.counters["connects"] += 1
         now = self.clock.now_s()
