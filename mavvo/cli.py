@@ -30,6 +30,11 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _one_line(e: BaseException) -> str:
+    """An error's text on one line (a key or value quoted from a file may hold line breaks)."""
+    return str(e).replace("\r", "\\r").replace("\n", "\\n")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     level = logging.DEBUG if args.verbose else getattr(logging, args.log_level.upper())
@@ -37,10 +42,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return args.handler(args)
     except ConfigError as e:
-        print(f"mavvo: {e}", file=sys.stderr)
+        print(f"mavvo: {_one_line(e)}", file=sys.stderr)
         return 2
     except MavvoError as e:
-        print(f"mavvo: {e}", file=sys.stderr)
+        print(f"mavvo: {_one_line(e)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:  # Ctrl-C before the service installed its handler
         return 0

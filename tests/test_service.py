@@ -321,7 +321,7 @@ def test_latency_advice_follows_the_cameras_latency():
     def advice(readout_ms: float):
         sc = load_scenario("hover")
         sc = dataclasses.replace(sc, camera=dataclasses.replace(sc.camera, readout_latency_ms=readout_ms))
-        return run_daemon_in_sim(sc, duration_s=5.0, wall_clock=StoppedWallClock()).daemon.latency
+        return run_daemon_in_sim(sc, duration_s=6.0, wall_clock=StoppedWallClock()).daemon.latency
 
     fast, slow = advice(20.0), advice(60.0)
     assert fast is not None and slow is not None and fast.samples > 20

@@ -34,10 +34,10 @@ class CameraIntrinsics:
     height_px: int = bounded(480, "image height", gt=0, le=16384)
     fx_px: float = bounded(500.0, "focal length, x", gt=0, le=1e5)
     fy_px: float = bounded(500.0, "focal length, y", gt=0, le=1e5)
-    cx_px: float = bounded(319.5, "principal point, x (inside the image)")
-    cy_px: float = bounded(239.5, "principal point, y (inside the image)")
+    cx_px: float = bounded(319.5, "principal point, x (inside the image)", ge=0, le=16384)
+    cy_px: float = bounded(239.5, "principal point, y (inside the image)", ge=0, le=16384)
     model: ModelName = bounded("pinhole", "pinhole (OpenCV radtan distortion) or fisheye (equidistant)")
-    distortion: tuple[float, ...] = bounded((), "pinhole: k1 k2 p1 p2 [k3]; fisheye: k1 k2 k3 k4; empty for none")
+    distortion: tuple[float, ...] = bounded((), "pinhole: k1 k2 p1 p2 [k3]; fisheye: k1 k2 k3 k4; empty for none", ge=-100, le=100)
 
     def __post_init__(self) -> None:
         for name in ("width_px", "height_px"):

@@ -69,12 +69,12 @@ def wrap_angle(a: float) -> float:
 class FilterOptions:
     """Settings of :class:`PoseFilter`."""
 
-    accel_sigma_m_s2: float = bounded(3.0, "process noise: white acceleration, 1 sigma", gt=0)
-    yaw_accel_sigma_rad_s2: float = bounded(2.0, "process noise: white yaw acceleration, 1 sigma", gt=0)
-    initial_velocity_sigma_m_s: float = bounded(1.0, "velocity uncertainty at a (re)start", gt=0)
+    accel_sigma_m_s2: float = bounded(3.0, "process noise: white acceleration, 1 sigma", gt=0, le=100)
+    yaw_accel_sigma_rad_s2: float = bounded(2.0, "process noise: white yaw acceleration, 1 sigma", gt=0, le=100)
+    initial_velocity_sigma_m_s: float = bounded(1.0, "velocity uncertainty at a (re)start", gt=0, le=100)
     initial_yaw_rate_sigma_rad_s: float = bounded(2.0, "yaw rate uncertainty at a start (a start mid-turn must not be gated away)", gt=0, le=20)
     gate_probability: float = bounded(0.999, "reject a measurement whose squared Mahalanobis distance exceeds the chi2 quantile of this probability (dof: the measurement's size)", gt=0, lt=1)
-    max_rejections: int = bounded(5, "after this many rejections in a row, restart at the measurement", ge=1)
+    max_rejections: int = bounded(5, "after this many rejections in a row, restart at the measurement", ge=1, le=1000)
 
 
 class PoseFilter:

@@ -34,17 +34,17 @@ _MAX_SIDE_PX = 4096
 class FrontendOptions:
     """Settings of :class:`Frontend`; the defaults suit 640x480 at 15-30 frames/s."""
 
-    max_features: int = bounded(250, "tracks kept per frame (the detector tops up to this)", gt=0)
-    grid_cols: int = bounded(8, "detection grid columns (features are spread over the cells)", gt=0)
-    grid_rows: int = bounded(6, "detection grid rows", gt=0)
+    max_features: int = bounded(250, "tracks kept per frame (the detector tops up to this)", gt=0, le=5000)
+    grid_cols: int = bounded(8, "detection grid columns (features are spread over the cells)", gt=0, le=64)
+    grid_rows: int = bounded(6, "detection grid rows", gt=0, le=64)
     fast_threshold: int = bounded(20, "FAST intensity threshold, grey levels (halved once when a frame yields too few)", gt=0, lt=255)
-    min_distance_px: float = bounded(12.0, "no new corner closer than this to a track or another new corner", gt=0)
+    min_distance_px: float = bounded(12.0, "no new corner closer than this to a track or another new corner", gt=0, le=500)
     redetect_fraction: float = bounded(0.8, "detect new corners when fewer than this fraction of max_features survive", gt=0, le=1)
-    klt_window_px: int = bounded(15, "Lucas-Kanade window side", ge=5)
+    klt_window_px: int = bounded(15, "Lucas-Kanade window side", ge=5, le=101)
     klt_levels: int = bounded(3, "pyramid levels above the full image", ge=0, le=6)
-    klt_iterations: int = bounded(20, "Lucas-Kanade iterations per level", gt=0)
-    fb_max_px: float = bounded(0.5, "largest forward-backward round-trip error of a surviving track", gt=0)
-    border_px: int = bounded(8, "tracks this close to the image edge are dropped", ge=0)
+    klt_iterations: int = bounded(20, "Lucas-Kanade iterations per level", gt=0, le=1000)
+    fb_max_px: float = bounded(0.5, "largest forward-backward round-trip error of a surviving track", gt=0, le=50)
+    border_px: int = bounded(8, "tracks this close to the image edge are dropped", ge=0, le=500)
 
 
 @dataclass(frozen=True)

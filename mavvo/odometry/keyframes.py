@@ -33,10 +33,10 @@ __all__ = ["KeyframeOptions", "Keyframe", "KeyframePose", "KeyframeChain", "keyf
 class KeyframeOptions:
     """When a frame becomes the new keyframe (see the module docstring)."""
 
-    parallax_px: float = bounded(40.0, "median rotation-compensated parallax against the keyframe", gt=0)
+    parallax_px: float = bounded(40.0, "median rotation-compensated parallax against the keyframe", gt=0, le=2000)
     min_survival: float = bounded(0.5, "fraction of the keyframe's tracks still alive", gt=0, lt=1)
-    min_inliers: int = bounded(60, "inliers of the relative pose", ge=0)
-    history: int = bounded(1000, "keyframe poses kept for inspection", ge=1)
+    min_inliers: int = bounded(60, "inliers of the relative pose", ge=0, le=5000)
+    history: int = bounded(1000, "keyframe poses kept for inspection", ge=1, le=100000)
 
 
 @dataclass(frozen=True)

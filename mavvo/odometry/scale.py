@@ -46,12 +46,12 @@ class ScaleOptions:
     """Where metric scale comes from (see the module docstring)."""
 
     source: ConfiguredScale = bounded("rangefinder", "rangefinder, altitude, fixed or carried (see docs/odometry.md)")
-    fixed_height_m: float = bounded(10.0, "source fixed: height of the camera above flat ground", gt=0)
-    initial_depth_m: float = bounded(10.0, "last resort: assumed median depth of the scene at the first keyframe", gt=0)
-    min_points: int = bounded(12, "fewest triangulated points for a scale", ge=3)
-    min_parallax_deg: float = bounded(0.05, "points with less parallax than this are not triangulated", gt=0)
-    carry_min_parallax_deg: float = bounded(1.0, "carried: only points triangulated with at least this parallax carry or compare depths", gt=0)
-    max_depth_ratio: float = bounded(3.0, "carried: depth ratios further than this factor from their median are outliers", gt=1)
+    fixed_height_m: float = bounded(10.0, "source fixed: height of the camera above flat ground", gt=0, le=10000)
+    initial_depth_m: float = bounded(10.0, "last resort: assumed median depth of the scene at the first keyframe", gt=0, le=10000)
+    min_points: int = bounded(12, "fewest triangulated points for a scale", ge=3, le=5000)
+    min_parallax_deg: float = bounded(0.05, "points with less parallax than this are not triangulated", gt=0, le=90)
+    carry_min_parallax_deg: float = bounded(1.0, "carried: only points triangulated with at least this parallax carry or compare depths", gt=0, le=90)
+    max_depth_ratio: float = bounded(3.0, "carried: depth ratios further than this factor from their median are outliers", gt=1, le=1000)
 
 
 @dataclass(frozen=True)

@@ -50,7 +50,7 @@ class CameraOptions(CameraIntrinsics):
     source: str = bounded("/dev/video0", "/dev/videoN (V4L2), a video file, an image folder with timestamps.txt, or sim:SCENARIO")
     rate_hz: float = bounded(20.0, "frame rate requested from a device", gt=0, le=240)
     timestamps: Literal["auto", "driver", "grab"] = bounded("auto", "exposure time from the driver's timestamp (auto: when plausible) or the grab time minus latency_ms")
-    latency_ms: float = bounded(30.0, "grab time minus this is the exposure time, when the driver gives none", ge=0)
+    latency_ms: float = bounded(30.0, "grab time minus this is the exposure time, when the driver gives none", ge=0, le=1000)
     queue_size: int = bounded(2, "frames waiting for the worker; the oldest is dropped when full", ge=1, le=64)
     reconnect_max_s: float = bounded(5.0, "longest back-off between attempts to reopen a lost camera", gt=0, le=600)
     lost_after_s: float = bounded(30.0, "a camera that fails and cannot be reopened for this long ends the service non-zero, for systemd to restart it", gt=0, le=3600)

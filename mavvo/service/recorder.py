@@ -65,11 +65,11 @@ class RecordOptions:
     dir: str = bounded("", "record each run into a new folder under this directory (empty: no recording)")
     frames: Literal["png", "jpg"] = bounded("png", "png: lossless, replays bit for bit; jpg: about 5x smaller at jpeg_quality")
     jpeg_quality: int = bounded(95, "JPEG quality of jpg frames", ge=50, le=100)
-    max_total_mb: float = bounded(4096.0, "stop recording when the recording reaches this size", gt=0)
-    min_free_mb: float = bounded(512.0, "stop recording when the disk has less free space than this", ge=0)
-    rotate_mb: float = bounded(256.0, "start a new .tlog and frame index after this many MB", gt=0)
-    queue_frames: int = bounded(16, "frames waiting for the disk; beyond, new frames are dropped and counted", ge=1)
-    queue_messages: int = bounded(8192, "MAVLink messages waiting for the disk; beyond, dropped and counted", ge=1)
+    max_total_mb: float = bounded(4096.0, "stop recording when the recording reaches this size", gt=0, le=1e7)
+    min_free_mb: float = bounded(512.0, "stop recording when the disk has less free space than this", ge=0, le=1e7)
+    rotate_mb: float = bounded(256.0, "start a new .tlog and frame index after this many MB", gt=0, le=1e6)
+    queue_frames: int = bounded(16, "frames waiting for the disk; beyond, new frames are dropped and counted", ge=1, le=4096)
+    queue_messages: int = bounded(8192, "MAVLink messages waiting for the disk; beyond, dropped and counted", ge=1, le=1000000)
 
 
 def _float(v: float | None) -> str:

@@ -44,8 +44,8 @@ def as_matrix3(R: np.ndarray) -> Matrix3:
 class MountingOptions:
     """Where the camera sits on the vehicle."""
 
-    R_body_cam: Matrix3 = bounded(as_matrix3(R_BODY_CAM_NADIR), "rotation taking camera vectors (x right, y down, z forward) into the body frame (FRD), rows; default: nadir, image top forward")
-    lever_arm_m: tuple[float, float, float] = bounded((0.0, 0.0, 0.0), "camera centre in the body frame (FRD), metres: set VISO_POS_X/Y/Z (ArduPilot) or EKF2_EV_POS_X/Y/Z (PX4) to it")
+    R_body_cam: Matrix3 = bounded(as_matrix3(R_BODY_CAM_NADIR), "rotation taking camera vectors (x right, y down, z forward) into the body frame (FRD), rows; default: nadir, image top forward", ge=-1, le=1)
+    lever_arm_m: tuple[float, float, float] = bounded((0.0, 0.0, 0.0), "camera centre in the body frame (FRD), metres: set VISO_POS_X/Y/Z (ArduPilot) or EKF2_EV_POS_X/Y/Z (PX4) to it", ge=-10, le=10)
 
     def __post_init__(self) -> None:
         R = np.asarray(self.R_body_cam, dtype=float)

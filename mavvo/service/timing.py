@@ -65,10 +65,10 @@ class MonotonicClock:
 class TimingOptions:
     """Pairing frames with the flight controller's attitude."""
 
-    max_attitude_gap_s: float = bounded(0.05, "longest gap between the two ATTITUDE samples around an exposure", gt=0)
-    attitude_wait_s: float = bounded(0.1, "how long after an exposure to wait for the ATTITUDE that follows it", gt=0)
-    range_max_age_s: float = bounded(0.2, "a rangefinder reading older than this at the exposure is not used", gt=0)
-    height_max_age_s: float = bounded(0.5, "a height reading older than this at the exposure is not used", gt=0)
+    max_attitude_gap_s: float = bounded(0.05, "longest gap between the two ATTITUDE samples around an exposure", gt=0, le=1)
+    attitude_wait_s: float = bounded(0.1, "how long after an exposure to wait for the ATTITUDE that follows it", gt=0, le=1)
+    range_max_age_s: float = bounded(0.2, "a rangefinder reading older than this at the exposure is not used", gt=0, le=10)
+    height_max_age_s: float = bounded(0.5, "a height reading older than this at the exposure is not used", gt=0, le=10)
     sync_window_s: float = bounded(30.0, "window of the clock-offset filters (tracks clock drift)", gt=0, le=3600)
     clock_step_max_s: float = bounded(0.005, "an ATTITUDE stamped this much ahead of every earlier one is used only if the next one agrees (a single forged or broken stamp is refused)", gt=0, le=1)
     sync_warmup_samples: int = bounded(50, "ATTITUDE arrivals that set the clock bound before the step check starts", ge=1, le=10000)

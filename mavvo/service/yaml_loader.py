@@ -30,6 +30,17 @@ T = TypeVar("T")
 MAX_CONFIG_BYTES = 10 * 1024 * 1024  # a settings file is a few kB; anything near this is not one
 
 
+def _one_line(e: yaml.YAMLError) -> str:
+    """A YAML error as one line: what is wrong and where (PyYAML's own text spans several lines)."""
+    problem = getattr(e, "problem", None)
+    mark = getattr(e, "problem_mark", None)
+    if problem is None:
+        return " ".join(str(e).split())
+    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    context = getattr(e, "context", None)
+    return f"{problem}{where}" + (f" ({context})" if context else "")
+
+
 class _StrictLoader(yaml.SafeLoader):
     """PyYAML's safe loader without aliases (a few hundred bytes of nested aliases expand to
     gigabytes) and without duplicate keys (a second ``link:`` would silently replace the first)."""
@@ -68,7 +79,7 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
     try:
         data = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
     except yaml.YAMLError as e:
-        raise ConfigError(f"{p}: not valid YAML: {e}") from e
+        raise ConfigError(f"{p}: not valid YAML: {_one_line(e)}") from e
     if data is None:
         return {}
     if not isinstance(data, dict):
