@@ -6,7 +6,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup sim test soak bench clean
+.PHONY: setup sim test soak faults bench clean
 
 setup: $(STAMP)
 
@@ -26,6 +26,11 @@ test: $(STAMP)
 
 soak: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
+
+# Hostile and broken input against the real service on 127.0.0.1 (about 5 minutes): prints the table
+# and writes it into docs/reliability.md. The quick cases also run in `make test`.
+faults: $(STAMP)
+	$(BIN)/python -m sim.faults.suite --markdown docs/reliability.md
 
 # Benchmarks run single-threaded (the last line adds OpenCV on all cores); PoseLib is installed for the
 # comparison when the platform has it.

@@ -4,5 +4,6 @@ Folders, lowest first (each may import the ones before it, and any of ``mavvo`` 
 ``evaluation/`` (trajectory metrics and report files), ``world/`` (scene, renderer, trajectories,
 clock, faults, the simulated camera), ``flight_controller/`` (the simulated autopilot and its
 sensors), ``scenarios/`` (the YAML scenarios and a whole simulated flight), ``replay/`` (recordings,
-flight-controller logs and data sets fed to the daemon). ``mavvo`` imports ``sim`` only from its
+flight-controller logs and data sets fed to the daemon), ``faults/`` (the fault suite and the
+settings-file fuzzer; above even ``mavvo``'s command line, which it drives). ``mavvo`` imports ``sim`` only from its
 command modules, and only when the command runs."""

@@ -1,4 +1,4 @@
-"""Configuration fuzzing: mutated settings files through ``mavvo check-config``.
+"""Configuration fuzzing: mutated settings files (sim/faults/config_fuzz.py) through ``mavvo check-config``.
 
 Every file is either accepted or refused with exit 2 and one line that names the file (and, for a bad
 value, the key); never a traceback, a crash or a runaway allocation. Accepted files hold only values
@@ -7,75 +7,23 @@ within every key's bounds. The fast run (``make test``) tries 150 files; ``make 
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 import typing
 from pathlib import Path
 
 import pytest
-import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mavvo.cli import main
 from mavvo.service.settings import ServiceConfig, load_config
-
-ROOT = Path(__file__).resolve().parents[1]
-DEFAULT = yaml.safe_load((ROOT / "config" / "default.yaml").read_text())
-
-
-def _leaves(d: dict, prefix: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
-    out = []
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out.extend(_leaves(v, prefix + (k,)))
-        else:
-            out.append(prefix + (k,))
-    return out
-
-
-LEAVES = _leaves(DEFAULT)
-SECTIONS = sorted(k for k, v in DEFAULT.items() if isinstance(v, dict))
-
-values = st.one_of(
-    st.sampled_from([1e30, -1e30, float("nan"), float("inf"), 0, -1, 2**63, 1e-300, True, None, "", "x" * 5000, [], {}, [1, 2], {"a": 1}]),
-    st.integers(min_value=-(10**12), max_value=10**12),
-    st.floats(allow_nan=True, allow_infinity=True),
-    st.text(max_size=40),
-)
-
+from sim.faults.config_fuzz import KINDS, mutated_config
 
 @st.composite
 def mutated_files(draw) -> bytes:
-    """One settings file: the default with a mutation of one of several kinds."""
-    kind = draw(st.sampled_from(["value", "value", "value", "delete", "unknown_key", "duplicate_section", "alias", "bytes", "truncate", "type_of_section"]))
-    data = copy.deepcopy(DEFAULT)
-    if kind in ("value", "delete"):
-        path = draw(st.sampled_from(LEAVES))
-        node = data
-        for k in path[:-1]:
-            node = node[k]
-        if kind == "delete":
-            del node[path[-1]]
-        else:
-            node[path[-1]] = draw(values)
-    elif kind == "unknown_key":
-        data[draw(st.sampled_from(SECTIONS))][draw(st.text(min_size=1, max_size=12))] = draw(values)
-    elif kind == "type_of_section":
-        data[draw(st.sampled_from(SECTIONS))] = draw(values)
-    text = yaml.safe_dump(data, allow_unicode=True).encode("utf-8")
-    if kind == "duplicate_section":
-        section = draw(st.sampled_from(SECTIONS))
-        text += f"{section}: {{}}\n".encode()
-    elif kind == "alias":
-        text = b'a: &a ["x","x","x","x","x","x","x","x","x"]\nb: &b [*a,*a,*a,*a,*a,*a,*a,*a,*a]\nc: &c [*b,*b,*b,*b,*b,*b,*b,*b,*b]\n' + text
-    elif kind == "bytes":
-        at = draw(st.integers(min_value=0, max_value=len(text)))
-        text = text[:at] + draw(st.binary(min_size=1, max_size=16)) + text[at:]
-    elif kind == "truncate":
-        text = text[: draw(st.integers(min_value=0, max_value=len(text)))]
-    return text
+    """One settings file from the shared generator (sim/faults/config_fuzz.py), its seed drawn."""
+    return mutated_config(draw(st.integers(min_value=0, max_value=2**32 - 1)))[1]
 
 
 def _numbers(obj) -> list[float]:
@@ -134,3 +82,9 @@ def test_every_numeric_key_has_an_upper_bound():
 
     unbounded = [key for key, md in walk(ServiceConfig, "") if "le" not in md and "lt" not in md]
     assert unbounded == []
+
+
+def test_the_generator_makes_every_kind_and_repeats_itself():
+    kinds = {mutated_config(seed)[0] for seed in range(200)}
+    assert kinds == set(KINDS)
+    assert mutated_config(17) == mutated_config(17) and mutated_config(17) != mutated_config(18)

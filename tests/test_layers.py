@@ -3,7 +3,8 @@
 Layers, lowest first (``docs/design.md``): the shared vocabulary (``mavvo.errors``, ``mavvo.options``,
 ``mavvo.types``), ``mavvo.geometry``, ``mavvo.estimation``, ``mavvo.odometry``, ``mavvo.service``, then
 the simulator's ``sim.evaluation``, ``sim.world``, ``sim.flight_controller``, ``sim.scenarios``,
-``sim.replay``, and at the top the command line (``mavvo.cli``, ``mavvo.commands``). The commands
+``sim.replay``, the command line (``mavvo.cli``, ``mavvo.commands``), and at the top the fault suite
+(``sim.faults``), which drives the command line as an operator would. The commands
 may import ``sim``, but only inside the function of a command that needs it, so that ``mavvo run``
 never loads the simulator.
 """
@@ -30,6 +31,7 @@ LAYERS = (
     ("sim.scenarios",),
     ("sim.replay",),
     ("mavvo.cli", "mavvo.commands", "mavvo.__main__"),
+    ("sim.faults",),  # above the command line: it checks settings files through it, as an operator would
 )
 # Outside libraries with exactly one importer.
 SOLE_IMPORTER = {"pymavlink": "mavvo.service.mavlink", "filterpy": "mavvo.odometry.filter"}

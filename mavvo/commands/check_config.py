@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from mavvo.errors import ConfigError
 from mavvo.service.link import read_signing_key
 from mavvo.service.settings import load_config
 
@@ -21,6 +22,9 @@ def add_parser(sub: Any) -> None:
 def main(args: argparse.Namespace) -> int:
     cfg = load_config(args.file)
     if cfg.link.signing_key_file:  # exactly the check mavvo run makes when it opens the link
-        read_signing_key(cfg.link.signing_key_file)
+        try:
+            read_signing_key(cfg.link.signing_key_file)
+        except ConfigError as e:
+            raise ConfigError(f"{args.file}: {e}") from e
     print(f"{args.file}: ok (link {cfg.link.url}, camera {cfg.camera.source} {cfg.camera.width_px}x{cfg.camera.height_px}, scale from {cfg.odometry.scale.source})")
     return 0

@@ -293,6 +293,14 @@ class Link:
             except BlockingIOError:
                 pass  # the pipe is full: the link thread is already awake
 
+    def local_address(self) -> tuple[str, int] | None:
+        """The local (host, port) of a UDP or TCP connection; None for serial or while disconnected."""
+        port = getattr(self._conn, "port", None)
+        if not isinstance(port, socket.socket):
+            return None
+        host, number = port.getsockname()[:2]
+        return host, number
+
     # ------------------------------------------------------------------ the link thread
 
     def run(self, stop: threading.Event) -> None:

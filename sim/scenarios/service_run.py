@@ -13,11 +13,12 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import socket
 import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -109,20 +110,40 @@ def run_daemon_in_sim(
     duration_s: float | None = None,
     out_dir: str | Path | None = None,
     wall_clock: Clock | None = None,
+    service_listens: bool = False,
+    during: Callable[[Daemon, tuple[str, int]], None] | None = None,
 ) -> SimRun:
     """Fly ``scenario`` with the daemon (see the module docstring) until the scenario ends or the
     daemon is stopped (SIGTERM or SIGINT when called from the main thread); evaluate, and with
     ``out_dir`` write the report (estimate.tum, truth.tum, summary.json, evaluation.png). With
     ``record.dir`` set in ``base`` the flight is recorded, and the truth (100 Hz) is written beside it as
-    ``ground_truth.tum`` for ``mavvo replay``."""
-    sim = Simulation(scenario, "udpin:127.0.0.1:0", realtime=realtime, duration_s=duration_s)
-    host, port = sim.fc.address
-    config = config_for(scenario, base or ServiceConfig(), f"udpout:{host}:{port}")
+    ``ground_truth.tum`` for ``mavvo replay``.
+
+    ``service_listens``: the daemon listens (``udpin``) and the flight controller sends to it, as on a
+    drone whose autopilot or router pushes to the companion computer; default: the flight controller
+    listens. ``during(daemon, (host, port))`` runs on its own thread while the daemon runs (the fault
+    suite's attacker), given the UDP address the daemon reads from."""
+    if service_listens:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+            probe.bind(("127.0.0.1", 0))
+            service_address = probe.getsockname()[:2]
+        sim = Simulation(scenario, f"udpout:127.0.0.1:{service_address[1]}", realtime=realtime, duration_s=duration_s)
+        url = f"udpin:127.0.0.1:{service_address[1]}"
+    else:
+        sim = Simulation(scenario, "udpin:127.0.0.1:0", realtime=realtime, duration_s=duration_s)
+        host, port = sim.fc.address
+        url = f"udpout:{host}:{port}"
+    config = config_for(scenario, base or ServiceConfig(), url)
     stop_fc = threading.Event()
     fc_thread = None
     wall0 = time.perf_counter()
     try:
         daemon = Daemon(config, clock=sim.clock, source=sim.camera, wall_clock=wall_clock)
+        if during is not None:
+            def attack(d: Daemon = daemon) -> None:  # the udpout socket exists once the link has connected
+                during(d, service_address if service_listens else daemon_address(d))
+
+            threading.Thread(target=attack, name="sim-during", daemon=True).start()
         if realtime:
             fc_thread = threading.Thread(target=sim.serve, args=(stop_fc,), kwargs={"until_s": float("inf")}, name="sim-fc", daemon=True)
             fc_thread.start()
@@ -162,6 +183,12 @@ def run_daemon_in_sim(
         [(r.t_s, r.msg.text) for r in sim.fc.received if r.type == "STATUSTEXT"],
         [(r.t_s, r.msg.system_status) for r in sim.fc.received if r.type == "HEARTBEAT"], safety, recording,
     )
+
+
+def daemon_address(daemon: Daemon, timeout_s: float = 30.0) -> tuple[str, int]:
+    """The local UDP address of a ``udpout`` daemon's socket, once its link has connected."""
+    daemon.link.connected.wait(timeout_s)
+    return daemon.link.local_address() or ("127.0.0.1", 0)
 
 
 def _vision_sample(msg: Any) -> VisionSample:
