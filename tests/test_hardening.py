@@ -1,6 +1,7 @@
 """Hostile and broken input against the service's parts, over real sockets on 127.0.0.1 and real files:
-a flood, an impostor autopilot, a port already taken, stale estimates, a camera or folder that vanishes,
-oversized images, a full disk, SIGHUP, and threads that stop making progress."""
+a flood, a configured flight controller, a connected udpout socket, stale estimates, oversized images,
+a camera that keeps failing, a second stop signal, and threads that stop or die. The whole service
+against each input is the fault suite (sim/faults/suite.py, tests/test_fault_suite.py)."""
 
 from __future__ import annotations
 
@@ -8,9 +9,6 @@ import dataclasses
 import resource
 import signal
 import socket
-import stat
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -135,35 +133,6 @@ def test_a_flood_of_garbage_datagrams_does_not_silence_the_heartbeat():
         assert lt.thread.is_alive()
     finally:
         flood.close()
-        lt.close()
-
-
-def test_an_impostor_heartbeat_first_does_not_capture_the_link():
-    """One HEARTBEAT from another system id before the real flight controller's: the link follows the
-    one whose HEARTBEAT and ATTITUDE keep coming, and pins its address."""
-    port = free_port()
-    lt = LinkThread(url=f"udpin:127.0.0.1:{port}")
-    impostor = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    mav = mavutil().mavlink.MAVLink(None, srcSystem=42, srcComponent=1)
-    fc = None
-    try:
-        assert wait_for(lambda: lt.link.connected.is_set())
-        impostor.sendto(_heartbeat(mav, 42), ("127.0.0.1", port))
-        assert wait_for(lambda: lt.link.counters["rx"] >= 1)
-        fc = FcThread(f"udpout:127.0.0.1:{port}")
-        assert wait_for(lambda: lt.link.fc_system_id == 1 and len(lt.listener.attitude) > 50)
-        assert lt.link.fc_component_id == 1
-        # From now on only the flight controller's address is read: the impostor's datagrams go nowhere.
-        assert lt.link._conn.port.getpeername()[1] == fc.fc.address[1]
-        rx = lt.link.counters["other_autopilots"]
-        impostor.sendto(_heartbeat(mav, 42), ("127.0.0.1", port))
-        n = len(lt.listener.attitude)
-        assert wait_for(lambda: len(lt.listener.attitude) > n + 50)  # genuine traffic goes on
-        assert lt.link.fc_system_id == 1 and lt.link.counters["other_autopilots"] == rx
-    finally:
-        impostor.close()
-        if fc is not None:
-            fc.close()
         lt.close()
 
 
@@ -299,81 +268,7 @@ def test_stuck_threads_are_named_and_a_thread_that_waits_on_purpose_is_not():
 
 
 
-# ---------------------------------------------------------------------------------------------- mavvo run
-
-
-def _image_folder(folder: Path, n: int, period_s: float = 1.0) -> None:
-    folder.mkdir()
-    rng = np.random.default_rng(0)
-    lines = []
-    for i in range(n):
-        cv2.imwrite(str(folder / f"{i:04d}.png"), rng.integers(0, 255, (48, 64), dtype=np.uint8))
-        lines.append(f"{i * period_s:.3f} {i:04d}.png")
-    (folder / "timestamps.txt").write_text("\n".join(lines) + "\n")
-
-
-class MavvoRun:
-    """``mavvo run`` in a subprocess with its stderr collected line by line."""
-
-    def __init__(self, cfg: Path, *extra: str, preexec=None) -> None:
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "mavvo", "run", "--config", str(cfg), *extra],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=preexec,
-        )
-        self.lines: list[str] = []
-        self.reader = threading.Thread(target=lambda: self.lines.extend(iter(self.proc.stderr.readline, "")), daemon=True)
-        self.reader.start()
-
-    def wait_line(self, text: str, timeout_s: float = 60.0) -> bool:
-        return wait_for(lambda: any(text in line for line in self.lines) or self.proc.poll() is not None, timeout_s) and any(text in line for line in self.lines)
-
-    def finish(self, timeout_s: float = 60.0) -> int:
-        try:
-            self.proc.wait(timeout=timeout_s)
-        finally:
-            if self.proc.poll() is None:
-                self.proc.kill()
-        self.reader.join(10)
-        return self.proc.returncode
-
-    @property
-    def err(self) -> str:
-        return "".join(self.lines)
-
-
-def test_sighup_reopens_the_recording_a_full_disk_stops_it_and_sigterm_still_exits_0(tmp_path):
-    """A file-size limit stands in for a full disk (writes fail with EFBIG, as with ENOSPC). Recording
-    stops with a log line while the service goes on; SIGHUP before that starts a new segment; SIGTERM
-    exits 0; everything written is readable and private (0600 files in a 0700 folder)."""
-    folder = tmp_path / "frames"
-    _image_folder(folder, 600, period_s=0.05)
-    rec = tmp_path / "rec"
-    cfg = tmp_path / "mavvo.yaml"
-    cfg.write_text(
-        f"camera: {{source: '{folder}'}}\nlink: {{url: 'udpout:127.0.0.1:9'}}\n"
-        f"service: {{health_log_interval_s: 0.5, state_file: ''}}\nrecord: {{dir: '{rec}', min_free_mb: 0}}\n"
-    )
-
-    def limit_file_size():
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))
-
-    run = MavvoRun(cfg, preexec=limit_file_size)
-    assert run.wait_line("recording into"), run.err
-    assert run.wait_line("skipped_attitude_missing 2"), run.err
-    run.proc.send_signal(signal.SIGHUP)
-    assert run.wait_line("files reopened (segment 1)"), run.err
-    assert run.wait_line("recording stopped: a write failed"), run.err
-    assert run.wait_line("skipped_attitude_missing 30"), run.err  # the service went on
-    run.proc.send_signal(signal.SIGTERM)
-    assert run.finish() == 0, run.err
-    (folder_rec,) = rec.iterdir()
-    assert stat.S_IMODE(folder_rec.stat().st_mode) == 0o700
-    files = [p for p in folder_rec.rglob("*") if p.is_file()]
-    assert {"mavlink-000.tlog", "mavlink-001.tlog", "frames-000.csv", "frames-001.csv", "meta.json", "config.yaml"} <= {p.name for p in files}
-    assert all(stat.S_IMODE(p.stat().st_mode) == 0o600 for p in files)
-    pngs = sorted((folder_rec / "frames").glob("*.png"))
-    assert pngs and all(cv2.imread(str(p), cv2.IMREAD_UNCHANGED) is not None for p in pngs[:-1])  # the last may be cut short
+# ---------------------------------------------------------------------------------------------- stopping
 
 
 def test_a_second_stop_signal_skips_the_drain():

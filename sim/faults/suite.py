@@ -141,16 +141,16 @@ class _Lines:
         """Wait for the end (killing it after ``timeout_s``): (exit code, stdout, stderr); the peak
         resident memory of this process alone goes to ``peak_rss_mb``."""
         deadline = time.monotonic() + timeout_s
-        while True:
+        while self.proc.returncode is None:  # (send_signal may have reaped it already: then no resource use)
             pid, status, usage = os.wait4(self.proc.pid, os.WNOHANG)
             if pid:
+                self.proc.returncode = os.waitstatus_to_exitcode(status)
+                self.peak_rss_mb = usage.ru_maxrss / 1024
                 break
             if time.monotonic() > deadline:
                 self.proc.kill()
                 deadline = float("inf")
             time.sleep(0.05)
-        self.proc.returncode = os.waitstatus_to_exitcode(status)
-        self.peak_rss_mb = usage.ru_maxrss / 1024
         out = self.proc.stdout.read() if self.proc.stdout is not None else ""
         self._t.join(10)
         return self.proc.returncode, out, "".join(self.lines)
@@ -367,33 +367,60 @@ def signing_forgery_and_replay(tmp: Path) -> FaultRow:
 
 
 def full_disk_and_sighup(tmp: Path) -> FaultRow:
-    """A disk that fills during the flight (a file-size limit: writes fail with EFBIG, as with ENOSPC),
-    SIGHUP before it, SIGTERM at the end (before: the recorder died silently, SIGTERM exited 1 and the
-    recording had no readable frame; SIGHUP killed the process)."""
+    """A disk that fills during the flight (a file-size limit on ``mavvo run``: its writes fail with
+    EFBIG, as with ENOSPC), SIGHUP before it, SIGTERM at the end (before: the recorder died silently,
+    SIGTERM exited 1 and the recording had no readable frame; SIGHUP killed the process). The flight
+    controller is ``mavvo sim --fc-only`` in its own process, the camera the simulator's ``sim:hover``."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
     rec = tmp / "rec"
-    cfg = _run_config(tmp, "record: {frames: jpg, jpeg_quality: 50, min_free_mb: 0}\n")  # frames well under the limit; the .tlog reaches it
+    sc = load_scenario("hover")
+    cam = sc.camera
+    cfg = _run_config(tmp, (
+        f"camera: {{source: 'sim:hover', rate_hz: {cam.rate_hz}, width_px: {cam.width_px}, height_px: {cam.height_px}, fx_px: {cam.fx_px}, "
+        f"fy_px: {cam.fy_px}, cx_px: {cam.cx_px}, cy_px: {cam.cy_px}}}\n"
+        f"mounting: {{R_body_cam: {[[float(x) for x in r] for r in cam.R_body_cam()]}}}\n"
+        f"link: {{url: 'udpout:127.0.0.1:{port}'}}\nservice: {{state_file: '', health_log_interval_s: 1.0}}\n"
+        f"record: {{dir: '{rec}', frames: jpg, jpeg_quality: 50, min_free_mb: 0}}\n"  # frames well under the limit; the .tlog reaches it
+    ))
 
     def limit() -> None:
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, (100_000, 100_000))
 
-    proc = _mavvo("sim", "--scenario", "hover", "--duration", "30", "--realtime", "--json", "--config", str(cfg), "--out", str(tmp / "out"),
-                  "--record", str(rec), preexec=limit)
-    lines = _Lines(proc)
-    hup = lines.wait_for("-> tracking", 120)
-    if hup:
-        proc.send_signal(signal.SIGHUP)
-    stopped = lines.wait_for("recording stopped", 120)
-    proc.send_signal(signal.SIGTERM)
-    code, out, err = lines.finish(120)
+    fc = _Lines(_mavvo("sim", "--fc-only", "--scenario", "hover", "--mavlink", f"udpin:127.0.0.1:{port}"))
+    try:
+        fc.wait_for("simulated flight controller on", 60)
+        lines = _Lines(_mavvo("run", "--config", str(cfg), preexec=limit))
+        hup = lines.wait_for("-> tracking", 120)
+        if hup:
+            lines.proc.send_signal(signal.SIGHUP)
+        stopped = lines.wait_for("recording stopped", 120)
+        lines.wait_for("health:", 30)
+        sent_at_stop = _estimates_sent(lines.lines)
+        time.sleep(3.0)  # vision goes on after the recording stopped
+        lines.proc.send_signal(signal.SIGTERM)
+        code, _, err = lines.finish(120)
+    finally:
+        fc.proc.send_signal(signal.SIGTERM)
+        fc.finish(60)
+    sent = _estimates_sent(err.splitlines())
     folders = list(rec.iterdir()) if rec.is_dir() else []
-    readable = 0
-    if folders:
-        readable = sum(1 for p in (folders[0] / "frames").glob("*.jpg") if cv2.imread(str(p), cv2.IMREAD_UNCHANGED) is not None)
-    s = json.loads(out) if code == 0 and out.strip() else {}
-    ok = code == 0 and hup and stopped and "files reopened (segment 1)" in err and readable > 0 and s.get("estimates_received", 0) > 20
+    readable = sum(1 for p in (folders[0] / "frames").glob("*.jpg") if cv2.imread(str(p), cv2.IMREAD_UNCHANGED) is not None) if folders else 0
+    ok = code == 0 and hup and stopped and "files reopened (segment 1)" in err and readable > 0 and sent > sent_at_stop > 0
     return FaultRow("a full disk while recording; SIGHUP; SIGTERM", Outcome.SURVIVED if ok else Outcome.FAILED, float("nan"),
-                    "frames after the disk filled (recording stopped; vision went on)", f"exit {code}; {readable} recorded frames readable; {s.get('estimates_received', 0)} estimates")
+                    "frames after the disk filled (recording stopped; vision went on)",
+                    f"exit {code}; {readable} recorded frames readable; estimates sent {sent_at_stop} when recording stopped, {sent} at the end"
+                    + ("" if ok else f"; last line: {err.strip().splitlines()[-1][:160] if err.strip() else ''}"))
+
+
+def _estimates_sent(lines: Sequence[str]) -> int:
+    """``estimates_sent`` of the last health line in a ``mavvo run`` log."""
+    for line in reversed(lines):
+        if m := re.search(r"estimates_sent (\d+)", line):
+            return int(m.group(1))
+    return 0
 
 
 def huge_images(tmp: Path) -> FaultRow:
@@ -447,7 +474,7 @@ def port_in_use(tmp: Path) -> FaultRow:
         first.finish(60)
     ok = code == 1 and "cannot listen on 127.0.0.1" in err
     return FaultRow("a second process on the same UDP port", Outcome.REFUSED if ok else Outcome.FAILED, float("nan"), "nothing",
-                    err.strip().splitlines()[-1][:120] if err.strip() else f"exit {code}")
+                    err.strip().splitlines()[-1][:200] if err.strip() else f"exit {code}")
 
 
 def send_after_stop(tmp: Path) -> FaultRow:
@@ -511,7 +538,7 @@ CASES: dict[str, Callable[[Path], FaultRow]] = {
     "send_after_stop": send_after_stop,
     "config_fuzz": config_fuzz,
 }
-FAST_CASES = ("impostor_heartbeat", "foreign_sender", "signing", "folder_vanishes", "port_in_use", "send_after_stop")
+FAST_CASES = ("impostor_heartbeat", "foreign_sender", "signing", "full_disk", "folder_vanishes", "port_in_use", "send_after_stop")
 
 
 def run_cases(names: Sequence[str], progress: Callable[[str], None] | None = None) -> list[FaultRow]:
