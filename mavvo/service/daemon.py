@@ -178,7 +178,7 @@ class Daemon:
         self._odometry_ok = False  # the last ODOMETRY sent had a quality >= 1
         self.latency = LatencyTracker(self.link.baud)
         self._unpaired_history: deque[tuple[float, int, dict[str, int]]] = deque()  # (t, paired, unpaired causes)
-        self._unpaired_told = False
+        self._unpaired_told: str | None = None  # the cause told, until frames pair again
         self._arrival_s: dict[int, float] = {}  # frame seq -> host time the camera thread got it
         self._frame_in: tuple[float, float] = (0.0, 0.0)  # (host clock when it arrived, real time the worker took it)
 
@@ -594,7 +594,7 @@ class Daemon:
 
     def _tell_why_unpaired(self, now: float, counters: dict[str, int]) -> None:
         """When no frame has paired for ``_UNPAIRED_TELL_S`` and one cause alone grew meanwhile, say
-        which and the key to change (STATUSTEXT and log), once until frames pair again."""
+        which and the key to change (STATUSTEXT and log), once per cause until frames pair again."""
         snap = (now, counters.get("paired", 0), {k: counters.get(k, 0) for k in _UNPAIRED_CAUSES})
         history = self._unpaired_history
         history.append(snap)
@@ -602,13 +602,12 @@ class Daemon:
             history.popleft()
         t0, paired0, causes0 = history[0]
         if snap[1] != paired0:
-            self._unpaired_told = False
+            self._unpaired_told = None
             return
         grown = [k for k, v in snap[2].items() if v > causes0[k]]
-        if self._unpaired_told or now - t0 < _UNPAIRED_TELL_S or len(grown) != 1:
+        if now - t0 < _UNPAIRED_TELL_S or len(grown) != 1 or grown[0] == self._unpaired_told:
             return
-        self._unpaired_told = True
-        cause = grown[0]
+        cause = self._unpaired_told = grown[0]
         text = short = _UNPAIRED_CAUSES[cause]
         if cause == "skipped_attitude_stale":
             rate = self.fc.attitude_rate_hz()

@@ -515,6 +515,7 @@ class Link:
             c = self._candidates.get((src_sys, src_comp))
             if kind == "ATTITUDE" and c is not None:
                 c.attitudes += 1
+                self._confirm_if_consistent(src_sys, src_comp, c, now)
             return
         boot_ms = getattr(msg, "time_boot_ms", None)
         if boot_ms is not None:
@@ -569,13 +570,22 @@ class Link:
             c = self._candidates[key] = _Candidate(now, autopilot)
         else:
             c.heartbeats += 1
-        consistent = c.heartbeats >= 2 and c.attitudes >= 3 and now - c.first_heartbeat_s >= self.options.fc_confirm_s
-        if self.options.fc_system_id or consistent:
-            self.fc_system_id, self.fc_component_id, self.autopilot = sys_id, comp_id, autopilot
-            self._conn.mav.srcSystem = sys_id
-            self._candidates.clear()
-            self._pin_udp()
-            log.info("flight controller: system %d component %d (autopilot type %d)", sys_id, comp_id, autopilot)
+        if self.options.fc_system_id:
+            self._choose(sys_id, comp_id, autopilot)
+        else:
+            self._confirm_if_consistent(sys_id, comp_id, c, now)
+
+    def _confirm_if_consistent(self, sys_id: int, comp_id: int, c: _Candidate, now: float) -> None:
+        """Chosen once its HEARTBEAT (twice) and ATTITUDE have come for ``fc_confirm_s``."""
+        if c.heartbeats >= 2 and c.attitudes >= 3 and now - c.first_heartbeat_s >= self.options.fc_confirm_s:
+            self._choose(sys_id, comp_id, c.autopilot)
+
+    def _choose(self, sys_id: int, comp_id: int, autopilot: int) -> None:
+        self.fc_system_id, self.fc_component_id, self.autopilot = sys_id, comp_id, autopilot
+        self._conn.mav.srcSystem = sys_id
+        self._candidates.clear()
+        self._pin_udp()
+        log.info("flight controller: system %d component %d (autopilot type %d)", sys_id, comp_id, autopilot)
 
     def _rebooted(self, now: float) -> None:
         log.warning("flight controller rebooted (time_boot_ms went back); re-requesting streams")

@@ -273,7 +273,7 @@ def impostor_heartbeat(tmp: Path) -> FaultRow:
             time.sleep(0.05)
         chosen["system"] = daemon.link.fc_system_id
 
-    run = run_daemon_in_sim(_hover(12.0), realtime=True, service_listens=True, during=impostor)
+    run = run_daemon_in_sim(_hover(8.0), realtime=True, service_listens=True, during=impostor)
     gap = _gaps(run)
     c = run.daemon.counters
     ok = _flow_outcome(run, gap) is Outcome.SURVIVED and chosen.get("system") == 1
@@ -387,7 +387,7 @@ def full_disk_and_sighup(tmp: Path) -> FaultRow:
 
     def limit() -> None:
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        resource.setrlimit(resource.RLIMIT_FSIZE, (100_000, 100_000))
+        resource.setrlimit(resource.RLIMIT_FSIZE, (60_000, 60_000))
 
     fc = _Lines(_mavvo("sim", "--fc-only", "--scenario", "hover", "--mavlink", f"udpin:127.0.0.1:{port}"))
     try:
@@ -399,7 +399,7 @@ def full_disk_and_sighup(tmp: Path) -> FaultRow:
         stopped = lines.wait_for("recording stopped", 120)
         lines.wait_for("health:", 30)
         sent_at_stop = _estimates_sent(lines.lines)
-        time.sleep(3.0)  # vision goes on after the recording stopped
+        time.sleep(2.0)  # vision goes on after the recording stopped
         lines.proc.send_signal(signal.SIGTERM)
         code, _, err = lines.finish(120)
     finally:
