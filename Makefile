@@ -10,6 +10,20 @@ STAMP  := $(VENV)/.installed
 
 setup: $(STAMP)
 
+# A venv copied from another place (a checkout copied to /opt/mavvo with its .venv) keeps the old
+# paths in its scripts and fails later with "required file not found": it is made anew here.
+HASH := \#
+ifneq ($(wildcard $(BIN)/pip),)
+ifneq ($(shell head -1 $(BIN)/pip),$(HASH)!$(abspath $(BIN))/python)
+$(STAMP): moved-venv
+endif
+endif
+
+.PHONY: moved-venv
+moved-venv:
+	@echo "$(VENV) was made in another place ($$(head -1 $(BIN)/pip | cut -c3-)): making it anew here"
+	rm -rf $(VENV)
+
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
