@@ -25,6 +25,7 @@ LAYERS = (
     ("mavvo.estimation",),
     ("mavvo.odometry",),
     ("mavvo.service",),
+    ("mavvo.calibration",),
     ("sim.evaluation", "sim"),
     ("sim.world",),
     ("sim.flight_controller",),
