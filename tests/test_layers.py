@@ -1,7 +1,8 @@
 """The layers of mavvo and sim: every import points down, and each outside library has one importer.
 
 Layers, lowest first (``docs/design.md``): the shared vocabulary (``mavvo.errors``, ``mavvo.options``,
-``mavvo.types``), ``mavvo.geometry``, ``mavvo.estimation``, ``mavvo.odometry``, ``mavvo.service``, then
+``mavvo.types``), ``mavvo.geometry``, ``mavvo.estimation``, ``mavvo.odometry``, ``mavvo.service``,
+``mavvo.calibration``, then
 the simulator's ``sim.evaluation``, ``sim.world``, ``sim.flight_controller``, ``sim.scenarios``,
 ``sim.replay``, the command line (``mavvo.cli``, ``mavvo.commands``), and at the top the fault suite
 (``sim.faults``), which drives the command line as an operator would. The commands

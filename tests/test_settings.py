@@ -104,7 +104,7 @@ def test_run_exit_codes(tmp_path, capsys):
 def test_version_and_help_exit_zero():
     out = subprocess.run([sys.executable, "-m", "mavvo", "--version"], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and out.stdout.startswith("mavvo ")
-    for cmd in (["--help"], ["run", "--help"], ["sim", "--help"], ["check-config", "--help"]):
+    for cmd in (["--help"], ["run", "--help"], ["sim", "--help"], ["check-config", "--help"], ["calibrate", "--help"], ["monitor", "--help"]):
         with pytest.raises(SystemExit) as e:
             main(cmd)
         assert e.value.code == 0

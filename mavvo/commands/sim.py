@@ -45,6 +45,10 @@ def add_parser(sub: Any) -> None:
     s.add_argument("--record", type=Path, default=None, metavar="DIR", help="record the flight (as mavvo run --record does) with its ground truth, for mavvo replay")
     s.add_argument("--fc-only", action="store_true", help="run only the simulated flight controller")
     s.add_argument(
+        "--forward", default=None, metavar="udpout:HOST:PORT",
+        help="the flight controller forwards what the service sends it to this ground-station port (watch it with mavvo monitor)",
+    )
+    s.add_argument(
         "--mavlink", default="udpin:127.0.0.1:14550",
         help="--fc-only: where the flight controller listens: udpin:HOST:PORT or tcpin:HOST:PORT (udpout:/tcp: connect out); default udpin:127.0.0.1:14550",
     )
@@ -75,7 +79,7 @@ def _sim_service(scenario: Any, args: argparse.Namespace) -> int:
 
     base = with_record(load_config(args.config) if args.config is not None else ServiceConfig(), args.record)
     out = args.out if args.out is not None else Path("mavvo-sim-out") / scenario.name
-    run = run_daemon_in_sim(scenario, base, realtime=args.realtime, duration_s=args.duration, out_dir=out)
+    run = run_daemon_in_sim(scenario, base, realtime=args.realtime, duration_s=args.duration, out_dir=out, forward_url=args.forward)
     summary = run.summary()
     summary["report_dir"] = str(out) if run.evaluation is not None else None
     summary["plot"] = str(out / "evaluation.png") if run.evaluation is not None else None
@@ -117,7 +121,7 @@ def _fc_only(scenario: Any, args: argparse.Namespace) -> int:
     from sim.scenarios.flight import Simulation
 
     try:
-        sim = Simulation(scenario, args.mavlink, realtime=True)
+        sim = Simulation(scenario, args.mavlink, realtime=True, forward_url=args.forward)
     except LinkError as e:
         raise ConfigError(f"--mavlink {e}") from e
     stop = threading.Event()

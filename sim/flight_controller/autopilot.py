@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import math
+import socket
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -77,6 +78,7 @@ class SimFlightController:
         spec: FlightControllerSpec = FlightControllerSpec(),
         faults: FaultSchedule | None = None,
         seed: int = 0,
+        forward_url: str | None = None,
     ) -> None:
         self._mavutil = mavutil()
         self._mav = self._mavutil.mavlink
@@ -95,6 +97,15 @@ class SimFlightController:
             raise LinkError(f"{url}: cannot open: {getattr(e, 'strerror', None) or e}") from e
         self.received: list[Received] = []
         self.sent_counts: dict[str, int] = {}
+        # Like an autopilot's forwarding to its ground-station port: what others send it, re-sent there.
+        self._forward_to: tuple[str, int] | None = None
+        self._forward_sock: socket.socket | None = None
+        if forward_url is not None:
+            if not forward_url.startswith("udpout:"):
+                raise LinkError(f"--forward {forward_url}: expected udpout:HOST:PORT")
+            host, _, port = forward_url.removeprefix("udpout:").rpartition(":")
+            self._forward_to = (host, int(port))
+            self._forward_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._boot_host_s = 0.0
         self._boot_offset_s = spec.boot_offset_s
         self._t_s = 0.0
@@ -191,6 +202,11 @@ class SimFlightController:
             kind = msg.get_type()
             if kind == "BAD_DATA" or self._down(self.clock.now_s()):
                 continue
+            if self._forward_sock is not None:
+                try:
+                    self._forward_sock.sendto(bytes(msg.get_msgbuf()), self._forward_to)
+                except OSError:
+                    pass  # nobody listening: forwarding is best effort, as on an autopilot
             if kind in RECORDED_TYPES:
                 self.received.append(Received(self.clock.now_s(), kind, msg, bytes(msg.get_msgbuf())))
                 if kind == "VISION_POSITION_ESTIMATE":
@@ -319,3 +335,5 @@ class SimFlightController:
 
     def close(self) -> None:
         self._conn.close()
+        if self._forward_sock is not None:
+            self._forward_sock.close()

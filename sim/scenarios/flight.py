@@ -28,9 +28,13 @@ _SERVE_TICK_S = 0.002
 
 
 class Simulation:
-    """The flight controller on ``mavlink_url`` and the camera of ``scenario``."""
+    """The flight controller on ``mavlink_url`` and the camera of ``scenario``; with ``forward_url``
+    (``udpout:HOST:PORT``) the flight controller forwards what it receives there, as an autopilot
+    forwards a companion's messages to its ground-station port."""
 
-    def __init__(self, scenario: Scenario, mavlink_url: str, *, realtime: bool = False, duration_s: float | None = None) -> None:
+    def __init__(
+        self, scenario: Scenario, mavlink_url: str, *, realtime: bool = False, duration_s: float | None = None, forward_url: str | None = None,
+    ) -> None:
         self.scenario = scenario
         self.clock = RealClock() if realtime else LockstepClock()
         self.trajectory = make_trajectory(scenario.trajectory)
@@ -38,7 +42,8 @@ class Simulation:
         self.faults = FaultSchedule(scenario.faults)
         seeds = np.random.SeedSequence(scenario.seed).spawn(2)
         self.fc = SimFlightController(
-            mavlink_url, self.trajectory, self.clock, scenario.flight_controller, self.faults, seed=int(seeds[0].generate_state(1)[0])
+            mavlink_url, self.trajectory, self.clock, scenario.flight_controller, self.faults, seed=int(seeds[0].generate_state(1)[0]),
+            forward_url=forward_url,
         )
         self.world = World.build(scenario.world)
         self.camera = SimCamera(

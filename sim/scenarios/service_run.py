@@ -112,6 +112,7 @@ def run_daemon_in_sim(
     wall_clock: Clock | None = None,
     service_listens: bool = False,
     during: Callable[[Daemon, tuple[str, int]], None] | None = None,
+    forward_url: str | None = None,
 ) -> SimRun:
     """Fly ``scenario`` with the daemon (see the module docstring) until the scenario ends or the
     daemon is stopped (SIGTERM or SIGINT when called from the main thread); evaluate, and with
@@ -122,15 +123,16 @@ def run_daemon_in_sim(
     ``service_listens``: the daemon listens (``udpin``) and the flight controller sends to it, as on a
     drone whose autopilot or router pushes to the companion computer; default: the flight controller
     listens. ``during(daemon, (host, port))`` runs on its own thread while the daemon runs (the fault
-    suite's attacker), given the UDP address the daemon reads from."""
+    suite's attacker), given the UDP address the daemon reads from. ``forward_url``: the flight
+    controller forwards what the service sends it there (``mavvo monitor``'s port)."""
     if service_listens:
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
             probe.bind(("127.0.0.1", 0))
             service_address = probe.getsockname()[:2]
-        sim = Simulation(scenario, f"udpout:127.0.0.1:{service_address[1]}", realtime=realtime, duration_s=duration_s)
+        sim = Simulation(scenario, f"udpout:127.0.0.1:{service_address[1]}", realtime=realtime, duration_s=duration_s, forward_url=forward_url)
         url = f"udpin:127.0.0.1:{service_address[1]}"
     else:
-        sim = Simulation(scenario, "udpin:127.0.0.1:0", realtime=realtime, duration_s=duration_s)
+        sim = Simulation(scenario, "udpin:127.0.0.1:0", realtime=realtime, duration_s=duration_s, forward_url=forward_url)
         host, port = sim.fc.address
         url = f"udpout:{host}:{port}"
     config = config_for(scenario, base or ServiceConfig(), url)
