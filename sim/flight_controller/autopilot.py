@@ -40,7 +40,7 @@ from sim.world.clock import Clock
 from sim.world.faults import FaultSchedule
 from sim.flight_controller.sensors import attitude_sample, baro_height_sample, range_sample
 from sim.flight_controller.estimator import SimEstimator
-from sim.flight_controller.spec import FlightControllerSpec
+from sim.flight_controller.spec import VISION_READY_PARAMS, FlightControllerSpec
 from sim.world.trajectories import Trajectory
 
 log = logging.getLogger(__name__)
@@ -97,6 +97,7 @@ class SimFlightController:
             raise LinkError(f"{url}: cannot open: {getattr(e, 'strerror', None) or e}") from e
         self.received: list[Received] = []
         self.sent_counts: dict[str, int] = {}
+        self.params: dict[str, float] = {**VISION_READY_PARAMS[spec.autopilot], **{name: float(v) for name, v in spec.params}}
         # Like an autopilot's forwarding to its ground-station port: what others send it, re-sent there.
         self._forward_to: tuple[str, int] | None = None
         self._forward_sock: socket.socket | None = None
@@ -218,6 +219,29 @@ class SimFlightController:
                 self._send(self._mav.MAVLink_timesync_message(tc1, msg.ts1))
             elif kind == "COMMAND_LONG" and msg.target_system in (0, self.spec.system_id):
                 self._command(msg)
+            elif kind in ("PARAM_REQUEST_READ", "PARAM_REQUEST_LIST", "PARAM_SET") and msg.target_system in (0, self.spec.system_id):
+                self._param(msg, kind)
+
+    def _param(self, msg: Any, kind: str) -> None:
+        """The parameter protocol: a read by name or index, the whole list, or a set (answered, as
+        autopilots do, with the PARAM_VALUE now in effect; unknown names get no answer)."""
+        names = sorted(self.params)
+        if kind == "PARAM_REQUEST_LIST":
+            todo = names
+        else:
+            name = msg.param_id.decode() if isinstance(msg.param_id, bytes) else msg.param_id
+            name = name.rstrip("\x00")
+            if kind == "PARAM_REQUEST_READ" and msg.param_index >= 0:
+                name = names[msg.param_index] if msg.param_index < len(names) else ""
+            if name not in self.params:
+                return
+            if kind == "PARAM_SET":
+                self.params[name] = float(msg.param_value)
+            todo = [name]
+        for name in todo:
+            self._send(self._mav.MAVLink_param_value_message(
+                name.encode(), self.params[name], self._mav.MAV_PARAM_TYPE_REAL32, len(names), names.index(name),
+            ))
 
     def _command(self, msg: Any) -> None:
         mav = self._mav
@@ -237,6 +261,9 @@ class SimFlightController:
         elif msg.command == mav.MAV_CMD_REQUEST_MESSAGE:
             msg_id = int(msg.param1)
             reply = self._senders[msg_id](self._t_s) if msg_id in self._senders else None
+            if msg_id == mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN and self.spec.ekf_origin:
+                sp = self.spec
+                reply = mav.MAVLink_gps_global_origin_message(int(sp.home_lat_deg * 1e7), int(sp.home_lon_deg * 1e7), int(sp.home_alt_m * 1000))
             if reply is not None:
                 self._send(reply)
             else:
@@ -265,10 +292,11 @@ class SimFlightController:
 
     def _heartbeat(self) -> Any:
         mav = self._mav
+        armed = mav.MAV_MODE_FLAG_SAFETY_ARMED if self.spec.armed else 0
+        autopilot = mav.MAV_AUTOPILOT_PX4 if self.spec.autopilot == "px4" else mav.MAV_AUTOPILOT_ARDUPILOTMEGA
         return mav.MAVLink_heartbeat_message(
-            mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_ARDUPILOTMEGA,
-            mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mav.MAV_MODE_FLAG_SAFETY_ARMED | mav.MAV_MODE_FLAG_STABILIZE_ENABLED,
-            5, mav.MAV_STATE_ACTIVE, 3,  # custom mode 5: LOITER
+            mav.MAV_TYPE_QUADROTOR, autopilot, mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | armed | mav.MAV_MODE_FLAG_STABILIZE_ENABLED,
+            5, mav.MAV_STATE_ACTIVE if self.spec.armed else mav.MAV_STATE_STANDBY, 3,  # custom mode 5: LOITER
         )
 
     def _attitude(self, t_s: float) -> Any:
