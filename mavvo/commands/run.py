@@ -25,11 +25,12 @@ def add_parser(sub: Any) -> None:
     r.set_defaults(handler=main)
 
 
-def sim_camera(argument: str, options: Any, clock: Any) -> Any:
-    """``camera.source: sim:SCENARIO``: the simulator's rendered camera, in real time on the host clock."""
+def sim_camera(argument: str, options: Any, clock: Any, fc: Any = None) -> Any:
+    """``camera.source: sim:SCENARIO``: the simulator's rendered camera, in real time, flying the
+    scenario on the simulated flight controller's clock (``mavvo sim --fc-only``) once it is heard."""
     from sim.scenarios.flight import scenario_camera  # sim is loaded only when asked for
 
-    return scenario_camera(argument, clock)
+    return scenario_camera(argument, clock, fc)
 
 
 def with_record(config: ServiceConfig, record: Path | None) -> ServiceConfig:

@@ -53,8 +53,10 @@ def add_parser(sub: Any) -> None:
         help="--fc-only: where the flight controller listens: udpin:HOST:PORT or tcpin:HOST:PORT (udpout:/tcp: connect out); default udpin:127.0.0.1:14550",
     )
     s.add_argument(
-        "--time-source", choices=("arrival", "usec"), default="arrival",
-        help="--fc-only: evaluate estimates at their arrival time (default; clients on their own clock) or at their usec stamp read as simulation time",
+        "--time-source", choices=("auto", "timesync", "arrival", "usec"), default="auto",
+        help="--fc-only: evaluate estimates at their usec stamp mapped through the client's TIMESYNC requests (timesync), at their "
+        "arrival (clients that do not send TIMESYNC; the error includes their latency), or at usec read as simulation time; "
+        "auto (default): timesync when the client sent TIMESYNC requests, else arrival",
     )
     s.set_defaults(handler=main)
 
@@ -143,7 +145,14 @@ def _fc_only(scenario: Any, args: argparse.Namespace) -> int:
     if args.out is not None:
         tlog = sim.fc.save_tlog(args.out / "received.tlog")
         print(f"received messages: {tlog}")
-        est = vision_estimates(sim.fc.received, args.time_source)
+        source = args.time_source
+        if source == "auto":
+            source = "timesync" if sim.fc.client_clock_s else "arrival"
+        # A request's transit only adds: the smallest (arrival - ts1) is the client's clock offset, to the fastest transit.
+        offset = min(sim.fc.client_clock_s) if source == "timesync" and sim.fc.client_clock_s else 0.0
+        est = vision_estimates(sim.fc.received, "arrival" if source == "arrival" else "usec", usec_offset_s=offset)
+        log.info("estimates evaluated at %s", {"timesync": f"their usec plus the client's clock offset {offset:+.3f} s (TIMESYNC)",
+                                               "arrival": "their arrival", "usec": "their usec as simulation time"}[source])
         if len(est) >= 3:
             ev = write_report(args.out, est, sim.truth_at(est.timestamps_s), title=scenario.name)
             print(

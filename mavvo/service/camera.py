@@ -28,7 +28,7 @@ import numpy as np
 from mavvo.geometry.camera_model import CameraIntrinsics
 from mavvo.options import bounded
 from mavvo.errors import CameraEnded, CameraError, CameraLost, FrameRefused
-from mavvo.service.timing import Clock
+from mavvo.service.timing import Clock, FlightControllerState
 from mavvo.types import Frame
 
 __all__ = [
@@ -403,16 +403,21 @@ class ReconnectingSource:
             self._source = None
 
 
-SourceFactory = Callable[[str, CameraOptions, Clock], FrameSource]
+SourceFactory = Callable[[str, CameraOptions, Clock, "FlightControllerState | None"], FrameSource]
+"""Makes the source of a ``SCHEME:ARGUMENT``: (argument, camera options, host clock, the flight
+controller's state as the link fills it, or None), e.g. a simulated camera that follows the flight
+controller's clock."""
 
 
-def open_source(options: CameraOptions, clock: Clock, schemes: dict[str, SourceFactory] | None = None) -> FrameSource:
+def open_source(
+    options: CameraOptions, clock: Clock, schemes: dict[str, SourceFactory] | None = None, fc: FlightControllerState | None = None,
+) -> FrameSource:
     """The source ``options.source`` names (see the module docstring); devices are wrapped to reconnect.
     CameraError naming the source when it is none of the known forms or cannot be opened."""
     spec = options.source
     scheme, sep, arg = spec.partition(":")
     if sep and schemes and scheme in schemes:
-        return schemes[scheme](arg, options, clock)
+        return schemes[scheme](arg, options, clock, fc)
     if spec.startswith("/dev/video"):
         return ReconnectingSource(
             lambda: V4L2Source(spec, options, clock), clock, reconnect_max_s=options.reconnect_max_s, lost_after_s=options.lost_after_s, name=spec,

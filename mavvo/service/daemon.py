@@ -141,7 +141,7 @@ class Daemon:
         self.clock = clock or MonotonicClock()
         self.on_estimate = on_estimate
         self.fc = FlightControllerState(self.clock, config.timing)
-        self.source = source if source is not None else open_source(config.camera, self.clock, schemes)
+        self.source = source if source is not None else open_source(config.camera, self.clock, schemes, self.fc)
         self.counters: Counter[str] = Counter()
         self._pending_texts: deque[dict[str, object]] = deque()  # STATUSTEXTs other threads ask the supervisor to send
         try:

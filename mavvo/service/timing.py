@@ -383,6 +383,11 @@ class FlightControllerState:
             fc_p = (p_l[0] + v_l[0] * (t - t_l), p_l[1] + v_l[1] * (t - t_l), p_l[2] + v_l[2] * (t - t_l))  # moved on to the exposure
         return Pairing("paired", v, roll, pitch, yaw, range_m, height_m, fc_p, self.yaw_settled)
 
+    def clock_offset_s(self) -> float | None:
+        """The current estimate of ``t_fc_s - t_host_s`` (None before the flight controller is heard)."""
+        with self._lock:
+            return self._sync.offset_s()
+
     def attitude_rate_hz(self) -> float | None:
         """The ATTITUDE rate over the kept history (its samples' own clock), or None with too few."""
         with self._lock:

@@ -56,12 +56,13 @@ def read_tum(path: str | Path) -> PoseSeries:
     return PoseSeries(a[:, 0], a[:, 1:4], np.column_stack([a[:, 7], a[:, 4:7]]))
 
 
-def vision_estimates(received: Iterable[Any], time_source: Literal["usec", "arrival"] = "usec") -> PoseSeries:
+def vision_estimates(received: Iterable[Any], time_source: Literal["usec", "arrival"] = "usec", usec_offset_s: float = 0.0) -> PoseSeries:
     """The VISION_POSITION_ESTIMATEs among ``received`` (sim.flight_controller.autopilot.Received) as a series.
 
-    ``usec``: the message's own timestamp, read as microseconds of the simulation clock (the clock the
-    simulator gives the daemon); ``arrival``: when the flight controller received it (for clients on
-    another clock; the error then includes their latency). Non-finite estimates are skipped.
+    ``usec``: the message's own timestamp plus ``usec_offset_s``, read as simulation time (offset 0:
+    the clock the simulator gives the daemon; a client on its own clock: the offset its TIMESYNC
+    requests show); ``arrival``: when the flight controller received it (the error then includes the
+    client's latency). Non-finite estimates are skipped.
     """
     t, p, R = [], [], []
     for r in received:
@@ -71,7 +72,7 @@ def vision_estimates(received: Iterable[Any], time_source: Literal["usec", "arri
         vals = (m.x, m.y, m.z, m.roll, m.pitch, m.yaw)
         if not all(math.isfinite(v) for v in vals):
             continue
-        t.append(m.usec * 1e-6 if time_source == "usec" else r.t_s)
+        t.append(m.usec * 1e-6 + usec_offset_s if time_source == "usec" else r.t_s)
         p.append(vals[:3])
         R.append(R_from_euler321(m.roll, m.pitch, m.yaw))
     if not t:

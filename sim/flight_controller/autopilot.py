@@ -97,6 +97,7 @@ class SimFlightController:
             raise LinkError(f"{url}: cannot open: {getattr(e, 'strerror', None) or e}") from e
         self.received: list[Received] = []
         self.sent_counts: dict[str, int] = {}
+        self.client_clock_s: list[float] = []  # per TIMESYNC request heard: simulation time at arrival minus the request's ts1
         self.params: dict[str, float] = {**VISION_READY_PARAMS[spec.autopilot], **{name: float(v) for name, v in spec.params}}
         # Like an autopilot's forwarding to its ground-station port: what others send it, re-sent there.
         self._forward_to: tuple[str, int] | None = None
@@ -215,6 +216,7 @@ class SimFlightController:
                     self._propagate(now)
                     self.estimator.fuse_vision(now, msg.x, msg.y, msg.reset_counter)
             elif kind == "TIMESYNC" and msg.tc1 == 0:
+                self.client_clock_s.append(self.clock.now_s() - msg.ts1 * 1e-9)  # simulation time minus the client's, plus transit
                 tc1 = int(self._boot_time_s(self.clock.now_s()) * 1e9)
                 self._send(self._mav.MAVLink_timesync_message(tc1, msg.ts1))
             elif kind == "COMMAND_LONG" and msg.target_system in (0, self.spec.system_id):
