@@ -6,7 +6,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup sim test soak faults bench clean
+.PHONY: setup sim test soak faults bench install clean
 
 setup: $(STAMP)
 
@@ -55,6 +55,33 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/relpose.py --threads --markdown docs/benchmarks.md
 	OMP_NUM_THREADS=1 $(BIN)/python benchmarks/render.py --markdown docs/benchmarks.md
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/pipeline.py --markdown docs/benchmarks.md
+
+# Install on the companion computer (sudo make install): the package into a venv made in PREFIX (never
+# a copied one), the settings under ETCDIR (kept if present), the unit, the mavvo user; then check-config
+# and preflight. SYSTEM=0 installs the files only (no user, no systemctl): for a staging directory.
+PREFIX  ?= /opt/mavvo
+ETCDIR  ?= /etc/mavvo
+UNITDIR ?= /etc/systemd/system
+SYSTEM  ?= 1
+
+install:
+	@test "$(SYSTEM)" = 0 || test "$$(id -u)" = 0 || { echo "make install: needs root: sudo make install"; exit 1; }
+	mkdir -p $(PREFIX) $(ETCDIR) $(UNITDIR)
+	@if [ "$(abspath $(PREFIX))" != "$(CURDIR)" ]; then \
+		tar --exclude=.venv --exclude=.git --exclude='*.egg-info' --exclude=__pycache__ --exclude=mavvo-sim-out \
+			-cf - mavvo sim config systemd pyproject.toml README.md Makefile | tar -xf - -C $(PREFIX); fi
+	$(PYTHON) -m venv --clear $(PREFIX)/.venv
+	$(PREFIX)/.venv/bin/python -m pip install --quiet --upgrade pip
+	$(PREFIX)/.venv/bin/python -m pip install --quiet $(PREFIX)
+	@test -e $(ETCDIR)/mavvo.yaml || install -m 0640 config/default.yaml $(ETCDIR)/mavvo.yaml
+	sed -e 's|/opt/mavvo|$(abspath $(PREFIX))|g' -e 's|/etc/mavvo|$(abspath $(ETCDIR))|g' systemd/mavvo.service > $(UNITDIR)/mavvo.service
+	@if [ "$(SYSTEM)" != 0 ]; then \
+		id mavvo >/dev/null 2>&1 || useradd --system --no-create-home --shell /usr/sbin/nologin --groups dialout,video mavvo; \
+		chgrp mavvo $(ETCDIR)/mavvo.yaml; systemctl daemon-reload; fi
+	$(PREFIX)/.venv/bin/mavvo check-config $(ETCDIR)/mavvo.yaml
+	@if [ "$(SYSTEM)" != 0 ]; then $(PREFIX)/.venv/bin/mavvo preflight --config $(ETCDIR)/mavvo.yaml --timeout 5 || \
+		echo "preflight: run it again once the flight controller is connected: $(PREFIX)/.venv/bin/mavvo preflight --config $(ETCDIR)/mavvo.yaml"; fi
+	@echo "installed: edit $(ETCDIR)/mavvo.yaml (camera, mounting, link.url; docs/camera.md), then: sudo systemctl enable --now mavvo"
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info mavvo-sim-out mavvo-replay-out

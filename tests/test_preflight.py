@@ -62,6 +62,8 @@ def test_checks_name_what_is_wrong_and_what_to_set():
     assert by_name["EK3_SRC1_POSXY"].set_to == 6 and by_name["EKF origin"].verdict is Verdict.BLOCK
     assert by_name["VISO_DELAY_MS"].verdict is Verdict.WARN and by_name["VISO_DELAY_MS"].set_to == 45
     assert by_name["VISO_POS_X"].set_to == pytest.approx(0.1) and by_name["VISO_POS_Y"].verdict is Verdict.OK
+    ekf = {c.name: c for c in checks("ardupilot", ready, cfg, ekf_flags=0x1 | 0x80)}["EKF status"]
+    assert ekf.verdict is Verdict.WARN and "no horizontal position" in ekf.advice
     px4 = {c.name: c for c in checks("px4", {**VISION_READY_PARAMS["px4"], "EKF2_EV_CTRL": 2}, cfg)}
     assert px4["EKF2_EV_CTRL"].verdict is Verdict.BLOCK and px4["EKF2_EV_CTRL"].set_to == 3  # bit 0 added, the rest kept
 
@@ -72,6 +74,7 @@ def test_preflight_names_each_wrong_parameter_and_fix_makes_it_pass(fc_only, cap
     assert main(["preflight", "--mavlink", url, "--latency-ms", "30"]) == 1
     out = capsys.readouterr().out
     assert "flight controller: ardupilot" in out
+    assert any(line.startswith("EKF status") and " ok " in line for line in out.splitlines()), out
     for name in ("VISO_TYPE", "EK3_SRC1_POSXY", "VISO_POS_Z"):
         assert any(line.startswith(name) and ("BLOCK" in line or "WARN" in line) for line in out.splitlines()), (name, out)
     assert "would set: VISO_TYPE = 1, EK3_SRC1_POSXY = 6, VISO_POS_Z = 0" in out

@@ -107,6 +107,17 @@ class _Session:
                     return True
         return False
 
+    def ekf_flags(self) -> int | None:
+        """ArduPilot's EKF_STATUS_REPORT flags, asked for with MAV_CMD_REQUEST_MESSAGE; None if none came."""
+        m = self.mav
+        self.conn.mav.command_long_send(*self.target, m.MAV_CMD_REQUEST_MESSAGE, 0, m.MAVLINK_MSG_ID_EKF_STATUS_REPORT, 0, 0, 0, 0, 0, 0)
+        deadline = time.monotonic() + 1.5
+        while time.monotonic() < deadline:
+            msg = self._recv(0.1)
+            if msg is not None and msg.get_type() == "EKF_STATUS_REPORT":
+                return int(msg.flags)
+        return None
+
     def set_param(self, name: str, value: float) -> bool:
         """PARAM_SET, confirmed by the PARAM_VALUE that comes back."""
         for _ in range(_TRIES):
@@ -129,8 +140,9 @@ def main(args: argparse.Namespace) -> int:
         print(f"flight controller: {s.autopilot}, system {s.target[0]} component {s.target[1]}, {'ARMED' if s.armed else 'disarmed'} ({url})")
         params = s.read_params(params_to_read(s.autopilot))
         origin = s.has_origin() if s.autopilot == "ardupilot" else None
+        ekf = s.ekf_flags() if s.autopilot == "ardupilot" else None
         advised = args.latency_ms if args.latency_ms is not None else s.latency_ms
-        results = checks(s.autopilot, params, config, advised_delay_ms=advised, has_origin=origin)
+        results = checks(s.autopilot, params, config, advised_delay_ms=advised, has_origin=origin, ekf_flags=ekf)
         print(table(results), end="")
         fixes = [c for c in results if c.set_to is not None]
         if args.fix and fixes:
@@ -144,7 +156,7 @@ def main(args: argparse.Namespace) -> int:
                     params[c.name] = c.set_to
             if any(c.name == "VISO_TYPE" for c in fixes):
                 print("VISO_TYPE takes effect after the flight controller reboots")
-            results = checks(s.autopilot, params, config, advised_delay_ms=advised, has_origin=origin)
+            results = checks(s.autopilot, params, config, advised_delay_ms=advised, has_origin=origin, ekf_flags=ekf)
             print(table(results), end="")
         elif fixes:
             print(f"mavvo preflight --fix would set: {', '.join(f'{c.name} = {c.set_to:g}' for c in fixes)}")

@@ -86,12 +86,17 @@ def _delay(name: str, params: Mapping[str, float], advised_ms: float | None) -> 
                  "" if ok else "the EKF fuses each sample at the wrong moment", None if ok or v is None else float(round(advised_ms)))
 
 
+_EKF_POS_HORIZ_REL = 0x8  # EKF_STATUS_REPORT flags (ArduPilot)
+_EKF_CONST_POS_MODE = 0x80
+
+
 def checks(
     autopilot: str, params: Mapping[str, float], config: ServiceConfig, *, advised_delay_ms: float | None = None, has_origin: bool | None = None,
+    ekf_flags: int | None = None,
 ) -> list[Check]:
     """The checks for ``autopilot`` (``ardupilot`` or ``px4``) on the ``params`` read (a missing one is
-    absent), the service's ``config``, the delay its latency advises (None: not running) and whether the
-    EKF has an origin (None: not asked)."""
+    absent), the service's ``config``, the delay its latency advises (None: not running), whether the
+    EKF has an origin (None: not asked) and its EKF_STATUS_REPORT flags (None: not heard)."""
     lever = config.mounting.lever_arm_m
     out: list[Check] = []
     if autopilot == "px4":
@@ -112,6 +117,10 @@ def checks(
     out.append(_one_of("EK3_SRC1_YAW", params, (1, 6), "1 (compass) or 6 (ExternalNav)"))
     out.append(_delay("VISO_DELAY_MS", params, advised_delay_ms))
     out += _lever(("VISO_POS_X", "VISO_POS_Y", "VISO_POS_Z"), params, lever)
+    if ekf_flags is not None:
+        pos = bool(ekf_flags & _EKF_POS_HORIZ_REL) and not ekf_flags & _EKF_CONST_POS_MODE
+        out.append(Check("EKF status", f"flags 0x{ekf_flags:04x}", "horizontal position, not constant-position mode", Verdict.OK if pos else Verdict.WARN,
+                         "" if pos else "the EKF has no horizontal position yet: is vision fused (the service running, the sources above)?"))
     if has_origin is not None:
         out.append(Check("EKF origin", "set" if has_origin else "none", "set", Verdict.OK if has_origin else Verdict.BLOCK,
                          "" if has_origin else "set one before arming (SET_GPS_GLOBAL_ORIGIN; Mission Planner: Set EKF Origin)"))

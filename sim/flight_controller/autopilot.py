@@ -122,6 +122,7 @@ class SimFlightController:
             self._mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: self._local_position,
             self._mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self._global_position,
             self._mav.MAVLINK_MSG_ID_SYSTEM_TIME: self._system_time,
+            self._mav.MAVLINK_MSG_ID_EKF_STATUS_REPORT: self._ekf_status,
         }
         if not spec.rangefinder:
             del self._senders[self._mav.MAVLINK_MSG_ID_DISTANCE_SENSOR]
@@ -347,6 +348,12 @@ class SimFlightController:
             self.boot_time_ms(t_s), int(round(sp.home_lat_deg * 1e7)), int(round(sp.home_lon_deg * 1e7)),
             int(round((sp.home_alt_m + h) * 1000)), int(round(h * 1000)), 0, 0, int(round(s.v_ned_m_s[2] * 100)), hdg,
         )
+
+    def _ekf_status(self, t_s: float) -> Any:
+        """ArduPilot's EKF_STATUS_REPORT: attitude, velocities and horizontal position (relative; absolute
+        too with an origin) are good."""
+        flags = 0x1 | 0x2 | 0x4 | 0x8 | 0x20 | (0x10 if self.spec.ekf_origin else 0)
+        return self._mav.MAVLink_ekf_status_report_message(flags, 0.1, 0.1, 0.1, 0.1, 0.0)
 
     def _system_time(self, t_s: float) -> Any:
         return self._mav.MAVLink_system_time_message(_UNIX_EPOCH_AT_START_US + int(t_s * 1e6), self.boot_time_ms(t_s))
