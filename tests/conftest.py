@@ -1,11 +1,23 @@
-"""Shared fixtures: free loopback ports and a plain pymavlink client."""
+"""Shared helpers and fixtures: waiting for an event, free loopback ports, a plain pymavlink client."""
 
 from __future__ import annotations
 
 import os
 import socket
+import time
 
 import pytest
+
+
+def wait_for(done, timeout_s: float = 60.0) -> bool:
+    """Until ``done()`` holds, at most ``timeout_s`` of real time (generous: the machine may be loaded);
+    whether it holds."""
+    deadline = time.monotonic() + timeout_s
+    while not done():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
 
 
 def free_port(kind: int = socket.SOCK_DGRAM) -> int:

@@ -28,7 +28,7 @@ from sim.flight_controller.spec import FlightControllerSpec
 from sim.world.clock import RealClock
 from sim.world.faults import FaultSchedule
 from sim.world.trajectories import HoverSpec, make_trajectory
-from tests.conftest import free_port
+from tests.conftest import free_port, wait_for
 from tests.test_link import Recorder
 
 
@@ -42,16 +42,6 @@ def run_bounded(daemon, timeout_s: float = 60.0):
         daemon.request_stop()
         pytest.fail(f"run() did not end within {timeout_s} s")
     return out[0]
-
-
-def wait_for(done, timeout_s: float = 60.0) -> bool:
-    """Until ``done()`` holds, at most ``timeout_s`` (generous: the machine may be loaded)."""
-    deadline = time.monotonic() + timeout_s
-    while not done():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.02)
-    return True
 
 
 class LinkThread:

@@ -15,6 +15,7 @@ import pytest
 from mavvo.errors import ConfigError
 from mavvo.service.link import Link, LinkOptions, SystemStatus, parse_url, read_signing_key
 from mavvo.service.timing import MonotonicClock
+from tests.conftest import wait_for
 from sim.world.clock import RealClock
 from sim.world.faults import FaultSchedule, FaultSpec
 from sim.flight_controller.autopilot import SimFlightController
@@ -76,12 +77,7 @@ class Running:
 
     def wait_for(self, done, timeout_s: float = 60.0) -> bool:
         """Until ``done()`` holds, at most ``timeout_s`` (generous: the machine may be loaded)."""
-        deadline = time.monotonic() + timeout_s
-        while not done():
-            if time.monotonic() > deadline:
-                return False
-            time.sleep(0.02)
-        return True
+        return wait_for(done, timeout_s)
 
     def close(self) -> None:
         self.stop.set()
