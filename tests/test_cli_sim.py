@@ -110,7 +110,7 @@ def _two_terminals(tmp_path, fc_scenario: str, camera_scenario: str, run_s: floa
 def test_two_terminal_simulation_flies_the_flight_controllers_flight(tmp_path):
     """Before: the camera's flight started when the service did and the flight controller's when it
     did (a 4.3 s shift, 11-15 m off). Now the camera follows the flight controller's clock."""
-    fc_out, run_err = _two_terminals(tmp_path, "figure_eight", "figure_eight", 14.0)
+    fc_out, run_err = _two_terminals(tmp_path, "figure_eight", "figure_eight", 11.0)
     assert "flying figure_eight on the flight controller's clock" in run_err and "ERROR" not in run_err, run_err
     print(fc_out)
     m = re.search(r"(\d+) vision estimates: ATE ([0-9.]+) m RMSE \(SE\(3\)\), [0-9.]+ m \(Sim\(3\)\), ([0-9.]+)% of ([0-9.]+) m", fc_out)

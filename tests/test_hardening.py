@@ -6,9 +6,13 @@ against each input is the fault suite (sim/faults/suite.py, tests/test_fault_sui
 from __future__ import annotations
 
 import dataclasses
+import json
 import resource
 import signal
 import socket
+import stat
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -316,3 +320,46 @@ def test_the_link_thread_dying_ends_run_with_a_failure():
     d.link.run = dies
     summary = run_bounded(d)
     assert summary.failure == "the link thread stopped: MemoryError: the link thread ran out of memory"
+
+
+def test_a_full_disk_stops_recording_keeps_what_was_written_and_sighup_reopens(tmp_path):
+    """A recorder in a process whose files may not grow past 40 kB (writes then fail with EFBIG, as
+    with ENOSPC on a full disk): the first segment fills, the reopen (SIGHUP's action) starts a second,
+    that fills too; recording stops with its reason, close() does not raise, and every file written is
+    readable and private. (The whole service against a full disk is the fault suite's full_disk case.)"""
+    script = f"""
+import json, resource, signal, sys, time
+import numpy as np
+from mavvo.service.recorder import Recorder, RecordOptions
+from mavvo.service.timing import MonotonicClock, Pairing
+from mavvo.types import Frame
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (40_000, 40_000))
+told = []
+rec = Recorder(RecordOptions(dir={str(tmp_path)!r}, min_free_mb=0), "camera: {{}}\\n", MonotonicClock(), on_stop=told.append)
+rng = np.random.default_rng(0)
+for k in range(400):
+    if k == 20:
+        rec.reopen()
+    rec.frame(Frame(rng.integers(0, 255, (48, 64), dtype=np.uint8), k * 0.05, k), Pairing("paired", k, 0.0, 0.0, 0.0), k * 0.05)
+    for _ in range(20):
+        rec.mavlink(k * 1000, bytes(40))
+    time.sleep(0.002)
+    if rec.stopped_reason:
+        break
+rec.close()
+print(json.dumps({{"told": told, "segments": rec.counters["segments"], "frames": rec.counters["frames"]}}))
+"""
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    assert r["told"] and r["told"][0].startswith("a write failed") and r["segments"] == 2 and r["frames"] > 0
+    (folder,) = [p for p in tmp_path.iterdir() if p.is_dir()]
+    assert stat.S_IMODE(folder.stat().st_mode) == 0o700
+    files = [p for p in folder.rglob("*") if p.is_file()]
+    assert {"mavlink-000.tlog", "mavlink-001.tlog", "frames-000.csv", "meta.json"} <= {p.name for p in files}
+    assert all(stat.S_IMODE(p.stat().st_mode) == 0o600 for p in files)
+    meta = json.loads((folder / "meta.json").read_text())
+    assert meta["stopped_reason"].startswith("a write failed")
+    pngs = sorted((folder / "frames").glob("*.png"))
+    assert pngs and all(cv2.imread(str(p), cv2.IMREAD_UNCHANGED) is not None for p in pngs)

@@ -44,12 +44,12 @@ def test_the_view_follows_what_mavvo_sends():
 def test_mavvo_monitor_shows_a_running_sim(tmp_path):
     port = free_port()
     monitor = subprocess.Popen(
-        [sys.executable, "-m", "mavvo", "monitor", "--mavlink", f"udpin:127.0.0.1:{port}", "--duration", "20", "--plot", str(tmp_path / "t.png")],
+        [sys.executable, "-m", "mavvo", "monitor", "--mavlink", f"udpin:127.0.0.1:{port}", "--duration", "13", "--plot", str(tmp_path / "t.png")],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     try:
         sim = subprocess.run(
-            [sys.executable, "-m", "mavvo", "sim", "--scenario", "hover", "--realtime", "--duration", "10", "--forward", f"udpout:127.0.0.1:{port}",
+            [sys.executable, "-m", "mavvo", "sim", "--scenario", "hover", "--realtime", "--duration", "7", "--forward", f"udpout:127.0.0.1:{port}",
              "--out", str(tmp_path / "out")], capture_output=True, text=True, timeout=300,
         )
         assert sim.returncode == 0, sim.stderr

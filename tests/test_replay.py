@@ -192,6 +192,8 @@ def test_euroc_folder_replays_with_truth_or_imu_attitude(tmp_path, capsys):
     assert s["evaluation"]["ate_se3_m"]["rmse"] < 0.1
     code, s, err = _replay_cli(capsys, root, "--config", over, "--out", tmp_path / "b")
     assert code == 0, err
+    tilt = s["notes"]["attitude_tilt_error_deg"]  # the IMU filter's roll/pitch against the ground truth, reported
+    assert 0.0 < tilt["median"] <= tilt["p95"] < 5.0
     assert s["evaluation"]["ate_se3_m"]["rmse"] < 0.5  # the filter's tilt errors in turns cost some accuracy
     from sim.replay.sources import open_replay_source
 

@@ -538,7 +538,7 @@ CASES: dict[str, Callable[[Path], FaultRow]] = {
     "send_after_stop": send_after_stop,
     "config_fuzz": config_fuzz,
 }
-FAST_CASES = ("impostor_heartbeat", "foreign_sender", "signing", "full_disk", "folder_vanishes", "port_in_use", "send_after_stop")
+FAST_CASES = ("impostor_heartbeat", "foreign_sender", "signing", "folder_vanishes", "port_in_use", "send_after_stop")
 
 
 def run_cases(names: Sequence[str], progress: Callable[[str], None] | None = None) -> list[FaultRow]:

@@ -8,9 +8,9 @@ Frames (mavvo's conventions, see docs/replay.md):
 - the body frame is the IMU's turned so that z points down at the start (the mean accelerometer over
   the first second) and x along the camera's view (or the image's up for a camera looking down);
   ``mounting.R_body_cam`` and ``lever_arm_m`` follow from ``T_BS``;
-- roll/pitch come from the IMU through an attitude filter (gyro integration, tilt pulled toward the
-  accelerometer's gravity with gain ``ATTITUDE_GAIN``; what a flight controller computes), or from the
-  ground truth plus Gaussian noise; yaw is the filter's (it drifts, as a magnetometer-less one does);
+- roll/pitch come from the IMU through an attitude filter that also estimates the gyro bias (Mahony
+  with integral feedback, :func:`imu_attitude`; what a flight controller computes), or from the ground
+  truth plus Gaussian noise; yaw is the filter's (it drifts, as a magnetometer-less one does);
 - height above the start comes from the ground truth with barometer-like noise (the datasets have no
   barometer or rangefinder), so ``odometry.scale.source`` defaults to ``altitude``.
 """
@@ -25,7 +25,7 @@ import numpy as np
 import yaml
 
 from mavvo.errors import ConfigError
-from mavvo.geometry.frames import R_from_quat_wxyz, euler321_from_R, quat_wxyz_from_R, skew
+from mavvo.geometry.frames import R_from_euler321, R_from_quat_wxyz, euler321_from_R, quat_wxyz_from_R, skew
 from mavvo.service.settings import parse_config
 from sim.replay.fc_logs import FcSeries, series_messages
 from sim.evaluation.metrics import PoseSeries
@@ -34,8 +34,10 @@ from sim.replay.driver import ReplayFrame, ReplayInput, image_loader
 
 __all__ = ["load_euroc", "read_euroc_groundtruth"]
 
-ATTITUDE_GAIN = 0.1  # rad/s per rad of tilt error: the filter's pull toward the accelerometer
+ATTITUDE_KP = 0.3  # rad/s per rad of tilt error: the filter's pull toward the accelerometer's gravity
+ATTITUDE_KI = 0.02  # rad/s^2 per rad: how fast the gyro bias estimate follows the pull that persists
 ATTITUDE_RATE_HZ = 100.0
+_REST_GYRO_STD = 0.02  # rad/s: a gyro this steady over the first second is at rest
 HEIGHT_RATE_HZ = 10.0
 HEIGHT_NOISE_M = 0.1
 _D = np.diag([1.0, -1.0, -1.0])  # the datasets' z-up world to mavvo's level frame (z down)
@@ -108,24 +110,50 @@ def _exp(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * K @ K
 
 
-def imu_attitude(imu: np.ndarray, R_imu_body: np.ndarray, gain: float = ATTITUDE_GAIN) -> np.ndarray:
-    """(N,4) t_s, roll, pitch, yaw of the body from (M,7) IMU rows (t_ns, gyro xyz, accel xyz): a
-    complementary filter (gyro integration, tilt pulled toward the accelerometer), at ATTITUDE_RATE_HZ."""
+def imu_attitude(imu: np.ndarray, R_imu_body: np.ndarray, kp: float = ATTITUDE_KP, ki: float = ATTITUDE_KI) -> np.ndarray:
+    """(N,4) t_s, roll, pitch, yaw of the body from (M,7) IMU rows (t_ns, gyro xyz rad/s, accel xyz
+    m/s^2), at ATTITUDE_RATE_HZ: Mahony's filter with integral feedback, what a flight controller's
+    attitude estimate does without a magnetometer. Started level (the body frame is defined level over
+    the first second) with the bias b the gyro shows at rest then (zero if it was not at rest), it
+    integrates the gyro less b, pulled toward the accelerometer's gravity:
+
+        e = u_meas x u_est          (measured and estimated "up" in the IMU frame)
+        w = gyro - b + kp e         (the rate integrated)
+        db/dt = -ki e               (the bias: what the correction keeps having to add)
+    """
     t = imu[:, 0] * 1e-9
     R = R_imu_body.T.copy()  # R_lvl_imu at the start: the body frame is level there by its definition
+    first = t <= t[0] + 1.0
+    gyro0 = imu[first, 1:4]
+    # At rest over the first second (the gyro steady): its mean is the bias, as a flight controller
+    # calibrates its gyros at boot; otherwise the integral finds it.
+    b = gyro0.mean(axis=0) if len(gyro0) > 10 and float(np.max(gyro0.std(axis=0))) < _REST_GYRO_STD else np.zeros(3)
     out = []
     next_t = t[0]
+    up = np.array([0.0, 0.0, -1.0])
     for i in range(1, len(t)):
         dt = t[i] - t[i - 1]
         u_meas = imu[i, 4:7] / max(np.linalg.norm(imu[i, 4:7]), 1e-9)
-        u_est = R.T @ np.array([0.0, 0.0, -1.0])
-        R = R @ _exp((imu[i, 1:4] + gain * np.cross(u_meas, u_est)) * dt)
+        e = np.cross(u_meas, R.T @ up)
+        b -= ki * e * dt
+        R = R @ _exp((imu[i, 1:4] - b + kp * e) * dt)
         if t[i] >= next_t:
             U, _, Vt = np.linalg.svd(R)
             R = U @ Vt
             out.append((t[i], *euler321_from_R(R @ R_imu_body)))
             next_t = t[i] + 1.0 / ATTITUDE_RATE_HZ
     return np.array(out)
+
+
+def tilt_error_deg(attitude: np.ndarray, t_truth_s: np.ndarray, R_lvl_body_truth: np.ndarray) -> dict[str, float]:
+    """How far the roll/pitch given to mavvo are from the truth: the angle between the true and the
+    estimated "down" in the body frame (yaw does not count), at each attitude sample (nearest truth);
+    median and 95th percentile, degrees."""
+    idx = np.clip(np.searchsorted(t_truth_s, attitude[:, 0]), 0, len(t_truth_s) - 1)
+    down_true = R_lvl_body_truth[idx, 2, :]  # third row: the level frame's z in body coordinates
+    down_est = np.array([R_from_euler321(r, p, y)[2, :] for _, r, p, y in attitude])
+    err = np.degrees(np.arccos(np.clip(np.sum(down_true * down_est, axis=1), -1.0, 1.0)))
+    return {"median": round(float(np.median(err)), 3), "p95": round(float(np.percentile(err, 95)), 3)}
 
 
 def load_euroc(root: Path, overrides: dict[str, Any], *, attitude: str = "imu", attitude_noise_deg: float = 0.1, seed: int = 0) -> ReplayInput:
@@ -185,6 +213,7 @@ def load_euroc(root: Path, overrides: dict[str, Any], *, attitude: str = "imu", 
         R_lvl_imu = np.array([_D @ R_from_quat_wxyz(q) for q in gt[:, 4:8]])
         p_cam = gt[:, 1:4] @ _D.T + R_lvl_imu @ t_imu_cam  # the camera centre: what mavvo estimates
         reference = PoseSeries(t_gt, p_cam, np.array([quat_wxyz_from_R(R @ R_imu_body) for R in R_lvl_imu]))
+        notes["attitude_tilt_error_deg"] = tilt_error_deg(attitude_rows, t_gt, R_lvl_imu @ R_imu_body)
     series = FcSeries(str(root), "euroc", attitude_rows, np.zeros((0, 2)), heights)
     frames_csv = _frame_rows(mav0 / "cam0" / "data.csv")
     problems: list[str] = []
