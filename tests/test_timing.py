@@ -182,3 +182,16 @@ def test_a_forged_timesync_answer_does_not_move_the_offset():
     assert not sync.add_timesync(1.5, 1.5 + OFFSET_S + 0.8, 1.5001)  # forged: 0.1 ms "round trip", 0.8 s off
     assert not sync.add_timesync(1.6, 1.6 + OFFSET_S - 0.5, 1.6001)  # forged the other way
     assert sync.offset_s() == before and sync.round_trip_s() == pytest.approx(0.001)
+
+
+def test_samples_exactly_the_gap_limit_apart_pair():
+    """ATTITUDE at exactly 20 Hz with the default 50 ms limit: every exposure between two samples pairs
+    (before: 44 of 95 frames were skipped, 1.05 - 1.00 being a little over 0.05 in binary)."""
+    clock = FakeClock()
+    state = FlightControllerState(clock, TimingOptions(max_attitude_gap_s=0.05))
+    feed(state, clock, [k * 0.05 for k in range(40)])
+    statuses = [state.pair(0.0125 + k * 0.05 - 0.004).status for k in range(1, 38)]
+    assert statuses == ["paired"] * 37
+    wider = FlightControllerState(FakeClock(), TimingOptions(max_attitude_gap_s=0.049))
+    feed(wider, wider.clock, [k * 0.05 for k in range(40)])
+    assert wider.pair(1.0125 - 0.004).status == "stale"  # a limit below the gap still refuses

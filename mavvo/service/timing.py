@@ -65,7 +65,7 @@ class MonotonicClock:
 class TimingOptions:
     """Pairing frames with the flight controller's attitude."""
 
-    max_attitude_gap_s: float = bounded(0.05, "longest gap between the two ATTITUDE samples around an exposure", gt=0, le=1)
+    max_attitude_gap_s: float = bounded(0.05, "longest gap between the two ATTITUDE samples around an exposure (inclusive)", gt=0, le=1)
     attitude_wait_s: float = bounded(0.1, "how long after an exposure to wait for the ATTITUDE that follows it", gt=0, le=1)
     range_max_age_s: float = bounded(0.2, "a rangefinder reading older than this at the exposure is not used", gt=0, le=10)
     height_max_age_s: float = bounded(0.5, "a height reading older than this at the exposure is not used", gt=0, le=10)
@@ -88,6 +88,7 @@ def _euler_yaw_rate(roll_rad: float, pitch_rad: float, body_rates_rad_s: tuple[f
 
 
 _MAX_LATENCY_S = 0.1  # the fastest message in a sync window took at most this long to arrive
+_GAP_SLACK_S = 1e-6  # time_boot_ms / 1000 is not exact in binary: 1.05 - 1.0 > 0.05
 
 
 class _WindowMax:
@@ -363,7 +364,8 @@ class FlightControllerState:
         if self._t_fc[i] == t:
             roll, pitch, yaw = self._rpy[i]
         else:
-            if i == 0 or self._t_fc[i] - self._t_fc[i - 1] > self.options.max_attitude_gap_s:
+            # Inclusive, to the boot clock's millisecond: samples exactly max_attitude_gap_s apart pair.
+            if i == 0 or self._t_fc[i] - self._t_fc[i - 1] > self.options.max_attitude_gap_s + _GAP_SLACK_S:
                 return Pairing("stale", v)
             t0, t1 = self._t_fc[i - 1], self._t_fc[i]
             w = (t - t0) / (t1 - t0)
