@@ -1,5 +1,6 @@
 """Flight-controller logs as time series: a .tlog (ATTITUDE, DISTANCE_SENSOR, GLOBAL_POSITION_INT,
-LOCAL_POSITION_NED) or an ArduPilot dataflash .bin (ATT, RFND, BARO, XKF1), and the way back to
+LOCAL_POSITION_NED) or an ArduPilot dataflash log, binary .bin or text .log of any firmware age (ATT,
+else AHR2, else NKF1; RFND, BARO, XKF1; TimeUS, TimeMS or the reader's clock), and the way back to
 MAVLink messages for a replay.
 
 Times are the flight controller's boot clock in seconds (``time_boot_ms`` / ``TimeUS``). Angles are
@@ -9,10 +10,15 @@ A log that ends inside a record keeps what came before and says so in ``problems
 
 from __future__ import annotations
 
+import contextlib
+import io
+import os
 import struct
+import sys
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Iterator
 
 import numpy as np
 
@@ -57,7 +63,7 @@ def read_fc_log(path: str | Path) -> FcSeries:
     else:
         raise ConfigError(f"{p}: expected a .tlog or a dataflash .bin log, got a {p.suffix or 'file without extension'}")
     if len(s.attitude) < 2:
-        what = "ATTITUDE" if s.kind == "tlog" else "ATT"
+        what = "ATTITUDE" if s.kind == "tlog" else "ATT, AHR2 or NKF1"
         raise ConfigError(f"{p}: no {what} messages in the log (found {len(s.attitude)}); roll and pitch are needed")
     return s
 
@@ -98,38 +104,93 @@ def _read_tlog(p: Path) -> FcSeries:
     return FcSeries(str(p), "tlog", _array(att, 4), _array(rng, 2), _array(hgt, 2), _array(pos, 4), problems)
 
 
-def _read_dataflash(p: Path) -> FcSeries:
-    DFReader = dfreader()
+# Roll/pitch/yaw in a dataflash log, by preference: the attitude the vehicle flew on, then the
+# secondary AHRS, then the first EKF2 core (older firmware).
+_DF_ATTITUDE = ("ATT", "AHR2", "NKF1")
 
-    try:
-        reader = DFReader.DFReader_binary(str(p), zero_time_base=True)
-    except Exception as e:  # DFReader raises assorted errors on a file that is not a log
-        raise ConfigError(f"{p}: not a readable dataflash log: {e}") from e
-    att: list[tuple[float, ...]] = []
+
+@contextlib.contextmanager
+def _captured_output() -> Iterator[list[str]]:
+    """Everything printed meanwhile, by Python or by a C extension (pymavlink's dataflash indexer writes
+    to the file descriptors), kept from the terminal; the lines land in the yielded list at the end."""
+    lines: list[str] = []
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    with tempfile.TemporaryFile(mode="w+b") as sink:
+        os.dup2(sink.fileno(), 1)
+        os.dup2(sink.fileno(), 2)
+        py = io.StringIO()
+        try:
+            with contextlib.redirect_stdout(py), contextlib.redirect_stderr(py):
+                yield lines
+        finally:
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            sink.seek(0)
+            text = sink.read().decode("utf-8", errors="replace") + py.getvalue()
+            lines.extend(line for line in text.splitlines() if line.strip())
+
+
+def _df_time_s(m: Any) -> float:
+    """A dataflash record's boot time: ``TimeUS`` (current firmware), ``TimeMS`` (older), else the
+    time pymavlink's reader gave it (from the GPS clock of logs without either)."""
+    t_us = getattr(m, "TimeUS", None)
+    if t_us is not None:
+        return float(t_us) * 1e-6
+    t_ms = getattr(m, "TimeMS", None)
+    return float(t_ms) * 1e-3 if t_ms is not None else float(m._timestamp)
+
+
+def _read_dataflash(p: Path) -> FcSeries:
+    """An ArduPilot dataflash log, binary (.bin) or text (.log, as the LogAnalyzer examples are), of
+    any firmware age. pymavlink's reader prints every bad header it skips: that goes into ``problems``
+    as one line, not onto the terminal."""
+    DFReader = dfreader()
+    with p.open("rb") as f:
+        head = f.read(4)
+    text = head.startswith(b"FMT") or (p.suffix.lower() == ".log" and head[:2] != b"\xa3\x95")
+    att: dict[str, list[tuple[float, ...]]] = {k: [] for k in _DF_ATTITUDE}
     rng: list[tuple[float, ...]] = []
     hgt: list[tuple[float, ...]] = []
     pos: list[tuple[float, ...]] = []
-    while True:
+    problems: list[str] = []
+    with _captured_output() as skipped:
         try:
-            m = reader.recv_match(type=["ATT", "RFND", "BARO", "XKF1"])
-        except Exception as e:  # a corrupt record: keep what came before
-            return FcSeries(str(p), "dataflash", _array(att, 4), _array(rng, 2), _array(hgt, 2), _array(pos, 4), [f"{p}: unreadable record: {e}"])
-        if m is None:
-            break
-        kind = m.get_type()
-        t = m.TimeUS * 1e-6
-        if kind == "ATT":
-            att.append((t, np.radians(m.Roll), np.radians(m.Pitch), np.radians(m.Yaw)))
-        elif kind == "RFND" and getattr(m, "Orient", 25) == 25:
-            rng.append((t, m.Dist if getattr(m, "Stat", 4) == 4 else np.nan))  # Stat 4: good
-        elif kind == "BARO" and getattr(m, "I", 0) == 0:
-            hgt.append((t, m.Alt))
-        elif kind == "XKF1" and getattr(m, "C", 0) == 0:
-            pos.append((t, m.PN, m.PE, m.PD))
-    problems = []
-    if reader.offset < reader.data_len:
+            reader = DFReader.DFReader_text(str(p), zero_time_base=True) if text else DFReader.DFReader_binary(str(p), zero_time_base=True)
+        except Exception as e:  # DFReader raises assorted errors on a file that is not a log
+            raise ConfigError(f"{p}: not a readable dataflash log ({'text' if text else 'binary'}): {' '.join(str(e).split())[:200]}") from e
+        while True:
+            try:
+                m = reader.recv_match(type=[*_DF_ATTITUDE, "RFND", "BARO", "XKF1"])
+            except Exception as e:  # a corrupt record: keep what came before
+                problems.append(f"{p}: unreadable record: {e}")
+                break
+            if m is None:
+                break
+            kind = m.get_type()
+            try:
+                t = _df_time_s(m)
+                if kind in att and getattr(m, "C", 0) == 0:
+                    att[kind].append((t, np.radians(m.Roll), np.radians(m.Pitch), np.radians(m.Yaw)))
+                elif kind == "RFND" and getattr(m, "Orient", 25) == 25:
+                    rng.append((t, m.Dist if getattr(m, "Stat", 4) == 4 else np.nan))  # Stat 4: good
+                elif kind == "BARO" and getattr(m, "I", 0) == 0:
+                    hgt.append((t, m.Alt))
+                elif kind == "XKF1" and getattr(m, "C", 0) == 0:
+                    pos.append((t, m.PN, m.PE, m.PD))
+            except (AttributeError, TypeError, ValueError):  # a record without the fields this vintage should have
+                continue
+    if skipped:
+        problems.append(f"{p}: the reader skipped {len(skipped)} damaged places (first: {skipped[0][:80]})")
+    if not text and reader.offset < reader.data_len:
         problems.append(f"{p}: truncated: {reader.data_len - reader.offset} bytes at the end are not a whole record (the log was cut off)")
-    return FcSeries(str(p), "dataflash", _array(att, 4), _array(rng, 2), _array(hgt, 2), _array(pos, 4), problems)
+    source = next((k for k in _DF_ATTITUDE if len(att[k]) >= 2), _DF_ATTITUDE[0])
+    if source != "ATT" and att[source]:
+        problems.append(f"{p}: no ATT records; roll/pitch from {source}")
+    return FcSeries(str(p), "dataflash", _array(att[source], 4), _array(rng, 2), _array(hgt, 2), _array(pos, 4), problems)
 
 
 # ---------------------------------------------------------------------- writing dataflash (test logs)
