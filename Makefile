@@ -38,6 +38,8 @@ sim: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow" --durations=15
 
+# The long runs make test skips (about 15 minutes): the solver soak, the survey and faults flights,
+# the fault suite's real-time cases, 1200 fuzzed settings files, make install into a staging folder.
 soak: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
 

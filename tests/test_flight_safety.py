@@ -86,6 +86,7 @@ def test_reinitialisation_is_anchored_at_the_flight_controllers_position():
 # ------------------------------------------------------------------------------------ simulated
 
 
+@pytest.mark.slow  # the whole faults scenario, 36 s: make soak (make test keeps test_service's fault run)
 def test_faults_scenario_is_what_the_vehicle_can_fly_on():
     run = run_daemon_in_sim(load_scenario("faults"))
     v = run.safety

@@ -52,6 +52,7 @@ def _shipped(name: str, scale_source: str = "rangefinder") -> Run:
     return _run(load_scenario(name), {"scale": {"source": scale_source}})
 
 
+@pytest.mark.slow  # a 270 m survey, about a minute: make soak (make test keeps the square, forward and hover flights)
 def test_survey_with_rangefinder_meets_the_accuracy_goal() -> None:
     """Nadir camera, rangefinder, 0.1 deg roll/pitch noise, 270 m lawnmower at 30 m."""
     run = _shipped("survey")
