@@ -50,6 +50,7 @@ log = logging.getLogger(__name__)
 _SUPERVISE_TICK_S = 0.1
 _ARRIVALS_KEPT = 64
 _UNPAIRED_TELL_S = 2.0  # frames unpaired for one cause this long: the operator is told which and what to change
+_SAMPLES_PER_GAP = 1.5  # ATTITUDE at this many samples per max_attitude_gap_s is fast enough: stale frames then mean stalls
 _UNPAIRED_CAUSES = {
     "skipped_attitude_stale": "ATTITUDE too sparse; raise link.attitude_rate_hz",
     "skipped_attitude_missing": "no ATTITUDE; check link.url",
@@ -611,7 +612,11 @@ class Daemon:
         text = short = _UNPAIRED_CAUSES[cause]
         if cause == "skipped_attitude_stale":
             rate = self.fc.attitude_rate_hz()
-            if rate is not None:
+            gap_s = self.config.timing.max_attitude_gap_s
+            if rate is not None and rate * gap_s >= _SAMPLES_PER_GAP:  # the rate would do: the stream stalls
+                text = f"ATTITUDE arrives at {rate:.0f} Hz but stalls for more than timing.max_attitude_gap_s ({gap_s:g} s)"
+                short = f"ATTITUDE stalls > {gap_s:g} s"
+            elif rate is not None:
                 want = max(self.config.camera.rate_hz, 2 * rate)
                 text = f"ATTITUDE arrives at {rate:.0f} Hz; raise link.attitude_rate_hz to {want:.0f}"
                 short = f"ATTITUDE {rate:.0f} Hz; link.attitude_rate_hz {want:.0f}"  # STATUSTEXT holds 50 characters
