@@ -297,7 +297,7 @@ def test_a_second_stop_signal_skips_the_drain():
         source.push(np.zeros((480, 640), np.uint8), time.monotonic())
         assert wait_for(lambda: d.counters["frames"] == 1)  # the worker is inside the stuck odometry
         d.on_signal(signal.SIGTERM, None)
-        assert not done.wait(0.5)  # draining: waiting for the worker (up to 60 s)
+        assert d.stop_event.is_set() and not done.is_set()  # draining: waiting for the worker (up to 60 s)
         d.on_signal(signal.SIGTERM, None)
         assert done.wait(30.0)  # the second signal: no more waiting
     finally:
