@@ -7,14 +7,17 @@
 - The worker pairs each frame with roll/pitch at its exposure, runs :meth:`mavvo.odometry.pipeline.Odometry.step`
   and sends the estimate: VISION_POSITION_ESTIMATE (capped at ``output.max_rate_hz``), optionally
   VISION_SPEED_ESTIMATE and ODOMETRY, nothing while failed.
-- The calling thread supervises: SIGTERM/SIGINT set the stop flag (handlers restored afterwards),
-  systemd READY/WATCHDOG/STOPPING, STATUSTEXT on state changes (also "failed" when estimates stop
-  coming: no attitude, no frames), NAMED_VALUE_FLOAT health, counters in the log every
-  ``service.health_log_interval_s``.
+- The calling thread supervises: SIGTERM/SIGINT set the stop flag (a second one skips the drain;
+  SIGHUP reopens the recording; handlers only set flags and are restored afterwards), systemd
+  READY/WATCHDOG/STOPPING (WATCHDOG only while every thread's loop turns), STATUSTEXT on state changes
+  (also "failed" when estimates stop coming: no attitude, no frames), NAMED_VALUE_FLOAT health,
+  counters in the log every ``service.health_log_interval_s``.
 
 Bad input from the flight controller or the camera never stops the service: it is logged, counted,
-reported over MAVLink and skipped. The stop is bounded: the worker finishes its frame, the link sends
-what is queued, and every thread is joined within ``service.shutdown_drain_s``.
+reported over MAVLink and skipped. A thread that dies, or a camera lost for ``camera.lost_after_s``,
+ends the run with ``DaemonSummary.failure`` set (``mavvo run`` exits 1 for systemd to restart it). The
+stop is bounded: the worker finishes its frame, the link sends what is queued, and every thread is
+joined within ``service.shutdown_drain_s``.
 """
 
 from __future__ import annotations
