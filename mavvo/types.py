@@ -48,6 +48,7 @@ class StateReason(StrEnum):
     FEW_INLIERS = "few_inliers"
     SCALE_HELD = "scale_held"
     SCALE_ASSUMED = "scale_assumed"
+    ATTITUDE_INTERPOLATED = "attitude_interpolated"  # roll/pitch from samples far apart (a slow ATTITUDE stream)
     # The service, when estimates stop coming.
     NO_ATTITUDE = "no_attitude"
     NO_FRAMES = "no_frames"
@@ -99,6 +100,10 @@ class PairedFrame:
         fc_position_ned_m: (3,) the flight controller's own estimate of the vehicle's position at the
             exposure (LOCAL_POSITION_NED, its EKF's belief), or None: where tracking is anchored when
             it starts or restarts, so the EKF sees no step.
+        attitude_gap_s: time between the two ATTITUDE samples roll/pitch were interpolated between (0:
+            one fell on the exposure).
+        interpolation_sigma_rad: roll/pitch error the interpolation may add, 1 sigma, radians; above
+            the flight controller's own (``odometry.attitude_sigma_deg``) the estimate is degraded.
     """
 
     image: np.ndarray
@@ -110,6 +115,8 @@ class PairedFrame:
     range_m: float | None = None
     height_m: float | None = None
     fc_position_ned_m: np.ndarray | None = None
+    attitude_gap_s: float = 0.0
+    interpolation_sigma_rad: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -124,6 +131,9 @@ class VoDiagnostics:
         residual_rms_px: RMS reprojection (Sampson) error of the inliers, pixels.
         scale_source: :class:`ScaleSource`.
         keyframe: a new keyframe was made from this frame.
+        attitude_gap_s: between the ATTITUDE samples the frame's roll/pitch came from (0: exact).
+        attitude_sigma_deg: roll/pitch uncertainty of the frame, the flight controller's and the
+            interpolation's together, 1 sigma.
     """
 
     state: VisionState
@@ -135,6 +145,8 @@ class VoDiagnostics:
     residual_rms_px: float = float("nan")
     scale_source: ScaleSource = ScaleSource.NONE
     keyframe: bool = False
+    attitude_gap_s: float = 0.0
+    attitude_sigma_deg: float = float("nan")
 
 
 @dataclass(frozen=True)

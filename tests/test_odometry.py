@@ -175,3 +175,32 @@ def test_north_comes_from_the_flight_controller_heading() -> None:
     first = run.estimates[0]
     true_yaw = run.sequence.trajectory.state(first.t_exposure_s).yaw_rad
     assert abs(first.rpy_rad[2] - true_yaw) < np.radians(3 * run.sequence.scenario.flight_controller.yaw_noise_deg)
+
+
+def test_roll_pitch_interpolated_across_a_wide_gap_degrade_the_estimate_and_widen_its_covariance() -> None:
+    """Frames whose roll/pitch came from samples 0.5 s apart (a 2 Hz telemetry stream): estimates go on,
+    degraded (``attitude_interpolated``), with the interpolation's sigma in the roll/pitch variance;
+    frames paired exactly stay tracking."""
+    import dataclasses
+    import math
+
+    seq = PairedSequence(load_scenario("hover"), duration_s=3.0)
+    vo = Odometry(seq.scenario.camera.camera_model(), seq.R_body_cam, OdometryOptions())
+    sigma_rad = math.radians(1.5)
+    out = []
+    for k, pf in enumerate(seq):
+        slow = k % 2 == 1
+        pf = dataclasses.replace(pf, attitude_gap_s=0.5 if slow else 0.0, interpolation_sigma_rad=sigma_rad if slow else 0.0)
+        e = vo.step(pf)
+        if e is not None and k > 0:
+            out.append((slow, e))
+    slow_est = [e for s, e in out if s and e.quality >= 0]
+    exact_est = [e for s, e in out if not s and e.quality >= 0]
+    assert len(slow_est) >= 20 and len(exact_est) >= 20
+    assert all(e.diagnostics.state == "degraded" and e.diagnostics.reason == "attitude_interpolated" for e in slow_est)
+    assert all(e.diagnostics.state == "tracking" for e in exact_est)
+    base_var = math.radians(OdometryOptions().attitude_sigma_deg) ** 2
+    assert all(e.covariance[3, 3] == pytest.approx(base_var + sigma_rad ** 2) for e in slow_est)
+    assert all(e.covariance[3, 3] == pytest.approx(base_var) for e in exact_est)
+    assert all(e.diagnostics.attitude_sigma_deg == pytest.approx(math.degrees(math.sqrt(base_var + sigma_rad ** 2))) for e in slow_est)
+    assert max(e.quality for e in slow_est) <= OdometryOptions().degraded_quality_max

@@ -6,9 +6,11 @@ from __future__ import annotations
 import math
 import threading
 
+import cv2
 import numpy as np
 import pytest
 
+from mavvo.geometry.frames import R_from_euler321, euler321_from_R
 from mavvo.service.timing import ClockSync, FlightControllerState, TimingOptions, wait_for_pairing
 
 OFFSET_S = 30.0  # boot clock minus host clock
@@ -65,9 +67,38 @@ def test_roll_and_pitch_are_interpolated_at_the_exposure():
     feed(state, clock, np.arange(0.0, 1.0, 0.01), latency_s=0.0)
     p = state.pair(0.5337)
     assert p.status == "paired"
-    # Boot-clock milliseconds quantise the sample times; linear motion is interpolated exactly between them.
-    assert p.roll_rad == pytest.approx(0.05337, abs=1e-9)
-    assert p.pitch_rad == pytest.approx(-0.5 * 0.05337, abs=1e-9)
+    # Boot-clock milliseconds quantise the sample times; slow linear motion is interpolated between them.
+    assert p.roll_rad == pytest.approx(0.05337, abs=1e-6)
+    assert p.pitch_rad == pytest.approx(-0.5 * 0.05337, abs=1e-6)
+
+
+def _turning(t: float) -> np.ndarray:
+    """A vehicle tilted 20 deg and turning at a constant 1 rad/s about an axis that is neither level nor
+    vertical: its Euler angles do not change linearly."""
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    return R_from_euler321(math.radians(20.0), 0.0, 0.0) @ cv2.Rodrigues(axis * t)[0]
+
+
+def test_a_slow_stream_is_interpolated_on_the_rotation_and_its_uncertainty_grows_with_the_gap():
+    clock = FakeClock()
+    state = FlightControllerState(clock, TimingOptions(max_attitude_gap_s=0.5, attitude_accel_rad_s2=1.0))
+    for t in (0.0, 0.5, 1.0):  # 2 Hz, as a ground station logs
+        clock.t = t
+        state.on_attitude(int(round((t + OFFSET_S) * 1000)), *euler321_from_R(_turning(t)))
+    p = state.pair(0.25)
+    truth = euler321_from_R(_turning(0.25))
+    assert p.status == "paired"
+    assert np.allclose([p.roll_rad, p.pitch_rad, p.yaw_rad], truth, atol=1e-9)
+    # Each angle on its own would be degrees off here: the test tells the two apart.
+    r0, r1 = euler321_from_R(_turning(0.0)), euler321_from_R(_turning(0.5))
+    per_angle = [(a + b) / 2 for a, b in zip(r0, r1)]
+    assert max(abs(a - b) for a, b in zip(per_angle[:2], truth[:2])) > math.radians(0.5)
+    # a/2 (t - t0)(t1 - t): 0.5 * 1.0 * 0.25 * 0.25 at the middle, less near a sample, 0 on one.
+    assert p.attitude_gap_s == pytest.approx(0.5, abs=1e-6)
+    assert p.interpolation_sigma_rad == pytest.approx(0.03125, rel=1e-3)
+    assert state.pair(0.6).interpolation_sigma_rad == pytest.approx(0.5 * 0.1 * 0.4, rel=1e-3)
+    on_sample = state.pair(0.5)
+    assert on_sample.attitude_gap_s == 0.0 and on_sample.interpolation_sigma_rad == 0.0
 
 
 def test_yaw_is_interpolated_the_short_way_across_pi():
@@ -76,7 +107,7 @@ def test_yaw_is_interpolated_the_short_way_across_pi():
     yaw = lambda t: math.remainder(math.pi - 0.02 + 0.4 * t, math.tau)  # crosses +pi at t = 0.05
     feed(state, clock, np.arange(0.0, 0.2, 0.01), latency_s=0.0, yaw=yaw)
     p = state.pair(0.055)
-    assert p.status == "paired" and abs(math.remainder(p.yaw_rad - yaw(0.055), math.tau)) < 1e-9
+    assert p.status == "paired" and abs(math.remainder(p.yaw_rad - yaw(0.055), math.tau)) < 1e-5  # not pi - 0.02 + ... - 2 pi
 
 
 def test_a_frame_waits_for_the_attitude_after_its_exposure_and_refuses_a_gap():
@@ -160,7 +191,7 @@ def test_one_forged_attitude_stamped_ahead_is_refused_and_genuine_ones_go_on_pai
     feed(state, clock, np.arange(2.01, 3.0, 0.01))
     assert state.counters["attitude_implausible"] == 1 and state.counters["attitude_rejected"] == 0
     p = state.pair(2.505)
-    assert p.status == "paired" and p.roll_rad == pytest.approx(0.1 * (2.505 - 0.004), abs=1e-9)  # the 4 ms path, as before the forgery
+    assert p.status == "paired" and p.roll_rad == pytest.approx(0.1 * (2.505 - 0.004), abs=1e-6)  # the 4 ms path, as before the forgery
 
 
 def test_a_real_step_of_the_clock_is_followed_once_two_messages_agree():
@@ -170,7 +201,7 @@ def test_a_real_step_of_the_clock_is_followed_once_two_messages_agree():
     feed(state, clock, np.arange(0.0, 2.0, 0.01), latency_s=0.030)
     feed(state, clock, np.arange(2.0, 3.0, 0.01), latency_s=0.002)  # 28 ms faster from now on
     assert state.counters["attitude_implausible"] == 1  # only the first message after the step waited
-    assert state.pair(2.5).status == "paired" and state.pair(2.5).roll_rad == pytest.approx(0.1 * (2.5 - 0.002), abs=1e-9)  # the bound: the 2 ms path
+    assert state.pair(2.5).status == "paired" and state.pair(2.5).roll_rad == pytest.approx(0.1 * (2.5 - 0.002), abs=1e-6)  # the bound: the 2 ms path
 
 
 def test_a_forged_timesync_answer_does_not_move_the_offset():
@@ -195,3 +226,19 @@ def test_samples_exactly_the_gap_limit_apart_pair():
     wider = FlightControllerState(FakeClock(), TimingOptions(max_attitude_gap_s=0.049))
     feed(wider, wider.clock, [k * 0.05 for k in range(40)])
     assert wider.pair(1.0125 - 0.004).status == "stale"  # a limit below the gap still refuses
+
+
+def test_a_frame_paired_late_takes_the_rangefinder_and_height_nearest_its_exposure():
+    """A frame paired after a slow ATTITUDE stream's next sample: newer readings have arrived meanwhile;
+    the ones nearest the exposure are used, and none when none is close enough."""
+    clock = FakeClock()
+    state = FlightControllerState(clock, TimingOptions(max_attitude_gap_s=0.5, range_max_age_s=0.2, height_max_age_s=0.2))
+    feed(state, clock, [0.0, 0.5], latency_s=0.0)
+    for t, r in ((0.1, 3.1), (0.2, 3.2), (0.3, 3.3), (0.45, 3.45)):
+        state.on_range(int(round((t + OFFSET_S) * 1000)), r)
+        state.on_height(int(round((t + OFFSET_S) * 1000)), 10 * r)
+    p = state.pair(0.21)
+    assert p.status == "paired" and p.range_m == pytest.approx(3.2) and p.height_m == pytest.approx(32.0)
+    assert state.pair(0.42).range_m == pytest.approx(3.45)
+    state.on_range(int(round((0.46 + OFFSET_S) * 1000)), None)  # out of range now
+    assert state.pair(0.47).range_m is None and state.pair(0.36).range_m == pytest.approx(3.3)

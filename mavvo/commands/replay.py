@@ -75,7 +75,15 @@ def main(args: argparse.Namespace) -> int:
                 f"vs {summary['reference']}: ATE {ev['ate_se3_m']['rmse']:.3f} m RMSE ({ev['ate_se3_rmse_percent_of_path']:.2f}% of "
                 f"{ev['path_length_m']:.1f} m), Sim(3) {ev['ate_sim3_m']['rmse']:.3f} m at scale {ev['sim3_scale']:.3f}"
             )
+        ap = summary["attitude_pairing"]
+        if ap is not None and ap["degraded"]:
+            print(
+                f"attitude: samples up to {ap['gap_s_max']:.2f} s apart (median {ap['gap_s_median']:.3f} s): roll/pitch sigma "
+                f"{ap['sigma_deg_median']:.2f} deg median, {ap['sigma_deg_p95']:.2f} deg 95th percentile; {ap['degraded']} estimates degraded for it"
+            )
         print(f"report: {out} ({', '.join(summary['files'])})")
+    for warning in inp.warnings:
+        print(f"mavvo: warning: {warning}", file=sys.stderr)
     for problem in inp.problems:
         print(f"mavvo: {problem}", file=sys.stderr)
     if res.stopped and inp.frames:  # Ctrl-C: a clean stop, like the service's

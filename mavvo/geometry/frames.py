@@ -169,3 +169,21 @@ def R_from_quat_wxyz(q: np.ndarray) -> np.ndarray:
         np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1),
     ], axis=1)
     return R[0] if single else R
+
+
+def interpolate_euler321(rpy0_rad: tuple[float, float, float], rpy1_rad: tuple[float, float, float], w: float) -> tuple[float, float, float]:
+    """Euler 3-2-1 angles (roll, pitch, yaw; radians) of the rotation a fraction ``w`` (0..1) of the way
+    from ``rpy0_rad`` to ``rpy1_rad`` along the shortest arc (slerp): the attitude between two samples
+    turning at a constant rate, which interpolating each angle on its own is not once the vehicle tilts
+    and turns at once."""
+    q0 = quat_wxyz_from_R(R_from_euler321(*rpy0_rad))
+    q1 = quat_wxyz_from_R(R_from_euler321(*rpy1_rad))
+    dot = float(q0 @ q1)
+    if dot < 0.0:  # q and -q are one rotation: take the short way
+        q1, dot = -q1, -dot
+    theta = float(np.arccos(min(dot, 1.0)))
+    if theta < 1e-9:
+        q = q0
+    else:
+        q = (np.sin((1.0 - w) * theta) * q0 + np.sin(w * theta) * q1) / np.sin(theta)  # q(w) = slerp(q0, q1; w)
+    return euler321_from_R(R_from_quat_wxyz(q))

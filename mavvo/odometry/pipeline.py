@@ -322,6 +322,8 @@ class Odometry:
             reason = _UNTRUSTED_SCALE_REASON[m.scale.source]
         elif rp.num_inliers < opt.keyframes.min_inliers:
             reason = StateReason.FEW_INLIERS
+        elif frame.interpolation_sigma_rad ** 2 > self._att_var:
+            reason = StateReason.ATTITUDE_INTERPOLATED
         degraded = reason != StateReason.NONE
         quality = self._quality(rp, degraded=degraded)
         depth = self._scene_depth_m or opt.scale.initial_depth_m
@@ -337,7 +339,9 @@ class Odometry:
         else:
             # Parallax, but too few points to triangulate: the translation is not measured.
             p_meas, unresolved = None, 0.0
-        # Image noise moves a position by an angle times the depth: the noise scales with it.
+        # Image noise moves a position by an angle times the depth: the noise scales with it; so does a
+        # roll/pitch error the pairing's interpolation may carry (it turns every bearing by that much).
+        unresolved += depth * frame.interpolation_sigma_rad
         pos_sigma = (opt.position_sigma_m * max(depth / _REFERENCE_DEPTH_M, 0.2) + unresolved) * 100.0 / quality
         yaw_sigma = self._yaw_sigma_rad * 100.0 / quality
         self.filter.predict(frame.t_exposure_s)
@@ -361,6 +365,7 @@ class Odometry:
             state=VisionState.DEGRADED if degraded else VisionState.TRACKING, reason=reason, tracks=len(tracks.ids), inliers=rp.num_inliers,
             inlier_ratio=rp.inlier_ratio, parallax_px=m.parallax_px, residual_rms_px=rp.residual_rms_rad * self._focal_px,
             scale_source=m.scale.source if m.scale is not None else ScaleSource.NONE, keyframe=bool(why_kf),
+            attitude_gap_s=frame.attitude_gap_s, attitude_sigma_deg=math.degrees(math.sqrt(self._att_var + frame.interpolation_sigma_rad ** 2)),
         )
         return self._estimate(frame, diag, quality=quality)
 
@@ -406,7 +411,7 @@ class Odometry:
         f = self.filter
         cov = np.zeros((6, 6))
         cov[:3, :3] = f.position_covariance
-        cov[3, 3] = cov[4, 4] = self._att_var
+        cov[3, 3] = cov[4, 4] = self._att_var + frame.interpolation_sigma_rad ** 2
         cov[5, 5] = f.yaw_variance
         p = f.position_ned_m
         drift = self._drift.sigma_m(p, self.options.drift_per_m, self._heading_sigma_rad)

@@ -424,7 +424,9 @@ class Daemon:
         # The flight controller's yaw steers the heading only while it is settled (not converging after
         # a boot or reboot); meanwhile vision's heading carries on alone.
         fc_yaw = p.yaw_rad if p.yaw_settled else math.nan
-        paired = PairedFrame(frame.image, frame.t_exposure_s, frame.seq, p.roll_rad, p.pitch_rad, fc_yaw, p.range_m, p.height_m, fc_p)
+        paired = PairedFrame(
+            frame.image, frame.t_exposure_s, frame.seq, p.roll_rad, p.pitch_rad, fc_yaw, p.range_m, p.height_m, fc_p, p.attitude_gap_s, p.interpolation_sigma_rad,
+        )
         try:
             est = self.odometry.step(paired)
         except ValueError as e:  # a malformed image (wrong size, not grey 8-bit)

@@ -19,9 +19,12 @@ path, or a reboot, which the link handles); a TIMESYNC answer whose offset disag
 by more than its round trip allows is refused. Both are counted.
 
 :class:`FlightControllerState` keeps the recent ATTITUDE samples (and the latest rangefinder and
-height) and pairs a frame with roll/pitch/yaw interpolated at its exposure time. A frame is paired only
-between two samples that bracket it at most ``max_attitude_gap_s`` apart; otherwise it waits for a
-newer sample or is skipped and counted, never paired with a wrong attitude. Only this module reads a
+height) and pairs a frame with roll/pitch/yaw interpolated at its exposure time (slerp between the two
+samples around it). A frame is paired only between two samples that bracket it at most
+``max_attitude_gap_s`` apart (inclusive); otherwise it waits for a newer sample or is skipped and
+counted, never paired with a wrong attitude. The interpolation's own uncertainty, which grows with the
+gap (``attitude_accel_rad_s2``), goes with the pairing: a slow stream (a telemetry log's 2 Hz) pairs
+every frame and reports it degraded. Only this module reads a
 clock, and the clock is injected.
 """
 
@@ -35,6 +38,7 @@ from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
+from mavvo.geometry.frames import interpolate_euler321
 from mavvo.options import bounded
 
 __all__ = [
@@ -66,9 +70,10 @@ class TimingOptions:
     """Pairing frames with the flight controller's attitude."""
 
     max_attitude_gap_s: float = bounded(0.05, "longest gap between the two ATTITUDE samples around an exposure (inclusive)", gt=0, le=1)
+    attitude_accel_rad_s2: float = bounded(1.0, "angular acceleration assumed between two ATTITUDE samples: sizes the uncertainty of roll/pitch interpolated between them (at the middle of a 0.5 s gap: 1.8 deg)", gt=0, le=100)
     attitude_wait_s: float = bounded(0.1, "how long after an exposure to wait for the ATTITUDE that follows it", gt=0, le=1)
-    range_max_age_s: float = bounded(0.2, "a rangefinder reading older than this at the exposure is not used", gt=0, le=10)
-    height_max_age_s: float = bounded(0.5, "a height reading older than this at the exposure is not used", gt=0, le=10)
+    range_max_age_s: float = bounded(0.2, "the rangefinder reading nearest the exposure is used if it is at most this far from it", gt=0, le=10)
+    height_max_age_s: float = bounded(0.5, "the height reading nearest the exposure is used if it is at most this far from it", gt=0, le=10)
     sync_window_s: float = bounded(30.0, "window of the clock-offset filters (tracks clock drift)", gt=0, le=3600)
     clock_step_max_s: float = bounded(0.005, "an ATTITUDE stamped this much ahead of every earlier one is used only if the next one agrees (a single forged or broken stamp is refused)", gt=0, le=1)
     sync_warmup_samples: int = bounded(50, "ATTITUDE arrivals that set the clock bound before the step check starts", ge=1, le=10000)
@@ -88,6 +93,7 @@ def _euler_yaw_rate(roll_rad: float, pitch_rad: float, body_rates_rad_s: tuple[f
 
 
 _MAX_LATENCY_S = 0.1  # the fastest message in a sync window took at most this long to arrive
+_READINGS_KEPT = 64  # rangefinder and height readings kept: seconds of them at usual rates
 _GAP_SLACK_S = 1e-6  # time_boot_ms / 1000 is not exact in binary: 1.05 - 1.0 > 0.05
 
 
@@ -199,6 +205,8 @@ class Pairing:
     height_m: float | None = None
     fc_position_ned_m: tuple[float, float, float] | None = None  # the flight controller's own estimate at the exposure
     yaw_settled: bool = False  # the flight controller's yaw has stopped converging (see FlightControllerState)
+    attitude_gap_s: float = 0.0  # between the two ATTITUDE samples around the exposure (0: one fell on it)
+    interpolation_sigma_rad: float = 0.0  # roll/pitch error the interpolation may add (see FlightControllerState.pair)
 
 
 class FlightControllerState:
@@ -228,8 +236,10 @@ class FlightControllerState:
         self._sync = ClockSync(options.sync_window_s, options.clock_step_max_s, options.sync_warmup_samples)
         self._t_fc: list[float] = []  # ATTITUDE times, increasing
         self._rpy: list[tuple[float, float, float]] = []
-        self._range: tuple[float, float | None] | None = None  # (t_fc_s, metres or None for no reading)
-        self._height: tuple[float, float] | None = None
+        # Recent readings, (t_fc_s, metres; None: no reading): a frame paired late (a slow ATTITUDE
+        # stream) takes the one nearest its exposure, not the newest.
+        self._range: deque[tuple[float, float | None]] = deque(maxlen=_READINGS_KEPT)
+        self._height: deque[tuple[float, float | None]] = deque(maxlen=_READINGS_KEPT)
         self._local: tuple[float, tuple[float, float, float], tuple[float, float, float]] | None = None  # (t_fc_s, p, v)
         self._yaw_drift: deque[tuple[float, float]] = deque()  # (t_fc_s, unwrapped yaw minus integrated yawspeed)
         self._yaw_prev: tuple[float, float, float] | None = None  # (t_fc_s, unwrapped yaw, yawspeed)
@@ -313,14 +323,14 @@ class FlightControllerState:
         """A downward rangefinder reading (None: out of range or no target)."""
         with self._lock:
             self.version += 1
-            self._range = (t_fc_ms * 1e-3, range_m if range_m is not None and math.isfinite(range_m) else None)
+            self._range.append((t_fc_ms * 1e-3, range_m if range_m is not None and math.isfinite(range_m) else None))
 
     def on_height(self, t_fc_ms: int, height_m: float, t_arrival_host_s: float | None = None) -> None:
         """The vehicle's height above home (take-off), metres, positive up."""
         with self._lock:
             self.version += 1
             if math.isfinite(height_m):
-                self._height = (t_fc_ms * 1e-3, height_m)
+                self._height.append((t_fc_ms * 1e-3, height_m))
 
     def on_timesync(self, t_sent_host_s: float, t_fc_s: float, t_arrival_host_s: float | None = None) -> None:
         """The answer to a TIMESYNC request that was sent at ``t_sent_host_s``."""
@@ -338,8 +348,8 @@ class FlightControllerState:
             self._sync.reset()
             self._t_fc.clear()
             self._rpy.clear()
-            self._range = None
-            self._height = None
+            self._range.clear()
+            self._height.clear()
             self._local = None
             self._yaw_drift.clear()
             self._yaw_prev = None
@@ -361,6 +371,7 @@ class FlightControllerState:
         i = bisect.bisect_left(self._t_fc, t)
         if i == len(self._t_fc):
             return Pairing("wait", v)
+        gap_s = sigma_rad = 0.0
         if self._t_fc[i] == t:
             roll, pitch, yaw = self._rpy[i]
         else:
@@ -368,22 +379,20 @@ class FlightControllerState:
             if i == 0 or self._t_fc[i] - self._t_fc[i - 1] > self.options.max_attitude_gap_s + _GAP_SLACK_S:
                 return Pairing("stale", v)
             t0, t1 = self._t_fc[i - 1], self._t_fc[i]
-            w = (t - t0) / (t1 - t0)
             (r0, p0, y0), (r1, p1, y1) = self._rpy[i - 1], self._rpy[i]
-            roll = r0 + w * (r1 - r0)
-            pitch = p0 + w * (p1 - p0)
-            yaw = y0 + w * math.remainder(y1 - y0, math.tau)
-            yaw = math.remainder(yaw, math.tau)
-        range_m = height_m = None
-        if self._range is not None and abs(t - self._range[0]) <= self.options.range_max_age_s:
-            range_m = self._range[1]
-        if self._height is not None and abs(t - self._height[0]) <= self.options.height_max_age_s:
-            height_m = self._height[1]
+            known_yaw = math.isfinite(y0) and math.isfinite(y1)  # else roll/pitch as if yaw stood still
+            roll, pitch, yaw = interpolate_euler321((r0, p0, y0 if known_yaw else 0.0), (r1, p1, y1 if known_yaw else 0.0), (t - t0) / (t1 - t0))
+            yaw = yaw if known_yaw else math.nan
+            gap_s = t1 - t0
+            # Error of interpolating at constant rate when the rate changes at up to a: a/2 (t - t0)(t1 - t).
+            sigma_rad = 0.5 * self.options.attitude_accel_rad_s2 * (t - t0) * (t1 - t)
+        range_m = _nearest(self._range, t, self.options.range_max_age_s)
+        height_m = _nearest(self._height, t, self.options.height_max_age_s)
         fc_p = None
         if self._local is not None and abs(t - self._local[0]) <= self.options.local_position_max_age_s:
             t_l, p_l, v_l = self._local
             fc_p = (p_l[0] + v_l[0] * (t - t_l), p_l[1] + v_l[1] * (t - t_l), p_l[2] + v_l[2] * (t - t_l))  # moved on to the exposure
-        return Pairing("paired", v, roll, pitch, yaw, range_m, height_m, fc_p, self.yaw_settled)
+        return Pairing("paired", v, roll, pitch, yaw, range_m, height_m, fc_p, self.yaw_settled, gap_s, sigma_rad)
 
     def clock_offset_s(self) -> float | None:
         """The current estimate of ``t_fc_s - t_host_s`` (None before the flight controller is heard)."""
@@ -401,6 +410,12 @@ class FlightControllerState:
         """Block until the next ATTITUDE arrives or ``timeout_s`` of real time passes."""
         with self._new_data:
             self._new_data.wait(timeout_s)
+
+
+def _nearest(readings: deque[tuple[float, float | None]], t: float, max_age_s: float) -> float | None:
+    """The reading nearest ``t`` (before or after), or None when none is within ``max_age_s``."""
+    best = min(readings, key=lambda r: abs(r[0] - t), default=None)
+    return best[1] if best is not None and abs(best[0] - t) <= max_age_s else None
 
 
 def wait_for_pairing(state: FlightControllerState, t_exposure_host_s: float, *, lockstep_wait_s: float = 0.05) -> Pairing:

@@ -74,6 +74,7 @@ class ReplayInput:
     expected_vpe: list[bytes] | None = None  # a recording's VISION_POSITION_ESTIMATE payloads, in order
     notes: dict[str, Any] = field(default_factory=dict)  # facts worth reporting (e.g. the time offset used)
     problems: list[str] = field(default_factory=list)  # bad input found while loading: the exit is non-zero
+    warnings: list[str] = field(default_factory=list)  # what the result lacks (no reference, a guessed height): told, exit 0
 
 
 @dataclass(frozen=True)
@@ -92,6 +93,8 @@ class QualityRow:
     scale_source: ScaleSource
     keyframe: bool
     reset_counter: int
+    attitude_gap_s: float  # between the ATTITUDE samples the frame's roll/pitch came from
+    attitude_sigma_deg: float  # roll/pitch uncertainty, the flight controller's and the interpolation's
 
 
 @dataclass
@@ -266,7 +269,7 @@ def replay(inp: ReplayInput, progress: Callable[[int, int], None] | None = None)
         d = e.diagnostics
         quality.append(QualityRow(
             e.t_exposure_s, d.state, d.reason, int(e.quality), d.tracks, d.inliers, d.inlier_ratio, d.parallax_px,
-            d.residual_rms_px, d.scale_source, d.keyframe, e.reset_counter,
+            d.residual_rms_px, d.scale_source, d.keyframe, e.reset_counter, d.attitude_gap_s, d.attitude_sigma_deg,
         ))
 
     wall0 = time.perf_counter()

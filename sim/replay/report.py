@@ -3,7 +3,8 @@ against a reference (ground truth or the flight controller's own position), the 
 
 Files in the output folder:
 - ``estimate.tum``: what the flight controller received (VISION_POSITION_ESTIMATE at ``usec``);
-- ``quality.csv`` and ``quality.png``: per estimate: state, quality, tracks, inliers, parallax, scale source;
+- ``quality.csv`` and ``quality.png``: per estimate: state, quality, tracks, inliers, parallax, scale source,
+  the gap between the ATTITUDE samples around the frame and the roll/pitch uncertainty it left;
 - ``reference.tum`` and ``evaluation.png``: the reference at the estimates' times and the comparison;
 - ``summary.json``: counts, speed, the evaluation, problems found in the input, notes (e.g. the time
   offset used and its confidence).
@@ -20,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from mavvo.types import StateReason
 from sim.evaluation.metrics import Evaluation, PoseSeries, evaluate
 from sim.replay.driver import QualityRow, ReplayInput, ReplayResult
 from sim.evaluation.report import plot_evaluation, write_tum
@@ -74,7 +76,7 @@ def write_quality(out: Path, rows: list[QualityRow], title: str) -> None:
 
     t0 = rows[0].t_exposure_s
     t = np.array([r.t_exposure_s - t0 for r in rows])
-    fig, ax = plt.subplots(figsize=(11, 3.6))
+    fig, (ax, ax_att) = plt.subplots(2, 1, figsize=(11, 4.8), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
     start = 0
     for i in range(1, len(rows) + 1):  # shade each run of one state
         if i == len(rows) or rows[i].state != rows[start].state:
@@ -82,7 +84,11 @@ def write_quality(out: Path, rows: list[QualityRow], title: str) -> None:
             start = i
     ax.plot(t, [r.quality for r in rows], color="tab:blue", lw=1.0, label="quality [%]")
     ax.set_ylim(-5, 105)
-    ax.set_xlabel("time [s]")
+    ax_att.plot(t, [r.attitude_sigma_deg for r in rows], color="tab:purple", lw=1.0)
+    ax_att.set_ylabel("roll/pitch\nsigma [deg]", fontsize=8)
+    ax_att.set_xlabel("time [s]")
+    gaps = [r.attitude_gap_s for r in rows]
+    ax_att.set_title(f"attitude pairing: samples up to {max(gaps):.2f} s apart (median {float(np.median(gaps)):.3f} s)", fontsize=8)
     ax.set_ylabel("quality [%]")
     ax2 = ax.twinx()
     ax2.plot(t, [r.inliers for r in rows], color="tab:green", lw=0.8, alpha=0.8, label="inliers")
@@ -115,6 +121,22 @@ def _plot_path(path: Path, est: PoseSeries, title: str) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
+
+
+def attitude_pairing(rows: list[QualityRow]) -> dict[str, Any] | None:
+    """How far apart the ATTITUDE samples around the frames were and the roll/pitch uncertainty that
+    left; ``degraded``: estimates degraded for it (``attitude_interpolated``)."""
+    if not rows:
+        return None
+    gap = np.array([r.attitude_gap_s for r in rows])
+    sigma = np.array([r.attitude_sigma_deg for r in rows])
+    sigma = sigma[np.isfinite(sigma)]
+    return {
+        "gap_s_median": round(float(np.median(gap)), 4), "gap_s_max": round(float(gap.max()), 4),
+        "sigma_deg_median": round(float(np.median(sigma)), 3) if len(sigma) else None,
+        "sigma_deg_p95": round(float(np.percentile(sigma, 95)), 3) if len(sigma) else None,
+        "degraded": sum(1 for r in rows if r.reason == StateReason.ATTITUDE_INTERPOLATED),
+    }
 
 
 def write_replay_report(out_dir: str | Path, inp: ReplayInput, res: ReplayResult) -> dict[str, Any]:
@@ -157,7 +179,8 @@ def write_replay_report(out_dir: str | Path, inp: ReplayInput, res: ReplayResult
         "recorded_estimates": None if inp.expected_vpe is None else len(inp.expected_vpe),
         "reference": inp.reference_label or None,
         "evaluation": None if evaluation is None else evaluation.to_dict(),
-        "notes": inp.notes, "problems": inp.problems, "statustexts": res.statustexts,
+        "attitude_pairing": attitude_pairing(res.quality),
+        "notes": inp.notes, "problems": inp.problems, "warnings": inp.warnings, "statustexts": res.statustexts,
         "counters": c, "files": sorted(files),
     }
     summary = _finite(summary)

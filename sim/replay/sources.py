@@ -11,6 +11,8 @@ at its own time stamp and a frame exposed at video time ``t`` is at ``t + offset
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -21,7 +23,7 @@ from mavvo.service.yaml_loader import load_yaml
 from mavvo.service.camera import read_frame_index
 from mavvo.errors import CameraError, ConfigError
 from mavvo.geometry.frames import R_from_euler321
-from mavvo.service.settings import parse_config
+from mavvo.service.settings import ServiceConfig, parse_config
 from sim.replay.fc_logs import FcSeries, read_fc_log, series_messages
 from sim.evaluation.metrics import PoseSeries
 from sim.replay.recording import is_recording, load_recording
@@ -149,6 +151,25 @@ def _load_config(path: Path | None) -> dict[str, Any]:
     return load_yaml(path) if path is not None else {}
 
 
+def paired_at_log_rate(config: ServiceConfig, t_attitude_s: np.ndarray) -> tuple[ServiceConfig, dict[str, Any]]:
+    """``config`` with ``timing.max_attitude_gap_s`` set from the log's own ATTITUDE rate, so that every
+    frame pairs: a live link's 50 ms limit would skip every frame of a ground station's 2 Hz telemetry
+    log. The limit is 1.5 times the median interval or the 99th percentile, whichever is longer (never
+    below the configured one, at most 1 s); the interpolation's uncertainty grows with the gap and
+    degrades the estimates that need it (``timing.attitude_accel_rad_s2``)."""
+    dt = np.diff(t_attitude_s)
+    dt = dt[dt > 0]
+    configured = config.timing.max_attitude_gap_s
+    if not len(dt):
+        return config, {"rate_hz": None, "max_gap_s": configured}
+    gap = min(max(configured, 1.5 * float(np.median(dt)), float(np.percentile(dt, 99))), 1.0)
+    gap = math.ceil(gap * 1000.0) / 1000.0  # to the boot clock's millisecond
+    timing = dataclasses.replace(config.timing, max_attitude_gap_s=gap, history_s=max(config.timing.history_s, 4.0 * gap))
+    note = {"rate_hz": round(1.0 / float(np.median(dt)), 2), "max_gap_s": gap, "configured_max_gap_s": configured,
+            "longest_interval_s": round(float(dt.max()), 3)}
+    return dataclasses.replace(config, timing=timing), note
+
+
 def _fc_reference(s: FcSeries) -> PoseSeries | None:
     """The flight controller's own position (LOCAL_POSITION_NED, XKF1) with its attitude."""
     if len(s.local_ned_m) < 3:
@@ -186,6 +207,7 @@ def _from_log(log_path: Path, config_path: Path | None, video: Path | None, fps:
         raise ConfigError(f"--video {video}: with the offset {offset_s:.3f} s no frame falls inside the log's attitude ({s.attitude[0, 0]:.1f} to {s.attitude[-1, 0]:.1f} s)")
     if not inside.all():
         notes["frames_outside_log"] = int((~inside).sum())
+    config, notes["attitude_pairing"] = paired_at_log_rate(config, s.attitude[:, 0])
     gap = config.timing.max_attitude_gap_s
     frames = [
         ReplayFrame(k, float(t), float(t) + gap, None, (lambda k=k: frames_src.load(k)))
