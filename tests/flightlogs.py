@@ -16,7 +16,8 @@ import numpy as np
 from mavvo.service.settings import ServiceConfig, config_yaml
 from sim.world.camera import SimCamera
 from sim.world.clock import LockstepClock
-from sim.replay.fc_logs import write_dataflash
+from mavvo.geometry.frames import R_from_euler321, quat_wxyz_from_R
+from sim.replay.fc_logs import write_dataflash, write_ulog
 from mavvo.service.mavlink import mavutil
 from sim.evaluation.metrics import PoseSeries
 from sim.evaluation.report import write_tum
@@ -49,9 +50,10 @@ def _samples(trajectory, duration_s: float, rate_hz: float, rng: np.random.Gener
 def make_log_flight(
     tmp: Path, *, kind: str = "tlog", video: str = "folder", scenario: str = "figure_eight", duration_s: float = 16.0,
     video_start_s: float = 1.5, video_end_s: float | None = None, with_attitude: bool = True, with_local_position: bool = False,
+    attitude_rate_hz: float = 50.0,
 ) -> LogFlight:
-    """Write a log (``tlog`` or ``bin``), a video (``folder`` with timestamps.txt or ``avi``) and the
-    camera's config into ``tmp``."""
+    """Write a log (``tlog``, ``bin`` or ``ulg``), a video (``folder`` with timestamps.txt or ``avi``)
+    and the camera's config into ``tmp``."""
     sc = load_scenario(scenario)
     traj = make_trajectory(sc.trajectory)
     rng = np.random.default_rng(7)
@@ -59,7 +61,7 @@ def make_log_flight(
     config = tmp / "camera.yaml"
     config.write_text(config_yaml(cfg), encoding="utf-8")
 
-    att = list(_samples(traj, duration_s, 50.0, rng, 0.02)) if with_attitude else []
+    att = list(_samples(traj, duration_s, attitude_rate_hz, rng, 0.02)) if with_attitude else []
     heights = [(t, h) for t, *_, h in _samples(traj, duration_s, 10.0, rng, 0.0)]
     poses = [(float(t), *traj.pose(float(t))) for t in np.arange(0.0, duration_s, 0.05)]
     ranges = [(t, -p[2] / R[2, 2]) for t, p, R in poses]  # the downward laser to flat ground
@@ -77,6 +79,21 @@ def make_log_flight(
         with log.open("wb") as f:
             for t, msg in events:
                 f.write(struct.pack(">Q", UNIX_AT_BOOT_US + int((t + BOOT_S) * 1e6)) + msg.pack(enc))
+    elif kind == "ulg":
+        log = tmp / "flight.ulg"
+        us = lambda ts: (np.asarray(ts, dtype=float) + BOOT_S) * 1e6  # noqa: E731
+        quats = [quat_wxyz_from_R(R_from_euler321(r, p, y)) for _, r, p, y, _ in att]
+        topics = {
+            "vehicle_attitude": ([("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"), ("float[4]", "q")],
+                                 {"timestamp": us([a[0] for a in att]) + 800, "timestamp_sample": us([a[0] for a in att]), "q": np.array(quats).reshape(-1, 4)}),
+            "distance_sensor": ([("uint64_t", "timestamp"), ("float", "min_distance"), ("float", "max_distance"), ("float", "current_distance"),
+                                 ("int8_t", "signal_quality"), ("uint8_t", "orientation")],
+                                {"timestamp": us([t for t, _ in ranges]), "min_distance": np.full(len(ranges), 0.2), "max_distance": np.full(len(ranges), 40.0),
+                                 "current_distance": np.array([r for _, r in ranges]), "signal_quality": np.full(len(ranges), -1), "orientation": np.full(len(ranges), 25)}),
+            "vehicle_air_data": ([("uint64_t", "timestamp"), ("float", "baro_alt_meter")],
+                                 {"timestamp": us([t for t, _ in heights]), "baro_alt_meter": 488.0 + np.array([h for _, h in heights])}),
+        }
+        write_ulog(log, topics)
     else:
         log = tmp / "flight.bin"
         formats = {
@@ -120,7 +137,7 @@ EUROC_T0_NS = 1_403_636_579_763_555_584
 def make_euroc(tmp: Path, *, scenario: str = "figure_eight", duration_s: float = 12.0) -> Path:
     """A small EuRoC/ASL folder (mav0/cam0, imu0, state_groundtruth_estimate0) of a simulated flight.
     The IMU frame is the body's turned to x forward, y left, z up (as a z-up IMU often is)."""
-    from mavvo.geometry.frames import quat_wxyz_from_R, rot_x
+    from mavvo.geometry.frames import rot_x
 
     sc = load_scenario(scenario)
     traj = make_trajectory(sc.trajectory)

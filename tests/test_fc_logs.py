@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mavvo.errors import ConfigError
-from sim.replay.fc_logs import read_fc_log, write_dataflash
+from sim.replay.fc_logs import read_fc_log, write_dataflash, write_ulog
 
 ROLL_DEG = [1.0, 2.0, 3.0, 4.0]
 
@@ -66,3 +66,70 @@ def test_a_damaged_log_keeps_its_noise_off_the_terminal(tmp_path, capfd):
     with pytest.raises(ConfigError, match="junk.bin: no ATT, AHR2 or NKF1 messages"):
         read_fc_log(tmp_path / "junk.bin")
     assert capfd.readouterr() == ("", "")
+
+
+def _px4_topics(n: int = 50) -> dict:
+    """A PX4 flight's topics: attitude at 50 Hz rolling 0.5 deg per sample, a downward and a forward
+    range sensor, local position with its height, barometer."""
+    t_us = 10_000_000 + 20_000 * np.arange(n)
+    roll = np.radians(0.5 * np.arange(n))
+    pitch, yaw = np.radians(-3.0), np.radians(120.0)
+    # q (w, x, y, z) of Euler 3-2-1 (roll, pitch, yaw), written out so the reader's conversion is checked independently
+    cr, sr, cp, sp, cy, sy = np.cos(roll / 2), np.sin(roll / 2), np.cos(pitch / 2), np.sin(pitch / 2), np.cos(yaw / 2), np.sin(yaw / 2)
+    q = np.column_stack([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy])
+    ds_t = np.repeat(t_us[::5], 2)
+    m = len(t_us[::10])
+    return {
+        "vehicle_attitude": ([("uint64_t", "timestamp"), ("float[4]", "q")], {"timestamp": t_us, "q": q}),
+        "distance_sensor": ([("uint64_t", "timestamp"), ("float", "min_distance"), ("float", "max_distance"), ("float", "current_distance"),
+                             ("int8_t", "signal_quality"), ("uint8_t", "orientation")],
+                            {"timestamp": ds_t, "min_distance": np.full(len(ds_t), 0.1), "max_distance": np.full(len(ds_t), 8.0),
+                             "current_distance": np.tile([3.0, 7.0], len(ds_t) // 2), "signal_quality": np.tile([100, 100], len(ds_t) // 2),
+                             "orientation": np.tile([25, 0], len(ds_t) // 2)}),
+        "vehicle_local_position": ([("uint64_t", "timestamp"), ("float", "x"), ("float", "y"), ("float", "z"), ("bool", "xy_valid"), ("bool", "z_valid")],
+                                   {"timestamp": t_us[::10], "x": np.arange(float(m)), "y": np.zeros(m), "z": np.full(m, -2.5), "xy_valid": np.ones(m), "z_valid": np.ones(m)}),
+        "vehicle_air_data": ([("uint64_t", "timestamp"), ("float", "baro_alt_meter")], {"timestamp": t_us[::10], "baro_alt_meter": np.full(m, 480.0)}),
+    }
+
+
+def test_px4_ulog_attitude_range_and_local_height(tmp_path):
+    """Before: refused ('expected a .tlog or a dataflash .bin'). Written by pyulog, read by pyulog."""
+    s = read_fc_log(write_ulog(tmp_path / "px4.ulg", _px4_topics()))
+    assert s.kind == "ulog" and s.problems == []
+    assert np.allclose(s.attitude[:, 0], 10.0 + 0.02 * np.arange(50))
+    assert np.allclose(np.degrees(s.attitude[:, 1]), 0.5 * np.arange(50), atol=1e-4)
+    assert np.allclose(np.degrees(s.attitude[:, 2]), -3.0, atol=1e-4) and np.allclose(np.degrees(s.attitude[:, 3]), 120.0, atol=1e-4)
+    assert np.allclose(s.range_m[:, 1], 3.0)  # the downward sensor only, not the forward one at 7 m
+    assert np.allclose(s.height_m[:, 1], 2.5) and s.sources["height"] == "vehicle_local_position.z"
+    assert np.allclose(s.local_ned_m[:, 1], np.arange(5.0))
+
+
+def test_px4_ulog_without_local_position_takes_the_barometer_above_the_start(tmp_path):
+    topics = _px4_topics()
+    del topics["vehicle_local_position"]
+    topics["vehicle_air_data"][1]["baro_alt_meter"] = 480.0 + np.arange(5.0)
+    s = read_fc_log(write_ulog(tmp_path / "baro.ulg", topics))
+    assert np.allclose(s.height_m[:, 1], np.arange(5.0)) and s.sources["height"] == "vehicle_air_data.baro_alt_meter"
+
+
+def test_px4_ulog_that_is_not_one_or_has_no_attitude_is_one_line(tmp_path, capfd):
+    (tmp_path / "junk.ulg").write_bytes(bytes(np.random.default_rng(5).integers(0, 256, 5000, dtype=np.uint8)))
+    with pytest.raises(ConfigError, match=r"junk.ulg: not a readable PX4 ULog"):
+        read_fc_log(tmp_path / "junk.ulg")
+    topics = _px4_topics()
+    del topics["vehicle_attitude"]
+    with pytest.raises(ConfigError, match=r"noatt.ulg: no vehicle_attitude messages"):
+        read_fc_log(write_ulog(tmp_path / "noatt.ulg", topics))
+    assert capfd.readouterr() == ("", "")
+
+
+def test_a_damaged_ulog_keeps_what_it_can_and_says_so(tmp_path, capfd):
+    good = write_ulog(tmp_path / "g.ulg", _px4_topics(400)).read_bytes()
+    damaged = bytearray(good)
+    rng = np.random.default_rng(11)
+    for i in rng.integers(len(good) // 2, len(good), 30):
+        damaged[i] ^= 0xFF
+    (tmp_path / "d.ulg").write_bytes(bytes(damaged))
+    s = read_fc_log(tmp_path / "d.ulg")
+    assert capfd.readouterr() == ("", "")
+    assert len(s.attitude) > 150 and any("damaged" in p for p in s.problems), s.problems

@@ -64,7 +64,7 @@ class ReplayFrame:
 class ReplayInput:
     """What a replay feeds the daemon, whatever the source."""
 
-    kind: str  # recording, tlog, dataflash, euroc
+    kind: str  # recording, tlog, dataflash, ulog, euroc
     source: str
     config: ServiceConfig
     messages: list[tuple[int, bytes]]  # from the flight controller: (host arrival, microseconds; MAVLink frame)

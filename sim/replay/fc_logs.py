@@ -1,11 +1,18 @@
-"""Flight-controller logs as time series: a .tlog (ATTITUDE, DISTANCE_SENSOR, GLOBAL_POSITION_INT,
-LOCAL_POSITION_NED) or an ArduPilot dataflash log, binary .bin or text .log of any firmware age (ATT,
-else AHR2, else NKF1; RFND, BARO, XKF1; TimeUS, TimeMS or the reader's clock), and the way back to
-MAVLink messages for a replay.
+"""Flight-controller logs as time series, and the way back to MAVLink messages for a replay:
 
-Times are the flight controller's boot clock in seconds (``time_boot_ms`` / ``TimeUS``). Angles are
-radians (dataflash logs degrees; converted here), heights metres up, positions NED metres.
-A log that ends inside a record keeps what came before and says so in ``problems``.
+- MAVLink telemetry ``.tlog``: ATTITUDE, DISTANCE_SENSOR (downward), GLOBAL_POSITION_INT (height),
+  LOCAL_POSITION_NED, CAMERA_FEEDBACK / CAMERA_TRIGGER (shutter times);
+- ArduPilot dataflash, binary ``.bin`` or text ``.log``, of any firmware age: ATT, else AHR2, else NKF1;
+  RFND, BARO, XKF1, CAM; time from TimeUS, TimeMS or the reader's clock;
+- PX4 ``.ulg`` (read with pyulog, PX4's own reader): vehicle_attitude (q), distance_sensor (downward),
+  vehicle_local_position (position, height), vehicle_air_data (barometric height, when there is no
+  local height), camera_capture / camera_trigger.
+
+Times are the flight controller's boot clock in seconds (``time_boot_ms``, ``TimeUS``, ULog
+``timestamp``). Angles are radians (dataflash logs degrees, ULog quaternions; converted here), heights
+metres up, positions NED metres. A log that ends inside a record keeps what came before and says so in
+``problems``; what a reader prints about damage is kept off the terminal and summarised there in one
+line.
 """
 
 from __future__ import annotations
@@ -26,7 +33,7 @@ from mavvo.errors import ConfigError
 from mavvo.service.tlog import read_tlog
 from mavvo.service.mavlink import dfreader, mavutil
 
-__all__ = ["FcSeries", "read_fc_log", "write_dataflash", "series_messages"]
+__all__ = ["FcSeries", "read_fc_log", "write_dataflash", "write_ulog", "series_messages"]
 
 
 @dataclass
@@ -34,12 +41,14 @@ class FcSeries:
     """What a flight controller logged, on its boot clock (see the module docstring)."""
 
     path: str
-    kind: str  # tlog or dataflash
+    kind: str  # tlog, dataflash, ulog (or euroc, for a dataset made into a series)
     attitude: np.ndarray  # (N,4): t_fc_s, roll_rad, pitch_rad, yaw_rad
     range_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (M,2): t_fc_s, downward range
     height_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (K,2): t_fc_s, height above home, up
     local_ned_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # (L,4): t_fc_s, north, east, down
     problems: list[str] = field(default_factory=list)
+    triggers_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T,): camera shutter times the log holds
+    sources: dict[str, str] = field(default_factory=dict)  # what each series was read from: attitude, range, height, position, triggers
 
 
 def _array(rows: list[tuple[float, ...]], width: int) -> np.ndarray:
@@ -51,19 +60,22 @@ def _array(rows: list[tuple[float, ...]], width: int) -> np.ndarray:
 
 
 def read_fc_log(path: str | Path) -> FcSeries:
-    """A .tlog or a dataflash .bin (by its extension); ConfigError if it cannot be read or holds no
-    attitude."""
+    """A .tlog, a dataflash .bin/.log or a PX4 .ulg (by its extension); ConfigError if it cannot be read
+    or holds no attitude."""
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"{p}: no such log file")
-    if p.suffix.lower() == ".tlog":
+    suffix = p.suffix.lower()
+    if suffix == ".tlog":
         s = _read_tlog(p)
-    elif p.suffix.lower() in (".bin", ".log"):
+    elif suffix in (".bin", ".log"):
         s = _read_dataflash(p)
+    elif suffix == ".ulg":
+        s = _read_ulog(p)
     else:
-        raise ConfigError(f"{p}: expected a .tlog or a dataflash .bin log, got a {p.suffix or 'file without extension'}")
+        raise ConfigError(f"{p}: expected a flight-controller log (.tlog, dataflash .bin or .log, PX4 .ulg), got a {p.suffix or 'file without extension'}")
     if len(s.attitude) < 2:
-        what = "ATTITUDE" if s.kind == "tlog" else "ATT, AHR2 or NKF1"
+        what = {"tlog": "ATTITUDE", "dataflash": "ATT, AHR2 or NKF1", "ulog": "vehicle_attitude"}[s.kind]
         raise ConfigError(f"{p}: no {what} messages in the log (found {len(s.attitude)}); roll and pitch are needed")
     return s
 
@@ -75,6 +87,7 @@ def _read_tlog(p: Path) -> FcSeries:
     rng: list[tuple[float, ...]] = []
     hgt: list[tuple[float, ...]] = []
     pos: list[tuple[float, ...]] = []
+    trig: list[tuple[float, ...]] = []
     problems: list[str] = []
     fc: tuple[int, int] | None = None
     try:
@@ -99,9 +112,13 @@ def _read_tlog(p: Path) -> FcSeries:
                 hgt.append((t, msg.relative_alt * 1e-3))
             elif kind == "LOCAL_POSITION_NED":
                 pos.append((t, msg.x, msg.y, msg.z))
+            elif kind in ("CAMERA_FEEDBACK", "CAMERA_TRIGGER"):
+                trig.append((msg.time_usec * 1e-6 if kind == "CAMERA_TRIGGER" else t,))
     except ConfigError as e:
         problems.append(str(e))
-    return FcSeries(str(p), "tlog", _array(att, 4), _array(rng, 2), _array(hgt, 2), _array(pos, 4), problems)
+    sources = {"attitude": "ATTITUDE", "range": "DISTANCE_SENSOR", "height": "GLOBAL_POSITION_INT.relative_alt",
+               "position": "LOCAL_POSITION_NED", "triggers": "CAMERA_FEEDBACK/CAMERA_TRIGGER"}
+    return FcSeries(str(p), "tlog", _array(att, 4), _array(rng, 2), _array(hgt, 2), _array(pos, 4), problems, _array(trig, 1)[:, 0], sources)
 
 
 # Roll/pitch/yaw in a dataflash log, by preference: the attitude the vehicle flew on, then the
@@ -156,6 +173,7 @@ def _read_dataflash(p: Path) -> FcSeries:
     rng: list[tuple[float, ...]] = []
     hgt: list[tuple[float, ...]] = []
     pos: list[tuple[float, ...]] = []
+    trig: list[tuple[float, ...]] = []
     problems: list[str] = []
     with _captured_output() as skipped:
         try:
@@ -164,7 +182,7 @@ def _read_dataflash(p: Path) -> FcSeries:
             raise ConfigError(f"{p}: not a readable dataflash log ({'text' if text else 'binary'}): {' '.join(str(e).split())[:200]}") from e
         while True:
             try:
-                m = reader.recv_match(type=[*_DF_ATTITUDE, "RFND", "BARO", "XKF1"])
+                m = reader.recv_match(type=[*_DF_ATTITUDE, "RFND", "BARO", "XKF1", "CAM"])
             except Exception as e:  # a corrupt record: keep what came before
                 problems.append(f"{p}: unreadable record: {e}")
                 break
@@ -181,6 +199,8 @@ def _read_dataflash(p: Path) -> FcSeries:
                     hgt.append((t, m.Alt))
                 elif kind == "XKF1" and getattr(m, "C", 0) == 0:
                     pos.append((t, m.PN, m.PE, m.PD))
+                elif kind == "CAM":
+                    trig.append((t,))
             except (AttributeError, TypeError, ValueError):  # a record without the fields this vintage should have
                 continue
     if skipped:
@@ -190,7 +210,103 @@ def _read_dataflash(p: Path) -> FcSeries:
     source = next((k for k in _DF_ATTITUDE if len(att[k]) >= 2), _DF_ATTITUDE[0])
     if source != "ATT" and att[source]:
         problems.append(f"{p}: no ATT records; roll/pitch from {source}")
-    return FcSeries(str(p), "dataflash", _array(att[source], 4), _array(rng, 2), _array(hgt, 2), _array(pos, 4), problems)
+    sources = {"attitude": source, "range": "RFND", "height": "BARO.Alt", "position": "XKF1", "triggers": "CAM"}
+    return FcSeries(str(p), "dataflash", _array(att[source], 4), _array(rng, 2), _array(hgt, 2), _array(pos, 4), problems, _array(trig, 1)[:, 0], sources)
+
+
+# ---------------------------------------------------------------------- PX4 ULog
+
+_ULOG_TOPICS = ["vehicle_attitude", "distance_sensor", "vehicle_local_position", "vehicle_air_data", "camera_capture", "camera_trigger"]
+_PX4_DOWNWARD = 25  # distance_sensor.orientation ROTATION_DOWNWARD_FACING
+
+
+def _read_ulog(p: Path) -> FcSeries:
+    """A PX4 ULog through pyulog. Each topic's first instance (``multi_id`` 0); a sample's time is its
+    ``timestamp_sample`` when the topic has one (when it was measured), else ``timestamp``."""
+    from pyulog import ULog  # only for PX4 logs
+
+    problems: list[str] = []
+    with _captured_output() as printed:
+        try:
+            ulog = ULog(str(p), _ULOG_TOPICS)
+        except Exception as e:  # pyulog raises its ULogException, struct and index errors on a file that is not a log
+            raise ConfigError(f"{p}: not a readable PX4 ULog (expected the 'ULog' header and definitions): {' '.join(str(e).split())[:200]}") from e
+    if printed or ulog.file_corruption:
+        problems.append(f"{p}: damaged: pyulog skipped corrupt data ({len(printed)} messages; first: {(printed or ['-'])[0][:80]})")
+    topics = {d.name: d.data for d in ulog.data_list if d.multi_id == 0}
+
+    def times(d: dict[str, np.ndarray]) -> np.ndarray:
+        return np.asarray(d.get("timestamp_sample", d["timestamp"]), dtype=float) * 1e-6
+
+    att = np.zeros((0, 4))
+    if "vehicle_attitude" in topics:
+        d = topics["vehicle_attitude"]
+        w, x, y, z = (np.asarray(d[f"q[{i}]"], dtype=float) for i in range(4))
+        # Euler 3-2-1 of the FRD-to-NED quaternion (Hamilton, w first), as ATTITUDE carries it.
+        roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+        pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
+        yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+        ok = np.isfinite(roll) & np.isfinite(pitch)
+        att = _array(list(zip(times(d)[ok], roll[ok], pitch[ok], yaw[ok])), 4)
+    rng = np.zeros((0, 2))
+    if "distance_sensor" in topics:
+        d = topics["distance_sensor"]
+        down = np.asarray(d.get("orientation", np.full(len(d["timestamp"]), _PX4_DOWNWARD))) == _PX4_DOWNWARD
+        dist = np.asarray(d["current_distance"], dtype=float)
+        valid = np.ones(len(dist), bool)
+        if "min_distance" in d and "max_distance" in d:
+            valid &= (dist >= d["min_distance"]) & (dist <= d["max_distance"])
+        if "signal_quality" in d:
+            valid &= np.asarray(d["signal_quality"]) != 0  # 0: invalid; -1: unknown
+        rng = _array(list(zip(times(d)[down], np.where(valid, dist, np.nan)[down])), 2)
+    hgt, pos = np.zeros((0, 2)), np.zeros((0, 4))
+    height_source = ""
+    if "vehicle_local_position" in topics:
+        d = topics["vehicle_local_position"]
+        t = times(d)
+        z_ok = np.asarray(d.get("z_valid", np.ones(len(t))), bool)
+        xy_ok = np.asarray(d.get("xy_valid", np.ones(len(t))), bool) & z_ok
+        pos = _array(list(zip(t[xy_ok], d["x"][xy_ok], d["y"][xy_ok], d["z"][xy_ok])), 4)
+        hgt = _array(list(zip(t[z_ok], -np.asarray(d["z"], dtype=float)[z_ok])), 2)
+        height_source = "vehicle_local_position.z"
+    if not len(hgt) and "vehicle_air_data" in topics:
+        d = topics["vehicle_air_data"]
+        alt = np.asarray(d["baro_alt_meter"], dtype=float)
+        hgt = _array(list(zip(times(d), alt - alt[0])), 2)  # above where the log started
+        height_source = "vehicle_air_data.baro_alt_meter"
+    trig = np.zeros(0)
+    for name in ("camera_capture", "camera_trigger"):
+        if name in topics:
+            trig = np.sort(times(topics[name]))
+            break
+    sources = {"attitude": "vehicle_attitude", "range": "distance_sensor", "height": height_source, "position": "vehicle_local_position",
+               "triggers": "camera_capture/camera_trigger"}
+    return FcSeries(str(p), "ulog", att, rng, hgt, pos, problems, trig, sources)
+
+
+def write_ulog(path: str | Path, topics: dict[str, tuple[list[tuple[str, str]], dict[str, Any]]]) -> Path:
+    """A PX4 ULog written by pyulog: ``topics`` maps a topic to its fields ``[(type, name)]`` (ULog
+    types: ``uint64_t``, ``float``, ``float[4]``, ...; ``timestamp`` first, microseconds) and its
+    columns ``{name: values}`` (an array field as an (N, k) array). Test logs."""
+    from pyulog import ULog
+
+    log = ULog(None)
+    formats = {name: ULog.MessageFormat((name + ":" + "".join(f"{t} {n};" for t, n in fields)).encode(), None) for name, (fields, _) in topics.items()}
+    log._message_formats = formats
+    data = []
+    for msg_id, (name, (_, cols)) in enumerate(topics.items()):
+        added = ULog._MessageAddLogged(struct.pack("<BH", 0, msg_id) + name.encode(), None, formats)
+        rec = np.zeros(len(cols["timestamp"]), dtype=added.dtype)
+        for f in added.field_data:
+            base, _, index = f.field_name.partition("[")
+            rec[f.field_name] = np.asarray(cols[base])[:, int(index[:-1])] if index else cols[base]
+        added.buffer = bytearray(rec.tobytes())
+        data.append(ULog.Data(added))
+    log._data_list = data
+    log._start_timestamp = int(min(c["timestamp"][0] for _, c in topics.values()))
+    log._last_timestamp = int(max(c["timestamp"][-1] for _, c in topics.values()))
+    log.write_ulog(str(path))
+    return Path(path)
 
 
 # ---------------------------------------------------------------------- writing dataflash (test logs)
@@ -233,8 +349,9 @@ def series_messages(s: FcSeries, *, heartbeat_hz: float = 1.0, boot_epoch_s: flo
     mav = m.MAVLink(None, srcSystem=1, srcComponent=1)
     events: list[tuple[int, int, Any]] = []  # (t_us, order, message)
     t0, t1 = s.attitude[0, 0], s.attitude[-1, 0]
+    autopilot = m.MAV_AUTOPILOT_PX4 if s.kind == "ulog" else m.MAV_AUTOPILOT_ARDUPILOTMEGA
     for t in np.arange(t0, t1 + 1e-9, 1.0 / heartbeat_hz):
-        events.append((round(t * 1e6), 0, m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, m.MAV_STATE_ACTIVE, 3)))
+        events.append((round(t * 1e6), 0, m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, autopilot, 0, 0, m.MAV_STATE_ACTIVE, 3)))
     nan = float("nan")  # the log has no body rates: NaN says "unknown" (zero would claim a vehicle that never turns)
     for t, r, pch, y in s.attitude:
         events.append((round(t * 1e6), 1, m.MAVLink_attitude_message(int(round((t - boot_epoch_s) * 1e3)), r, pch, y, nan, nan, nan)))

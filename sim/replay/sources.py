@@ -12,7 +12,6 @@ at its own time stamp and a frame exposed at video time ``t`` is at ``t + offset
 from __future__ import annotations
 
 import dataclasses
-import math
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -151,23 +150,36 @@ def _load_config(path: Path | None) -> dict[str, Any]:
     return load_yaml(path) if path is not None else {}
 
 
+def log_pairing_gap_s(t_attitude_s: np.ndarray, configured_s: float) -> float:
+    """The gap allowed between the two attitude samples around a frame when replaying a log with
+    attitude at these times: 1.5 times the median interval or the 99th percentile, whichever is longer,
+    never below the configured limit, at most 1 s, to the boot clock's millisecond."""
+    dt = np.diff(np.asarray(t_attitude_s, dtype=float))
+    dt = dt[dt > 0]
+    if not len(dt):
+        return configured_s
+    gap = min(max(configured_s, 1.5 * float(np.median(dt)), float(np.percentile(dt, 99))), 1.0)
+    return float(np.ceil(gap * 1000.0 - 1e-9) / 1000.0)
+
+
 def paired_at_log_rate(config: ServiceConfig, t_attitude_s: np.ndarray) -> tuple[ServiceConfig, dict[str, Any]]:
-    """``config`` with ``timing.max_attitude_gap_s`` set from the log's own ATTITUDE rate, so that every
-    frame pairs: a live link's 50 ms limit would skip every frame of a ground station's 2 Hz telemetry
-    log. The limit is 1.5 times the median interval or the 99th percentile, whichever is longer (never
-    below the configured one, at most 1 s); the interpolation's uncertainty grows with the gap and
-    degrades the estimates that need it (``timing.attitude_accel_rad_s2``)."""
+    """``config`` with ``timing.max_attitude_gap_s`` set from the log's own attitude rate
+    (:func:`log_pairing_gap_s`), so that every frame pairs: a live link's 50 ms limit would skip every
+    frame of a ground station's 2 Hz telemetry log. The interpolation's uncertainty grows with the gap
+    and degrades the estimates that need it (``timing.attitude_accel_rad_s2``)."""
     dt = np.diff(t_attitude_s)
     dt = dt[dt > 0]
     configured = config.timing.max_attitude_gap_s
     if not len(dt):
         return config, {"rate_hz": None, "max_gap_s": configured}
-    gap = min(max(configured, 1.5 * float(np.median(dt)), float(np.percentile(dt, 99))), 1.0)
-    gap = math.ceil(gap * 1000.0) / 1000.0  # to the boot clock's millisecond
+    gap = log_pairing_gap_s(t_attitude_s, configured)
     timing = dataclasses.replace(config.timing, max_attitude_gap_s=gap, history_s=max(config.timing.history_s, 4.0 * gap))
+    # A frame is handed over once the sample after it has come, up to the gap after its exposure: its
+    # estimate must not be dropped as too old to send for that wait.
+    output = dataclasses.replace(config.output, max_age_s=max(config.output.max_age_s, gap + 0.5))
     note = {"rate_hz": round(1.0 / float(np.median(dt)), 2), "max_gap_s": gap, "configured_max_gap_s": configured,
             "longest_interval_s": round(float(dt.max()), 3)}
-    return dataclasses.replace(config, timing=timing), note
+    return dataclasses.replace(config, timing=timing, output=output), note
 
 
 def _fc_reference(s: FcSeries) -> PoseSeries | None:
