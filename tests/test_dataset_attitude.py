@@ -49,3 +49,28 @@ def test_the_error_measure_sees_a_wrong_tilt():
     att = np.array([[0.0, np.radians(3.0), 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
     err = tilt_error_deg(att, np.array([0.0]), np.eye(3)[None])
     assert err["median"] == np.round(np.median([3.0, 0.0]), 3) and abs(err["p95"] - 0.95 * 3.0) < 0.01
+
+
+def test_in_a_figure_eight_after_a_still_start_the_tilt_stays_within_a_degree():
+    """A flight's accelerometer is not gravity in turns: the cruising gains keep its pull small.
+    With the converging gains throughout (kp 0.3) this flight was 3.4 deg off (median), 4.3 deg p95."""
+    from mavvo.geometry.frames import rot_x
+    from sim.scenarios.loader import load_scenario
+    from sim.world.trajectories import make_trajectory
+
+    traj = make_trajectory(load_scenario("figure_eight").trajectory)
+    R_body_imu = rot_x(np.pi)  # z up, as a EuRoC IMU
+    rng = np.random.default_rng(4)
+    ts = np.arange(0.0, 32.0, 1 / 200.0)
+    rows, R_truth = [], []
+    for t in ts:
+        st = traj.state(max(t - 2.0, 0.0))  # 2 s still on the ground, then the flight
+        a_ned, w_body = (np.zeros(3), np.zeros(3)) if t < 2.0 else (st.a_ned_m_s2, st.omega_body_rad_s)
+        f_body = st.R_ned_body.T @ (a_ned - np.array([0.0, 0.0, 9.81]))
+        rows.append([t * 1e9, *(R_body_imu.T @ w_body + BIAS + 0.003 * rng.standard_normal(3)), *(R_body_imu.T @ f_body + 0.05 * rng.standard_normal(3))])
+        R_truth.append(st.R_ned_body @ R_body_imu)
+    imu = np.array(rows)
+    R_imu_body = _body_from_imu(imu[imu[:, 0] < 1e9, 4:7].mean(axis=0), np.eye(3)[:, [1, 2, 0]])
+    att = imu_attitude(imu, R_imu_body)
+    err = tilt_error_deg(att[att[:, 0] >= 2.0], ts, np.array(R_truth) @ R_imu_body)
+    assert err["p95"] < 1.0, err  # 0.69 deg when written (median 0.38)

@@ -12,7 +12,9 @@ Frames (mavvo's conventions, see docs/replay.md):
   with integral feedback, :func:`imu_attitude`; what a flight controller computes), or from the ground
   truth plus Gaussian noise; yaw is the filter's (it drifts, as a magnetometer-less one does);
 - height above the start comes from the ground truth with barometer-like noise (the datasets have no
-  barometer or rangefinder), so ``odometry.scale.source`` defaults to ``altitude``.
+  barometer or rangefinder), so ``odometry.scale.source`` defaults to ``altitude``; a folder without
+  ground truth replays with a warning and the height from the configuration (``fixed``, or ``carried``
+  when chosen).
 """
 
 from __future__ import annotations
@@ -34,8 +36,15 @@ from sim.replay.driver import ReplayFrame, ReplayInput, image_loader
 
 __all__ = ["load_euroc", "read_euroc_groundtruth"]
 
-ATTITUDE_KP = 0.3  # rad/s per rad of tilt error: the filter's pull toward the accelerometer's gravity
-ATTITUDE_KI = 0.02  # rad/s^2 per rad: how fast the gyro bias estimate follows the pull that persists
+# Gains (rad/s and rad/s^2 per rad of tilt error): the accelerometer's pull toward its "up" and how fast
+# the gyro-bias estimate follows the pull that persists. Cruising: small, as in a turn the accelerometer
+# is not gravity (0.3 gave 3.4 deg median error in a figure eight at 0.7 m/s^2, 0.02 gave 0.4 deg).
+# Converging: larger, until the bias is known (at rest over the first second, else ATTITUDE_CONVERGE_S).
+ATTITUDE_KP = 0.02
+ATTITUDE_KI = 0.001
+ATTITUDE_KP_CONVERGING = 0.3
+ATTITUDE_KI_CONVERGING = 0.02
+ATTITUDE_CONVERGE_S = 30.0
 ATTITUDE_RATE_HZ = 100.0
 _REST_GYRO_STD = 0.02  # rad/s: a gyro this steady over the first second is at rest
 HEIGHT_RATE_HZ = 10.0
@@ -75,6 +84,17 @@ def _frame_rows(path: Path) -> list[tuple[str, str]]:
     return out
 
 
+def dataset_times(mav0: Path) -> dict[str, tuple[str, np.ndarray]]:
+    """The sample times (seconds, the dataset's clock) of the frames, the IMU and the ground truth (empty
+    when the folder has none), each with the file it comes from."""
+    gt = mav0 / "state_groundtruth_estimate0" / "data.csv"
+    return {
+        "frames": ("cam0/data.csv", np.array([int(t) * 1e-9 for t, _ in _frame_rows(mav0 / "cam0" / "data.csv")])),
+        "imu": ("imu0/data.csv", _csv(mav0 / "imu0" / "data.csv", 7)[:, 0] * 1e-9),
+        "ground_truth": ("state_groundtruth_estimate0/data.csv", _csv(gt, 8)[:, 0] * 1e-9 if gt.is_file() else np.zeros(0)),
+    }
+
+
 def _sensor_yaml(path: Path) -> dict[str, Any]:
     try:
         text = path.read_text(encoding="utf-8")
@@ -110,12 +130,14 @@ def _exp(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * K @ K
 
 
-def imu_attitude(imu: np.ndarray, R_imu_body: np.ndarray, kp: float = ATTITUDE_KP, ki: float = ATTITUDE_KI) -> np.ndarray:
+def imu_attitude(imu: np.ndarray, R_imu_body: np.ndarray) -> np.ndarray:
     """(N,4) t_s, roll, pitch, yaw of the body from (M,7) IMU rows (t_ns, gyro xyz rad/s, accel xyz
     m/s^2), at ATTITUDE_RATE_HZ: Mahony's filter with integral feedback, what a flight controller's
     attitude estimate does without a magnetometer. Started level (the body frame is defined level over
-    the first second) with the bias b the gyro shows at rest then (zero if it was not at rest), it
-    integrates the gyro less b, pulled toward the accelerometer's gravity:
+    the first second) with the bias b the gyro shows at rest then (as a flight controller calibrates its
+    gyros at boot), it integrates the gyro less b, pulled toward the accelerometer's gravity, with the
+    cruising gains; when the start was not at rest, with the converging gains for ATTITUDE_CONVERGE_S
+    while the integral finds b:
 
         e = u_meas x u_est          (measured and estimated "up" in the IMU frame)
         w = gyro - b + kp e         (the rate integrated)
@@ -127,7 +149,9 @@ def imu_attitude(imu: np.ndarray, R_imu_body: np.ndarray, kp: float = ATTITUDE_K
     gyro0 = imu[first, 1:4]
     # At rest over the first second (the gyro steady): its mean is the bias, as a flight controller
     # calibrates its gyros at boot; otherwise the integral finds it.
-    b = gyro0.mean(axis=0) if len(gyro0) > 10 and float(np.max(gyro0.std(axis=0))) < _REST_GYRO_STD else np.zeros(3)
+    at_rest = len(gyro0) > 10 and float(np.max(gyro0.std(axis=0))) < _REST_GYRO_STD
+    b = gyro0.mean(axis=0) if at_rest else np.zeros(3)
+    converged_from = t[0] if at_rest else t[0] + ATTITUDE_CONVERGE_S
     out = []
     next_t = t[0]
     up = np.array([0.0, 0.0, -1.0])
@@ -135,6 +159,7 @@ def imu_attitude(imu: np.ndarray, R_imu_body: np.ndarray, kp: float = ATTITUDE_K
         dt = t[i] - t[i - 1]
         u_meas = imu[i, 4:7] / max(np.linalg.norm(imu[i, 4:7]), 1e-9)
         e = np.cross(u_meas, R.T @ up)
+        kp, ki = (ATTITUDE_KP, ATTITUDE_KI) if t[i] >= converged_from else (ATTITUDE_KP_CONVERGING, ATTITUDE_KI_CONVERGING)
         b -= ki * e * dt
         R = R @ _exp((imu[i, 1:4] - b + kp * e) * dt)
         if t[i] >= next_t:
@@ -185,10 +210,25 @@ def load_euroc(root: Path, overrides: dict[str, Any], *, attitude: str = "imu", 
         "mounting": {"R_body_cam": R_body_cam.round(9).tolist(), "lever_arm_m": lever.round(6).tolist()},
         "odometry": {"scale": {"source": "altitude"}},
     }, overrides)
-    config = parse_config(data, f"{mav0} (with --config)")
-
     gt_path = mav0 / "state_groundtruth_estimate0" / "data.csv"
     gt = _csv(gt_path, 8) if gt_path.is_file() else None
+    warnings: list[str] = []
+    if gt is None:
+        # The height for scale comes from the ground truth: without it, a height from the configuration.
+        odometry = overrides.get("odometry")
+        scale = odometry.get("scale") if isinstance(odometry, dict) else None
+        chosen = scale.get("source") if isinstance(scale, dict) else None  # a malformed one is parse_config's to name
+        if chosen not in ("fixed", "carried"):
+            data = merge(data, {"odometry": {"scale": {"source": "fixed"}}})
+    config = parse_config(data, f"{mav0} (with --config)")
+    if gt is None:
+        sc = config.odometry.scale
+        how = (f"a fixed height of {sc.fixed_height_m:g} m above flat ground (odometry.scale.fixed_height_m)" if sc.source == "fixed"
+               else "depths carried between keyframes, from an assumed first depth (odometry.scale.initial_depth_m)")
+        warnings.append(
+            f"{gt_path}: missing: no reference (unless --ground-truth gives one), no attitude error to report, and no height: metric scale from {how}; "
+            "give the flight's height with --config (odometry: {scale: {source: fixed, fixed_height_m: H}})"
+        )
     rng = np.random.default_rng(seed)
     notes: dict[str, Any] = {"attitude": attitude}
     if attitude == "truth":
@@ -227,4 +267,4 @@ def load_euroc(root: Path, overrides: dict[str, Any], *, attitude: str = "imu", 
         t = int(t_ns) * 1e-9
         frames.append(ReplayFrame(k, t, t + gap, None, image_loader(path)))
     return ReplayInput("euroc", str(root), config, series_messages(series, boot_epoch_s=float(np.floor(imu[0, 0] * 1e-9))), frames, reference,
-                       "ground truth" if reference is not None else "", notes=notes, problems=problems)
+                       "ground truth" if reference is not None else "", notes=notes, problems=problems, warnings=warnings)
