@@ -65,6 +65,17 @@ def test_round_trip_replays_the_recorded_flight_bit_for_bit(recorded, tmp_path, 
     assert len(quality) == 1 + summary["paired"] and quality[0].startswith("t_exposure_s,state,")
 
 
+def test_inspect_tells_what_a_recording_holds(recorded, capsys):
+    code = main(["--log-level", "warning", "inspect", str(recorded.recording), "--json"])
+    r = json.loads(capsys.readouterr().out)
+    series = {s["name"]: s for s in r["series"]}
+    inp = load_recording(recorded.recording)
+    assert code == 0 and r["kind"] == "recording" and r["replayable"]
+    assert series["frames"]["count"] == len(inp.frames) and series["frames"]["rate_hz"] == pytest.approx(20.0, rel=0.05)
+    assert series["attitude"]["rate_hz"] == pytest.approx(inp.config.link.attitude_rate_hz, rel=0.1) and series["distance_sensor"]["count"] > 0
+    assert r["facts"]["recorded_estimates"] == len(inp.expected_vpe) and r["facts"]["frames_attitude_overlap_s"] > 5.0
+
+
 def test_recording_holds_config_tlog_both_directions_and_exact_frames(recorded):
     rec = recorded.recording
     meta = json.loads((rec / "meta.json").read_text())
@@ -153,6 +164,33 @@ def test_dataflash_with_video_given_offset_against_ground_truth(tmp_path, capsys
     assert s["evaluation"]["ate_se3_m"]["rmse"] < 0.15
 
 
+def test_px4_ulog_with_video_against_ground_truth(tmp_path, capsys):
+    """A PX4 flight: vehicle_attitude, distance_sensor, barometer, written by pyulog; offset estimated."""
+    lf = make_log_flight(tmp_path, kind="ulg", video="folder", duration_s=10.0)
+    code, s, err = _replay_cli(capsys, lf.log, "--video", lf.video, "--config", lf.config, "--ground-truth", lf.truth, "--out", tmp_path / "out")
+    assert code == 0, err
+    assert s["kind"] == "ulog" and abs(s["notes"]["time_offset"]["offset_s"] - lf.true_offset_s) < 0.03
+    assert s["paired"] == s["frames"] and s["evaluation"]["ate_se3_m"]["rmse"] < 0.15
+
+
+def test_telemetry_log_with_2_hz_attitude_pairs_every_frame_and_reports_it_degraded(tmp_path, capsys):
+    """Before: a ground station's 2 Hz ATTITUDE left every frame attitude-stale with the 50 ms limit."""
+    lf = make_log_flight(tmp_path, kind="tlog", video="folder", duration_s=10.0, attitude_rate_hz=2.0)
+    code, s, err = _replay_cli(capsys, lf.log, "--video", lf.video, "--config", lf.config, "--offset-s", lf.true_offset_s,
+                               "--ground-truth", lf.truth, "--out", tmp_path / "out")
+    assert code == 0, err
+    assert s["notes"]["attitude_pairing"]["rate_hz"] == pytest.approx(2.0) and s["notes"]["attitude_pairing"]["max_gap_s"] == pytest.approx(0.75)
+    c = s["counters"]
+    assert s["paired"] == s["frames"] and not any(k.startswith("skipped_attitude") for k in c), c
+    ap = s["attitude_pairing"]
+    assert ap["gap_s_median"] == pytest.approx(0.5, abs=1e-3) and ap["degraded"] >= s["estimates_received"] // 2
+    assert 0.3 < ap["sigma_deg_p95"] < 2.0  # 1 rad/s^2 over a 0.5 s gap: up to 1.8 deg in the middle
+    quality = (tmp_path / "out" / "quality.csv").read_text().splitlines()
+    assert "attitude_interpolated" in "".join(quality) and "attitude_sigma_deg" in quality[0]
+    # Degraded, not lost: the figure eight is still followed (the truth's own roll/pitch, sampled at 2 Hz).
+    assert s["evaluation"]["ate_se3_m"]["rmse"] < 0.3  # 0.10 m when written
+
+
 def test_bad_logs_say_what_is_wrong(tmp_path, capsys):
     lf = make_log_flight(tmp_path, kind="tlog", video="folder", duration_s=8.0, with_attitude=False)
     code, _, err = _replay_cli(capsys, lf.log, "--video", lf.video, "--config", lf.config)
@@ -199,6 +237,24 @@ def test_euroc_folder_replays_with_truth_or_imu_attitude(tmp_path, capsys):
 
     inp = open_replay_source(root)
     assert np.allclose(inp.config.mounting.rotation(), np.array(load_scenario("figure_eight").camera.R_body_cam()), atol=1e-3)
+
+
+def test_euroc_folder_without_ground_truth_warns_and_takes_its_height_from_the_configuration(tmp_path, capsys):
+    """Before: it ran silently with no reference and no scale source: every estimate (0, 0, 0)."""
+    root = make_euroc(tmp_path, duration_s=8.0)
+    truth = tmp_path / "gt.csv"
+    (root / "mav0" / "state_groundtruth_estimate0" / "data.csv").rename(truth)
+    code, s, err = _replay_cli(capsys, root, "--out", tmp_path / "a")
+    assert code == 0, err
+    assert "warning:" in err and "state_groundtruth_estimate0/data.csv: missing" in err and "fixed height of 10 m" in err
+    assert s["warnings"] and s["reference"] is None and s["estimates_received"] > 100
+    est = np.loadtxt(tmp_path / "a" / "estimate.tum")
+    assert np.ptp(est[:, 1:3], axis=0).max() > 1.0  # it moves: a scale, not zeros
+    over = tmp_path / "over.yaml"  # the flight's real height, 8 m, and the truth from elsewhere
+    over.write_text(yaml.safe_dump({"odometry": {"scale": {"source": "fixed", "fixed_height_m": 8.0}}}))
+    code, s, err = _replay_cli(capsys, root, "--config", over, "--ground-truth", truth, "--attitude", "imu", "--out", tmp_path / "b")
+    assert code == 0 and "fixed height of 8 m" in err
+    assert s["evaluation"]["ate_se3_m"]["rmse"] < 0.5 and abs(s["evaluation"]["sim3_scale"] - 1.0) < 0.05
 
 
 def test_not_a_source_is_a_clear_error(tmp_path, capsys):
