@@ -39,12 +39,11 @@ __all__ = ["load_euroc", "read_euroc_groundtruth"]
 # Gains (rad/s and rad/s^2 per rad of tilt error): the accelerometer's pull toward its "up" and how fast
 # the gyro-bias estimate follows the pull that persists. Cruising: small, as in a turn the accelerometer
 # is not gravity (0.3 gave 3.4 deg median error in a figure eight at 0.7 m/s^2, 0.02 gave 0.4 deg).
-# Converging: larger, until the bias is known (at rest over the first second, else ATTITUDE_CONVERGE_S).
+# Converging: larger, when the recording does not start at rest and the integral must find the bias.
 ATTITUDE_KP = 0.02
 ATTITUDE_KI = 0.001
 ATTITUDE_KP_CONVERGING = 0.3
 ATTITUDE_KI_CONVERGING = 0.02
-ATTITUDE_CONVERGE_S = 30.0
 ATTITUDE_RATE_HZ = 100.0
 _REST_GYRO_STD = 0.02  # rad/s: a gyro this steady over the first second is at rest
 HEIGHT_RATE_HZ = 10.0
@@ -134,24 +133,31 @@ def imu_attitude(imu: np.ndarray, R_imu_body: np.ndarray) -> np.ndarray:
     """(N,4) t_s, roll, pitch, yaw of the body from (M,7) IMU rows (t_ns, gyro xyz rad/s, accel xyz
     m/s^2), at ATTITUDE_RATE_HZ: Mahony's filter with integral feedback, what a flight controller's
     attitude estimate does without a magnetometer. Started level (the body frame is defined level over
-    the first second) with the bias b the gyro shows at rest then (as a flight controller calibrates its
-    gyros at boot), it integrates the gyro less b, pulled toward the accelerometer's gravity, with the
-    cruising gains; when the start was not at rest, with the converging gains for ATTITUDE_CONVERGE_S
-    while the integral finds b:
+    the first second) with the gyro bias b known, as a flight controller calibrates its gyros at boot,
+    it integrates the gyro less b, pulled toward the accelerometer's gravity with the cruising gains:
 
         e = u_meas x u_est          (measured and estimated "up" in the IMU frame)
         w = gyro - b + kp e         (the rate integrated)
         db/dt = -ki e               (the bias: what the correction keeps having to add)
+
+    b is the mean gyro over the first second when the IMU is at rest then. A recording that starts
+    moving leaves b to the integral, with the converging gains throughout: small gains need an exact b
+    (a residual bias r tilts the estimate by about r / kp), and the bias about the vertical cannot be
+    found from the accelerometer in level flight. Expect degrees of error then (reported against the
+    ground truth).
     """
     t = imu[:, 0] * 1e-9
+    gyro0 = imu[t <= t[0] + 1.0, 1:4]
+    if len(gyro0) > 10 and float(np.max(gyro0.std(axis=0))) < _REST_GYRO_STD:
+        return _mahony(imu, R_imu_body, gyro0.mean(axis=0), ATTITUDE_KP, ATTITUDE_KI)
+    return _mahony(imu, R_imu_body, np.zeros(3), ATTITUDE_KP_CONVERGING, ATTITUDE_KI_CONVERGING)
+
+
+def _mahony(imu: np.ndarray, R_imu_body: np.ndarray, b0: np.ndarray, kp: float, ki: float) -> np.ndarray:
+    """:func:`imu_attitude`'s filter from bias ``b0`` with gains ``kp``, ``ki``: the attitude rows."""
+    t = imu[:, 0] * 1e-9
     R = R_imu_body.T.copy()  # R_lvl_imu at the start: the body frame is level there by its definition
-    first = t <= t[0] + 1.0
-    gyro0 = imu[first, 1:4]
-    # At rest over the first second (the gyro steady): its mean is the bias, as a flight controller
-    # calibrates its gyros at boot; otherwise the integral finds it.
-    at_rest = len(gyro0) > 10 and float(np.max(gyro0.std(axis=0))) < _REST_GYRO_STD
-    b = gyro0.mean(axis=0) if at_rest else np.zeros(3)
-    converged_from = t[0] if at_rest else t[0] + ATTITUDE_CONVERGE_S
+    b = b0.astype(float).copy()
     out = []
     next_t = t[0]
     up = np.array([0.0, 0.0, -1.0])
@@ -159,7 +165,6 @@ def imu_attitude(imu: np.ndarray, R_imu_body: np.ndarray) -> np.ndarray:
         dt = t[i] - t[i - 1]
         u_meas = imu[i, 4:7] / max(np.linalg.norm(imu[i, 4:7]), 1e-9)
         e = np.cross(u_meas, R.T @ up)
-        kp, ki = (ATTITUDE_KP, ATTITUDE_KI) if t[i] >= converged_from else (ATTITUDE_KP_CONVERGING, ATTITUDE_KI_CONVERGING)
         b -= ki * e * dt
         R = R @ _exp((imu[i, 1:4] - b + kp * e) * dt)
         if t[i] >= next_t:
