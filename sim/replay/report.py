@@ -84,7 +84,9 @@ def write_quality(out: Path, rows: list[QualityRow], title: str) -> None:
             start = i
     ax.plot(t, [r.quality for r in rows], color="tab:blue", lw=1.0, label="quality [%]")
     ax.set_ylim(-5, 105)
-    ax_att.plot(t, [r.attitude_sigma_deg for r in rows], color="tab:purple", lw=1.0)
+    sigma = [r.attitude_sigma_deg for r in rows]
+    ax_att.plot(t, sigma, color="tab:purple", lw=1.0)
+    ax_att.set_ylim(0.0, 1.3 * float(np.nanmax(sigma)) if np.isfinite(sigma).any() else 1.0)  # from zero: a flat line reads flat
     ax_att.set_ylabel("roll/pitch\nsigma [deg]", fontsize=8)
     ax_att.set_xlabel("time [s]")
     gaps = [r.attitude_gap_s for r in rows]
