@@ -241,13 +241,13 @@ def test_euroc_folder_replays_with_truth_or_imu_attitude(tmp_path, capsys):
 
 def test_euroc_folder_without_ground_truth_warns_and_takes_its_height_from_the_configuration(tmp_path, capsys):
     """Before: it ran silently with no reference and no scale source: every estimate (0, 0, 0)."""
-    root = make_euroc(tmp_path, duration_s=8.0)
+    root = make_euroc(tmp_path, duration_s=5.0)
     truth = tmp_path / "gt.csv"
     (root / "mav0" / "state_groundtruth_estimate0" / "data.csv").rename(truth)
     code, s, err = _replay_cli(capsys, root, "--out", tmp_path / "a")
     assert code == 0, err
     assert "warning:" in err and "state_groundtruth_estimate0/data.csv: missing" in err and "fixed height of 10 m" in err
-    assert s["warnings"] and s["reference"] is None and s["estimates_received"] > 100
+    assert s["warnings"] and s["reference"] is None and s["estimates_received"] > 50
     est = np.loadtxt(tmp_path / "a" / "estimate.tum")
     assert np.ptp(est[:, 1:3], axis=0).max() > 1.0  # it moves: a scale, not zeros
     over = tmp_path / "over.yaml"  # the flight's real height, 8 m, and the truth from elsewhere
