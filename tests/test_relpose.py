@@ -228,7 +228,7 @@ def test_yaw_of_a_hypothesis_is_read_from_e_alone() -> None:
     """The yaw filter sees the decomposition's yaw in E: exactly for any t with a horizontal part,
     up to pi for t along gravity, whatever the scale and sign of E."""
     from mavvo.geometry.frames import skew
-    from mavvo.estimation.relpose import _near_yaw
+    from mavvo.estimation.estimators import _near_yaw
     from mavvo.geometry import essential_to_vector
 
     rng = np.random.default_rng(31)

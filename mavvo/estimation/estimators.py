@@ -1,0 +1,183 @@
+"""The two-view models :func:`mavvo.estimation.ransac.lo_ransac` estimates, on level-frame bearings.
+
+Each is an :class:`mavvo.estimation.ransac.Estimator`: a sample size, a batched generator from a
+minimal solver, squared residuals from :mod:`mavvo.geometry.residuals` (so their errors compare under
+one noise sigma for model selection), and a refinement on inliers.
+
+- :class:`UprightEssential`: ``E = [t]x Rz(yaw)``, 3 points (the paper's solver, batched), or 4 or 5
+  (its 4-point and linear 5-point); refined by Gauss-Newton on the upright manifold, plus the 4-point
+  or linear 5-point least squares on the inliers when asked. Models: e vectors (M, 6).
+- :class:`GroundHomography`: the known-gravity ground-plane homography, 2 points (Saurer et al.);
+  refined in closed form. Models: (M, 3, 3).
+- :class:`PureRotation`: no baseline; 1 point gives the yaw, the refinement all three axes in closed
+  form. Models: (M, 3, 3).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import numpy as np
+
+from mavvo.geometry import (
+    alpha_beta_gamma,
+    essential_from_vector,
+    essential_to_vector,
+    ground_homography_from_similarity,
+    solve_ground_2pt_batch,
+    solve_upright_3pt_batch,
+    solve_upright_4pt,
+    solve_upright_linear5pt,
+    upright_pose_from_essential,
+)
+from mavvo.geometry.frames import rot_z, skew
+from mavvo.geometry.refine import fit_ground_similarity, fit_rotation, refine_upright
+from mavvo.geometry.residuals import ground_sq, rotation_sq, sampson_sq_upright, upright_design
+
+__all__ = ["UprightEssential", "GroundHomography", "PureRotation", "upright_e", "decompose_upright", "yaw_of"]
+
+MinimalSolver = Literal["3pt", "4pt", "linear5pt"]
+NonminimalSolver = Literal["none", "4pt", "linear5pt"]
+SAMPLE_SIZE = {"3pt": 3, "4pt": 4, "linear5pt": 5}
+
+
+def yaw_of(R: np.ndarray) -> float:
+    """Yaw (Euler 3-2-1) of a rotation (3, 3)."""
+    return float(np.arctan2(R[1, 0], R[0, 0]))
+
+
+def upright_e(yaw: float, t: np.ndarray) -> np.ndarray:
+    """e vector (6,) of ``[t]x Rz(yaw)``."""
+    return essential_to_vector(skew(t) @ rot_z(yaw))
+
+
+def decompose_upright(e: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> tuple[float, np.ndarray] | None:
+    """(yaw, unit t) of an upright e (6,), cheirality decided on the given inliers; None without any."""
+    if len(f1) == 0:
+        return None
+    R, t = upright_pose_from_essential(essential_from_vector(e), f1, f2)
+    return yaw_of(R), t
+
+
+def _near_yaw(e: np.ndarray, prior: float, tol: float) -> np.ndarray:
+    """(M,) bool: the yaw of each upright hypothesis e (M, 6) is within ``tol`` of ``prior``.
+
+    For ``E = [t]x Rz(yaw)`` with |t| = 1: ``-conj(gamma) * beta = exp(i yaw) |t_xy|^2`` fixes the yaw
+    whenever t has a horizontal part; for t along z only ``alpha^2 = -t_z^2 exp(2i yaw)`` is left,
+    which fixes it up to pi.
+    """
+    alpha, beta, gamma = alpha_beta_gamma(e)
+    # A solver's E has the upright form exactly, so even a small horizontal part fixes the yaw.
+    horizontal = np.abs(beta) ** 2 > 1e-9 * (np.abs(alpha) ** 2 + np.abs(beta) ** 2)
+    ref = np.exp(1j * prior)
+    d1 = np.abs(np.angle(-np.conj(gamma) * beta * np.conj(ref)))
+    d2 = 0.5 * np.abs(np.angle(-(alpha**2) * np.conj(ref**2)))
+    return np.where(horizontal, d1, d2) <= tol
+
+
+class UprightEssential:
+    """The upright essential matrix between two level frames (see the module docstring).
+
+    ``yaw_prior_rad``: hypotheses further than ``yaw_tolerance_rad`` from it are dropped (a nadir camera
+    over flat ground sees a twin at yaw + 180 deg). ``lo_steps``: Gauss-Newton steps per refinement.
+    """
+
+    def __init__(
+        self, f1: np.ndarray, f2: np.ndarray, *, solver: MinimalSolver = "3pt", nonminimal: NonminimalSolver = "none", lo_steps: int = 3,
+        yaw_prior_rad: float | None = None, yaw_tolerance_rad: float = math.pi,
+    ) -> None:
+        self.f1, self.f2 = f1, f2
+        self.num_data = len(f1)
+        self.sample_size = SAMPLE_SIZE[solver]
+        self.solver, self.nonminimal, self.lo_steps = solver, nonminimal, lo_steps
+        self.yaw_prior_rad, self.yaw_tolerance_rad = yaw_prior_rad, yaw_tolerance_rad
+        self.G = upright_design(f1, f2)
+        self._sub: tuple[np.ndarray, np.ndarray] | None = None  # (rows, their design): the loop's fixed subset
+
+    def generate(self, samples: np.ndarray) -> np.ndarray:
+        f1, f2 = self.f1, self.f2
+        if self.solver == "3pt":
+            E, valid = solve_upright_3pt_batch(f1[samples], f2[samples])
+            e = essential_to_vector(E[valid])
+        else:
+            solve = solve_upright_4pt if self.solver == "4pt" else solve_upright_linear5pt
+            out = [essential_to_vector(solve(f1[row], f2[row])) for row in samples]
+            e = np.concatenate(out) if out else np.zeros((0, 6))
+        if self.yaw_prior_rad is not None and len(e):
+            e = e[_near_yaw(e, self.yaw_prior_rad, self.yaw_tolerance_rad)]
+        return e
+
+    def residuals_sq(self, models: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        if rows is None:
+            return sampson_sq_upright(models, self.G)
+        if self._sub is None or self._sub[0] is not rows:
+            self._sub = (rows, upright_design(self.f1[rows], self.f2[rows]))
+        return sampson_sq_upright(models, self._sub[1])
+
+    def refine(self, model: np.ndarray, inliers: np.ndarray) -> np.ndarray:
+        f1, f2 = self.f1[inliers], self.f2[inliers]
+        out = []
+        if self.nonminimal != "none" and len(f1) >= SAMPLE_SIZE[self.nonminimal]:
+            solve = solve_upright_4pt if self.nonminimal == "4pt" else solve_upright_linear5pt
+            e = essential_to_vector(solve(f1, f2))
+            out += list(e / np.linalg.norm(e, axis=1, keepdims=True))
+        pose = decompose_upright(model[0], f1, f2)
+        if pose is not None and self.lo_steps > 0:
+            fit = refine_upright(*pose, f1, f2, iterations=self.lo_steps)
+            out.append(upright_e(fit.yaw_rad, fit.t_2_1))
+        return np.array(out).reshape(-1, 6)
+
+
+class GroundHomography:
+    """The ground-plane homography ``x_2 ~ H x_1`` of known gravity (see the module docstring); data
+    are the correspondences given, which the caller picks below the horizon in both views."""
+
+    sample_size = 2
+
+    def __init__(self, f1: np.ndarray, f2: np.ndarray) -> None:
+        self.f1, self.f2 = f1, f2
+        self.num_data = len(f1)
+
+    def generate(self, samples: np.ndarray) -> np.ndarray:
+        H, valid = solve_ground_2pt_batch(self.f1[samples], self.f2[samples])
+        return H[valid]
+
+    def residuals_sq(self, models: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        if rows is None:
+            return ground_sq(models, self.f1, self.f2)
+        return ground_sq(models, self.f1[rows], self.f2[rows])
+
+    def refine(self, model: np.ndarray, inliers: np.ndarray) -> np.ndarray:
+        fit = fit_ground_similarity(self.f1[inliers], self.f2[inliers])
+        if fit is None:
+            return np.zeros((0, 3, 3))
+        return ground_homography_from_similarity(np.array(fit[0]), np.array(fit[1]))[None]
+
+
+class PureRotation:
+    """A rotation without baseline, ``f2 = R f1`` (see the module docstring). Points along the vertical
+    in either view say nothing about yaw and are not sampled."""
+
+    sample_size = 1
+
+    def __init__(self, f1: np.ndarray, f2: np.ndarray) -> None:
+        self.f1, self.f2 = f1, f2
+        self._h1 = f1[:, 0] + 1j * f1[:, 1]
+        self._h2 = f2[:, 0] + 1j * f2[:, 1]
+        self.usable = np.nonzero((np.abs(self._h1) > 1e-6) & (np.abs(self._h2) > 1e-6))[0]
+        self.num_data = len(f1)
+
+    def generate(self, samples: np.ndarray) -> np.ndarray:
+        pick = samples[:, 0]
+        pick = pick[np.isin(pick, self.usable)]
+        return np.array([rot_z(y) for y in np.angle(self._h2[pick] * np.conj(self._h1[pick]))]).reshape(-1, 3, 3)
+
+    def residuals_sq(self, models: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        if rows is None:
+            return rotation_sq(models, self.f1, self.f2)
+        return rotation_sq(models, self.f1[rows], self.f2[rows])
+
+    def refine(self, model: np.ndarray, inliers: np.ndarray) -> np.ndarray:
+        R = fit_rotation(self.f1[inliers], self.f2[inliers])
+        return np.zeros((0, 3, 3)) if R is None else R[None]
