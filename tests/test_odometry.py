@@ -204,3 +204,31 @@ def test_roll_pitch_interpolated_across_a_wide_gap_degrade_the_estimate_and_wide
     assert all(e.covariance[3, 3] == pytest.approx(base_var) for e in exact_est)
     assert all(e.diagnostics.attitude_sigma_deg == pytest.approx(math.degrees(math.sqrt(base_var + sigma_rad ** 2))) for e in slow_est)
     assert max(e.quality for e in slow_est) <= OdometryOptions().degraded_quality_max
+
+
+def test_attitude_correction_keeps_a_noisy_flight_controller_from_costing_the_track() -> None:
+    """Roll/pitch 0.5 deg off per frame (a flight controller worse than the simulated one): with
+    ``odometry.ransac.attitude_correction`` the relative pose corrects them under the prior, the track
+    holds and the roll/pitch sent are closer to the truth than the flight controller's. Without it this
+    flight reset once and ended 0.12 m RMSE off (0.019 m with it), when written."""
+    import dataclasses
+    import math
+
+    seq = PairedSequence(load_scenario("square"), duration_s=10.0)
+    opts = build(OdometryOptions, {"attitude_sigma_deg": 0.5, "ransac": {"attitude_correction": True}}, "test")
+    vo = Odometry(seq.scenario.camera.camera_model(), seq.R_body_cam, opts)
+    rng = np.random.default_rng(1)
+    out, fc_err, sent_err = [], [], []
+    for pf in seq:
+        truth = seq.trajectory.state(pf.t_exposure_s)
+        n = np.radians(0.5) * rng.standard_normal(2)
+        pf = dataclasses.replace(pf, roll_rad=pf.roll_rad + n[0], pitch_rad=pf.pitch_rad + n[1])
+        e = vo.step(pf)
+        if e is not None and e.quality >= 0:
+            out.append(e)
+            fc_err.append(math.hypot(pf.roll_rad - truth.roll_rad, pf.pitch_rad - truth.pitch_rad))
+            sent_err.append(math.hypot(e.rpy_rad[0] - truth.roll_rad, e.rpy_rad[1] - truth.pitch_rad))
+    run = Run(tuple(out), seq, vo.reset_counter)
+    assert vo.reset_counter == 0 and len(out) > 190
+    assert run.evaluation().ate_se3_m["rmse"] < 0.05
+    assert np.median(sent_err) < 0.75 * np.median(fc_err)  # 0.34 against 0.53 deg when written

@@ -72,6 +72,10 @@ _GRIC_R = 4
 _GRIC_LAMBDA3 = 2.0
 # Manifold dimension d and parameter count k of each model.
 _GRIC_DK = {"essential": (3, 3), "ground": (2, 4), "rotation": (2, 3)}
+# With roll/pitch uncertain, hypotheses are scored allowing this many sigmas of relative tilt error.
+_TILT_SIGMAS = 2.0
+_TILT_ROUNDS = 8  # refine / re-select rounds under the attitude prior, at most
+_TILT_MIN_PARALLAX_SIGMAS = 1.0  # roll/pitch are corrected only with more median parallax than this many sigmas of their relative error
 
 
 @dataclass(frozen=True)
@@ -93,6 +97,9 @@ class RelposeOptions(RansacOptions):
     min_parallax_ratio: float = bounded(1.0, "median inlier parallax below this many thresholds: a pure rotation (translation not observable)", ge=0, le=100)
     yaw_prior_tolerance_deg: float = bounded(
         30.0, "with a yaw prior, hypotheses further from it are dropped (a nadir camera over flat ground sees a twin at yaw + 180 deg)", gt=0, le=180
+    )
+    attitude_correction: bool = bounded(
+        False, "the odometry corrects roll/pitch of both views under odometry.attitude_sigma_deg (see docs/relpose.md for when it pays: a flight controller's attitude worse than about 0.2 deg)"
     )
 
     def __post_init__(self) -> None:
@@ -288,6 +295,7 @@ def estimate_upright_relpose(
     seed: int = 0,
     options: RelposeOptions | None = None,
     yaw_prior_rad: float | None = None,
+    attitude_sigma_rad: tuple[float, float] | None = None,
 ) -> UprightRelpose:
     """Robust relative pose between two level frames from bearing correspondences.
 
@@ -299,6 +307,11 @@ def estimate_upright_relpose(
         options: :class:`RelposeOptions`.
         yaw_prior_rad: the expected yaw of ``R_2_1`` (within ``options.yaw_prior_tolerance_deg``),
             or None.
+        attitude_sigma_rad: the roll/pitch uncertainty (1 sigma) of the level frame of view 1 and of
+            view 2, or None for ``options.tilt_sigma_deg`` for both (0: roll/pitch taken as exact, the
+            paper's setting). With an uncertainty, hypotheses are scored with a threshold that allows
+            for the tilt error they inherit; the refinement then corrects roll/pitch under that prior,
+            re-selecting the inliers with a threshold halved each round down to ``max_err_rad``.
 
     Returns:
         :class:`UprightRelpose`. Degenerate input (fewer points than a sample, identical points, no
@@ -316,56 +329,69 @@ def estimate_upright_relpose(
     if spread < 1e-9:
         return _failure(RelposeFailure.DEGENERATE_POINTS, n)
 
+    if attitude_sigma_rad is None and opt.tilt_sigma_rad is not None:
+        attitude_sigma_rad = (opt.tilt_sigma_rad, opt.tilt_sigma_rad)
+    if attitude_sigma_rad is not None and not all(np.isfinite(x) and x >= 0 for x in attitude_sigma_rad):
+        raise ValueError(f"attitude_sigma_rad: expected two angles >= 0, got {attitude_sigma_rad}")
+    if attitude_sigma_rad is not None and max(attitude_sigma_rad) <= 0:
+        attitude_sigma_rad = None
+    # A hypothesis from roll/pitch off by d1 and d2 misplaces every bearing by up to their relative error.
+    sample_thr = max_err_rad if attitude_sigma_rad is None else math.hypot(max_err_rad, _TILT_SIGMAS * math.hypot(*attitude_sigma_rad))
+
     rng = np.random.default_rng(seed)
     thr_sq = float(max_err_rad) ** 2
     essential = UprightEssential(
         f1, f2, solver=opt.minimal_solver, nonminimal=opt.nonminimal_solver, lo_steps=opt.lo_steps,
         yaw_prior_rad=yaw_prior_rad, yaw_tolerance_rad=math.radians(opt.yaw_prior_tolerance_deg),
     )
-    run = lo_ransac(essential, opt, max_err_rad, rng)
+    run = lo_ransac(essential, opt, sample_thr, rng)
     t_refine = time.thread_time()
     rs = run.stats
     sigma, gric = math.nan, dict[str, float]()
     if run.model is None:
-        rot = lo_ransac(PureRotation(f1, f2), dataclasses.replace(opt, lo_rounds=2, local_optimization=True), max_err_rad, rng)
+        rot = lo_ransac(PureRotation(f1, f2), dataclasses.replace(opt, lo_rounds=2, local_optimization=True), sample_thr, rng)
         if rot.model is None or np.count_nonzero(rot.inliers) < s:
             return _failure(RelposeFailure.NO_MODEL, n, rs.iterations, RelposeStats(rs))
-        fit = _rotation_fit(rot.model[0], rot.err_sq)
+        fit = _rotation_fit(rot.model[0], rotation_sq(rot.model[0], f1, f2))
     else:
-        fit, sigma, gric = _select(f1, f2, run, opt, max_err_rad, rng)
+        fit, sigma, gric = _select(f1, f2, run, opt, max_err_rad, rng, attitude_sigma_rad, sample_thr)
     final = RelposeStats(rs, sigma, gric, time.thread_time() - t_refine)
     return _result(fit, thr_sq, rs.iterations, final)
 
 
-def _select(f1: np.ndarray, f2: np.ndarray, run: RansacResult, opt: RelposeOptions, max_err_rad: float, rng: np.random.Generator) -> tuple[_Fit, float, dict[str, float]]:
+def _select(
+    f1: np.ndarray, f2: np.ndarray, run: RansacResult, opt: RelposeOptions, max_err_rad: float, rng: np.random.Generator,
+    attitude_sigma_rad: tuple[float, float] | None, sample_thr: float,
+) -> tuple[_Fit, float, dict[str, float]]:
     """Refine the essential model found, then choose between it, the ground homography and a pure
-    rotation (GRIC): the chosen fit, the noise sigma and the GRIC scores."""
+    rotation (GRIC) on the bearings with the roll/pitch corrections the refinement found: the chosen
+    fit, the noise sigma and the GRIC scores."""
     thr_sq = max_err_rad**2
     assert run.model is not None
     pose = decompose_upright(run.model[0], f1[run.inliers], f2[run.inliers])
     assert pose is not None  # a model has at least its own sample as inliers
     yaw, t = pose
-    G = upright_design(f1, f2)
-    # Final refinement on the inliers, which are then re-selected for a second round (with the
-    # roll/pitch of both views free under the IMU prior when asked).
     tilt1 = tilt2 = np.zeros(2)
+    if attitude_sigma_rad is not None:
+        # With less parallax than the attitude's own relative error, vision cannot tell a tilt
+        # from a translation: roll/pitch are kept as given.
+        inl = run.err_sq < max_err_rad**2  # the points the hypothesis fits closely: outliers would inflate it
+        parallax = float(np.median(np.sqrt(2.0 * rotation_sq(rot_z(yaw), f1[inl], f2[inl])))) if inl.any() else 0.0
+        if parallax < _TILT_MIN_PARALLAX_SIGMAS * math.hypot(*attitude_sigma_rad):
+            attitude_sigma_rad = None
+    if attitude_sigma_rad is not None:
+        yaw, t, tilt1, tilt2 = _refine_with_attitude(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, opt.refine_steps)
+        f1, f2 = f1 @ tilt_rotation(tilt1).T, f2 @ tilt_rotation(tilt2).T
+    G = upright_design(f1, f2)
     err_e = sampson_sq_upright(upright_e(yaw, t)[None], G)[0]
-    if opt.refine_steps > 0:
-        inl = err_e < thr_sq
-        fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=opt.refine_steps)
-        yaw, t = fit.yaw_rad, fit.t_2_1
-        err_e = sampson_sq_upright(upright_e(yaw, t)[None], G)[0]
+    if attitude_sigma_rad is None and opt.refine_steps > 0:
+        # Refined on the inliers, which are then re-selected for a second round.
+        for steps in (opt.refine_steps, min(opt.refine_steps, 2)):
+            inl = err_e < thr_sq
+            fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=steps)
+            yaw, t = fit.yaw_rad, fit.t_2_1
+            err_e = sampson_sq_upright(upright_e(yaw, t)[None], G)[0]
     sigma = _robust_sigma(err_e[err_e < thr_sq], max_err_rad)
-    if opt.refine_steps > 0:
-        inl = err_e < thr_sq
-        if opt.tilt_sigma_rad is None:
-            fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=min(opt.refine_steps, 2))
-        else:
-            fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=opt.refine_steps, tilt_sigma_rad=opt.tilt_sigma_rad, noise_sigma_rad=sigma)
-            tilt1, tilt2 = fit.tilt1_rad, fit.tilt2_rad
-            G = upright_design(f1 @ tilt_rotation(tilt1).T, f2 @ tilt_rotation(tilt2).T)
-        yaw, t = fit.yaw_rad, fit.t_2_1
-        err_e = sampson_sq_upright(upright_e(yaw, t)[None], G)[0]
     essential = _Fit("essential", yaw, t, err_e, None, tilt1, tilt2)
 
     # GRIC runs on the essential inliers only: its outlier cap differs between models (2 for E, 4
@@ -374,7 +400,7 @@ def _select(f1: np.ndarray, f2: np.ndarray, run: RansacResult, opt: RelposeOptio
     inl_idx = np.nonzero(err_e < thr_sq)[0]
     gric = {"essential": _gric(err_e[inl_idx], sigma_sq, "essential")}
     R_rot = _refit_rotation(fit_rotation(f1[inl_idx], f2[inl_idx]), f1, f2, thr_sq)
-    rotation = None if R_rot is None else _rotation_fit(R_rot, rotation_sq(R_rot, f1, f2))
+    rotation = None if R_rot is None else _Fit("rotation", yaw_of(R_rot), np.zeros(3), rotation_sq(R_rot, f1, f2), None, tilt1, tilt2)
     if rotation is not None:
         gric["rotation"] = _gric(rotation.err_sq[inl_idx], sigma_sq, "rotation")
         # Below about a pixel of parallax a translation direction is noise, and a near-vertical one
@@ -393,7 +419,7 @@ def _select(f1: np.ndarray, f2: np.ndarray, run: RansacResult, opt: RelposeOptio
             R, t_per_h = ground_pose_from_homography(H)
             nt = float(np.linalg.norm(t_per_h))
             if nt > 0:
-                ground = _Fit("ground", yaw_of(R), t_per_h / nt, ground_sq(H, f1, f2), t_per_h)
+                ground = _Fit("ground", yaw_of(R), t_per_h / nt, ground_sq(H, f1, f2), t_per_h, tilt1, tilt2)
     if opt.model == "auto":
         allowed: tuple[str, ...] = ("essential", "ground", "rotation")
     elif opt.model == "ground" and "ground" in gric:
@@ -403,6 +429,33 @@ def _select(f1: np.ndarray, f2: np.ndarray, run: RansacResult, opt: RelposeOptio
     choice = min((m for m in gric if m in allowed), key=gric.__getitem__, default="essential")
     fits = {"essential": essential, "rotation": rotation, "ground": ground}
     return fits[choice] or essential, sigma, gric
+
+
+def _refine_with_attitude(
+    f1: np.ndarray, f2: np.ndarray, yaw: float, t: np.ndarray, attitude_sigma_rad: tuple[float, float], sample_thr: float, max_err_rad: float, steps: int,
+) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """Yaw, translation direction and the roll/pitch corrections of both views under the attitude
+    prior, from the sampling's wide inlier set down to the tight one: each round refines on the current
+    inliers (Cauchy loss at the round's threshold), re-selects them with the corrected bearings and
+    halves the threshold, until it is ``max_err_rad`` and the inliers stop changing. Re-selecting with
+    the refined model is what removes the bias a first, outlier-tainted inlier set leaves."""
+    thr = sample_thr
+    d1 = d2 = np.zeros(2)
+    previous: np.ndarray | None = None
+    sigmas = tuple(max(s, 1e-6) for s in attitude_sigma_rad)  # a view given as exact: held by a stiff prior
+    for _ in range(_TILT_ROUNDS):
+        err = sampson_sq_upright(upright_e(yaw, t)[None], upright_design(f1 @ tilt_rotation(d1).T, f2 @ tilt_rotation(d2).T))[0]
+        inl = err < thr**2
+        if np.count_nonzero(inl) < 5 or steps == 0:
+            break
+        if thr == max_err_rad and previous is not None and np.array_equal(inl, previous):
+            break
+        noise = _robust_sigma(err[inl], max_err_rad)
+        fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=steps, tilt_sigma_rad=sigmas, noise_sigma_rad=noise,  # type: ignore[arg-type]
+                             tilt1_rad=d1, tilt2_rad=d2, robust_scale_rad=thr)
+        yaw, t, d1, d2 = fit.yaw_rad, fit.t_2_1, fit.tilt1_rad, fit.tilt2_rad
+        previous, thr = inl, max(max_err_rad, 0.5 * thr)
+    return yaw, t, d1, d2
 
 
 def _robust_sigma(err_sq_inliers: np.ndarray, max_err_rad: float) -> float:
@@ -448,6 +501,7 @@ def estimate_relpose_known_gravity(
     *,
     seed: int = 0,
     options: RelposeOptions | None = None,
+    attitude_sigma_rad: tuple[float, float] | None = None,
 ) -> CameraRelpose:
     """Relative pose between two camera frames from matched pixels and each view's gravity.
 
@@ -458,7 +512,7 @@ def estimate_relpose_known_gravity(
             (:func:`mavvo.geometry.frames.R_lvl_cam` of the roll/pitch at each exposure).
         max_err_px: inlier threshold in pixels (default ``options.max_err_px``), converted once to an
             angle with the mean focal length.
-        seed, options: as for :func:`estimate_upright_relpose`.
+        seed, options, attitude_sigma_rad: as for :func:`estimate_upright_relpose`.
 
     Returns:
         :class:`CameraRelpose` with ``x_c2 = R_c2_c1 @ x_c1 + t_c2_c1``.
@@ -478,7 +532,7 @@ def estimate_relpose_known_gravity(
     f1 = camera.pixels_to_bearings(uv1_px) @ R1.T
     f2 = camera.pixels_to_bearings(uv2_px) @ R2.T
     max_err_rad = max_err_px / (0.5 * (camera.fx_px + camera.fy_px))
-    up = estimate_upright_relpose(f1, f2, max_err_rad=max_err_rad, seed=seed, options=opt)
+    up = estimate_upright_relpose(f1, f2, max_err_rad=max_err_rad, seed=seed, options=opt, attitude_sigma_rad=attitude_sigma_rad)
     R1c = tilt_rotation(up.tilt1_rad) @ R1
     R2c = tilt_rotation(up.tilt2_rad) @ R2
     return CameraRelpose(

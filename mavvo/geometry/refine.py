@@ -2,7 +2,8 @@
 
 - :func:`refine_upright`: Gauss-Newton on the upright manifold (yaw and the unit translation: 3
   degrees of freedom of E, 4 parameters with the scale of t fixed) on Sampson errors; optionally the
-  roll and pitch of both views move too, held by a Gaussian prior of the IMU's sigma.
+  roll and pitch of both views move too, held by a Gaussian prior of the IMU's sigma, and a Cauchy
+  loss keeps far points from pulling.
 - :func:`fit_ground_similarity`: the ground-plane homography in closed form (weighted least squares).
 - :func:`fit_rotation`: the pure rotation (no baseline) in closed form.
 
@@ -68,8 +69,11 @@ def refine_upright(
     f2: np.ndarray,
     *,
     iterations: int = 5,
-    tilt_sigma_rad: float | None = None,
+    tilt_sigma_rad: float | tuple[float, float] | None = None,
     noise_sigma_rad: float | None = None,
+    tilt1_rad: np.ndarray | None = None,
+    tilt2_rad: np.ndarray | None = None,
+    robust_scale_rad: float | None = None,
 ) -> UprightFit:
     """Gauss-Newton on the Sampson errors of ``E = [t]x Rz(yaw)`` over the given correspondences.
 
@@ -78,19 +82,26 @@ def refine_upright(
         f1, f2: (N, 3) unit level-frame bearings, all of them inliers (the caller selects them).
         iterations: maximum number of steps; stops early when the step is below 1e-8 (rad).
         tilt_sigma_rad: when given, the roll and pitch of each view may move as well, each with a
-            Gaussian prior of this standard deviation (the IMU's). Needs ``noise_sigma_rad``.
+            Gaussian prior of this standard deviation (the IMU's; one for both views or one per view),
+            centred on no correction. Needs ``noise_sigma_rad``.
         noise_sigma_rad: the bearing noise that weighs the data against the tilt prior.
+        tilt1_rad, tilt2_rad: (2,) the corrections to start from (default none).
+        robust_scale_rad: when given, a Cauchy loss of this scale, ``rho(r) = c^2 log(1 + r^2/c^2)``, by
+            reweighting each step (IRLS): points far off the model count less.
 
     Returns:
         The refined :class:`UprightFit`. With fewer points than parameters it returns the start.
     """
     with_tilt = tilt_sigma_rad is not None
-    if with_tilt and not (noise_sigma_rad and noise_sigma_rad > 0 and tilt_sigma_rad > 0):  # type: ignore[operator]
+    if with_tilt and not (noise_sigma_rad and noise_sigma_rad > 0 and np.all(np.asarray(tilt_sigma_rad) > 0)):
         raise ValueError("tilt_sigma_rad and noise_sigma_rad: both must be positive to refine tilt")
     yaw = float(yaw_rad)
     t = np.asarray(t_2_1, dtype=float) / np.linalg.norm(t_2_1)
-    d1 = np.zeros(2)
-    d2 = np.zeros(2)
+    d1 = np.zeros(2) if tilt1_rad is None else np.asarray(tilt1_rad, dtype=float).copy()
+    d2 = np.zeros(2) if tilt2_rad is None else np.asarray(tilt2_rad, dtype=float).copy()
+    if with_tilt:
+        s1, s2 = (tilt_sigma_rad, tilt_sigma_rad) if np.isscalar(tilt_sigma_rad) else tilt_sigma_rad  # type: ignore[misc]
+        prior_w = np.array([1.0 / s1, 1.0 / s1, 1.0 / s2, 1.0 / s2])  # type: ignore[operator]
     n_params = 7 if with_tilt else 3
     steps = 0
     if len(f1) < (3 if not with_tilt else 1):
@@ -120,11 +131,15 @@ def refine_upright(
                 cols.append(np.einsum("ij,ij->i", cross(e, f2c), Ef1))
         J = np.stack(cols, axis=1) * inv_s[:, None]
         r = n * inv_s
+        if robust_scale_rad is not None:
+            # Cauchy IRLS: weight 1 / (1 + r^2/c^2) on the squared residual, its root on the rows.
+            sw = 1.0 / np.sqrt(1.0 + (r / robust_scale_rad) ** 2)
+            J, r = J * sw[:, None], r * sw
         if with_tilt:
             w = 1.0 / noise_sigma_rad  # type: ignore[operator]
             J = np.concatenate([J * w, np.zeros((4, n_params))])
-            r = np.concatenate([r * w, np.concatenate([d1, d2]) / tilt_sigma_rad])
-            J[-4:, 3:] = np.eye(4) / tilt_sigma_rad  # type: ignore[operator]
+            r = np.concatenate([r * w, np.concatenate([d1, d2]) * prior_w])
+            J[-4:, 3:] = np.diag(prior_w)
         JtJ = J.T @ J
         try:
             delta = -np.linalg.solve(JtJ + 1e-12 * np.trace(JtJ) * np.eye(n_params), J.T @ r)

@@ -51,6 +51,8 @@ class Keyframe:
         p_ned_m: (3,) camera position in the world frame (NED, m).
         yaw_rad: heading of the keyframe's level frame in the world frame.
         fc_yaw_rad: the flight controller's yaw at this frame (NaN if unknown).
+        attitude_sigma_rad: the roll/pitch uncertainty of its level frame (1 sigma), what the relative
+            pose's attitude prior takes for this view.
     """
 
     seq: int
@@ -61,6 +63,7 @@ class Keyframe:
     p_ned_m: np.ndarray
     yaw_rad: float
     fc_yaw_rad: float
+    attitude_sigma_rad: float = 0.0
 
     def match(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Indices (into this keyframe, into ``ids``) of the tracks both have; ``ids`` increasing."""

@@ -49,7 +49,8 @@ import numpy as np
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.options import bounded
 from mavvo.odometry.filter import FilterOptions, PoseFilter, Update, wrap_angle
-from mavvo.geometry.frames import R_lvl_body, R_lvl_cam, as_rotation
+from mavvo.geometry.frames import R_lvl_body, R_lvl_cam, as_rotation, euler321_from_R
+from mavvo.geometry.refine import tilt_rotation
 from mavvo.odometry.frontend import Frontend, FrontendOptions, Tracks
 from mavvo.odometry.keyframes import Keyframe, KeyframeChain, KeyframeOptions, carry_depths, keyframe_reason
 from mavvo.estimation.relpose import RelposeFailure, RelposeOptions, UprightRelpose, estimate_upright_relpose
@@ -136,6 +137,7 @@ class _Measurement:
     parallax_px: float
     depth2_m: np.ndarray  # (matched,) metric depths along the current bearings, NaN where none
     parallax_rad: np.ndarray  # (matched,)
+    roll_pitch_rad: tuple[float, float]  # the frame's, corrected by vision (the relative pose's tilt of view 2)
 
 
 class Odometry:
@@ -161,7 +163,8 @@ class Odometry:
         self._min_parallax_rad = math.radians(opt.scale.min_parallax_deg)
         self._carry_min_parallax_rad = math.radians(opt.scale.carry_min_parallax_deg)
         self._yaw_sigma_rad = math.radians(opt.yaw_sigma_deg)
-        self._att_var = math.radians(opt.attitude_sigma_deg) ** 2
+        self._att_sigma_rad = math.radians(opt.attitude_sigma_deg)
+        self._att_var = self._att_sigma_rad**2
         if not 0 <= reset_counter <= 255:
             raise ValueError(f"reset_counter: expected 0..255, got {reset_counter}")
         self.reset_counter = reset_counter
@@ -231,7 +234,7 @@ class Odometry:
             self.reset_counter = (self.reset_counter + 1) % 256
             log.info("re-initialised at frame %d (reset %d), anchored at %s", frame.seq, self.reset_counter, how)
         self._drift.anchor_p_ned_m, self._drift.flown_m, self._drift.last_p_ned_m = p.copy(), 0.0, None
-        kf = Keyframe(frame.seq, frame.t_exposure_s, tracks.ids, f_lvl, np.full(len(tracks.ids), np.nan), p, yaw, fc_yaw)
+        kf = Keyframe(frame.seq, frame.t_exposure_s, tracks.ids, f_lvl, np.full(len(tracks.ids), np.nan), p, yaw, fc_yaw, self._attitude_sigma_rad(frame))
         self.chain.push(kf, self.reset_counter)
         self._last_yaw_2_1 = 0.0
         self._metric_interval = False
@@ -265,14 +268,21 @@ class Odometry:
             prior = wrap_angle(kf.fc_yaw_rad - frame.yaw_rad)
         else:
             prior = self._last_yaw_2_1
+        # With attitude correction on, the relative pose corrects both views' roll/pitch under the
+        # flight controller's uncertainty, and what follows works in the corrected level frames.
+        sigmas = (kf.attitude_sigma_rad or self._att_sigma_rad, self._attitude_sigma_rad(frame)) if opt.ransac.attitude_correction else None
         rp = estimate_upright_relpose(
-            f1, f2, max_err_rad=self._max_err_rad, seed=frame.seq, options=opt.ransac, yaw_prior_rad=prior
+            f1, f2, max_err_rad=self._max_err_rad, seed=frame.seq, options=opt.ransac, yaw_prior_rad=prior, attitude_sigma_rad=sigmas,
         )
         if not rp.success and rp.reason != RelposeFailure.PURE_ROTATION:
             return _NoPose(StateReason(rp.reason.value))
         if rp.num_inliers < opt.min_inliers:
             return _NoPose(StateReason.TOO_FEW_INLIERS)
         self._last_yaw_2_1 = rp.yaw_rad
+        T1, T2 = tilt_rotation(rp.tilt1_rad), tilt_rotation(rp.tilt2_rad)
+        f1, f2 = f1 @ T1.T, f2 @ T2.T
+        R_lvl_body2 = T2 @ R_lvl_body(frame.roll_rad, frame.pitch_rad)
+        roll2, pitch2, _ = euler321_from_R(R_lvl_body2)  # the frame's roll/pitch with vision's correction
         inl = rp.inliers
         n = len(i_kf)
         depth2 = np.full(n, np.nan)
@@ -287,7 +297,7 @@ class Odometry:
             pts = lam1[valid, None] * f1[inl][valid]
             carried = kf.depth_m[i_kf][inl][valid]
             known = np.isfinite(carried) & (par_i[valid] >= self._carry_min_parallax_rad)
-            down2 = R_lvl_body(frame.roll_rad, frame.pitch_rad)[:, 2]
+            down2 = R_lvl_body2[:, 2]
             c2_unit = -rp.R_2_1.T @ rp.t_2_1
             scale = estimate_scale(
                 opt.scale, points_lvl=pts, parallax_rad=par_i[valid], c2_lvl1=c2_unit, down_lvl2=down2,
@@ -310,7 +320,7 @@ class Odometry:
                     self._scene_depth_m = float(np.median(scale.baseline_m * lam1[valid]))
         p, yaw = kf.pose_of(c2, rp.yaw_rad)
         parallax_px = float(np.median(par[inl])) * self._focal_px
-        return _Measurement(p, yaw, rp, scale, c2, parallax_px, depth2, par)
+        return _Measurement(p, yaw, rp, scale, c2, parallax_px, depth2, par, (roll2, pitch2))
 
     def _accept(self, frame: PairedFrame, tracks: Tracks, f_lvl: np.ndarray, kf: Keyframe, i_kf: np.ndarray, i_cur: np.ndarray, m: _Measurement) -> PoseEstimate:
         opt = self.options
@@ -367,7 +377,7 @@ class Odometry:
             scale_source=m.scale.source if m.scale is not None else ScaleSource.NONE, keyframe=bool(why_kf),
             attitude_gap_s=frame.attitude_gap_s, attitude_sigma_deg=math.degrees(math.sqrt(self._att_var + frame.interpolation_sigma_rad ** 2)),
         )
-        return self._estimate(frame, diag, quality=quality)
+        return self._estimate(frame, diag, quality=quality, roll_pitch_rad=m.roll_pitch_rad)
 
     def _new_keyframe(self, frame: PairedFrame, tracks: Tracks, f_lvl: np.ndarray, kf: Keyframe, i_kf: np.ndarray, i_cur: np.ndarray, m: _Measurement) -> None:
         rp = m.relpose
@@ -381,7 +391,9 @@ class Odometry:
             self.filter.shift_yaw(nudge)  # a correction of the frame's heading, not a measurement to gate
         # Without a measured translation (mostly a turn on the spot) the keyframe stays where the old
         # one was: taking the filter's coasted position instead let its velocity noise into the chain.
-        self.chain.push(Keyframe(frame.seq, frame.t_exposure_s, tracks.ids, f_lvl, depth, m.p_ned_m, yaw, frame.yaw_rad), self.reset_counter)
+        # The new keyframe keeps its level frame as vision corrected it.
+        f_kf = f_lvl @ tilt_rotation(m.relpose.tilt2_rad).T
+        self.chain.push(Keyframe(frame.seq, frame.t_exposure_s, tracks.ids, f_kf, depth, m.p_ned_m, yaw, frame.yaw_rad, self._attitude_sigma_rad(frame)), self.reset_counter)
         self._last_yaw_2_1 = 0.0
         known = np.isfinite(depth)
         self._metric_interval = m.scale is not None and self._trusted(m.scale) and np.count_nonzero(known) >= self.options.scale.min_points
@@ -407,7 +419,11 @@ class Odometry:
         q = max(1, int(round(q)))
         return min(q, opt.degraded_quality_max) if degraded else q
 
-    def _estimate(self, frame: PairedFrame, diag: VoDiagnostics, quality: int) -> PoseEstimate:
+    def _attitude_sigma_rad(self, frame: PairedFrame) -> float:
+        """The frame's roll/pitch uncertainty: the flight controller's and the pairing's interpolation."""
+        return math.hypot(self._att_sigma_rad, frame.interpolation_sigma_rad)
+
+    def _estimate(self, frame: PairedFrame, diag: VoDiagnostics, quality: int, roll_pitch_rad: tuple[float, float] | None = None) -> PoseEstimate:
         f = self.filter
         cov = np.zeros((6, 6))
         cov[:3, :3] = f.position_covariance
@@ -419,7 +435,7 @@ class Odometry:
             t_exposure_s=frame.t_exposure_s,
             seq=frame.seq,
             p_ned_m=p,
-            rpy_rad=np.array([frame.roll_rad, frame.pitch_rad, f.yaw_rad]),
+            rpy_rad=np.array([*(roll_pitch_rad or (frame.roll_rad, frame.pitch_rad)), f.yaw_rad]),
             v_ned_m_s=f.velocity_ned_m_s,
             covariance=cov,
             v_covariance=f.velocity_covariance,
