@@ -27,6 +27,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Literal, Mapping
 
+import cv2
 import numpy as np
 
 from mavvo.options import bounded
@@ -34,6 +35,7 @@ from mavvo.types import StrEnum
 
 from mavvo.estimation.estimators import SAMPLE_SIZE, GroundHomography, MinimalSolver, NonminimalSolver, PureRotation, UprightEssential
 from mavvo.estimation.estimators import decompose_upright, upright_e, yaw_of
+from mavvo.estimation.general5pt import estimate_general_relpose, sampson_sq_general
 from mavvo.estimation.ransac import RansacOptions, RansacResult, RansacStats, lo_ransac, required_iterations
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import as_rotation, rot_z
@@ -53,7 +55,7 @@ __all__ = [
 ]
 
 ModelChoice = Literal["auto", "essential", "ground"]
-ModelName = Literal["essential", "ground", "rotation", "none"]
+ModelName = Literal["essential", "ground", "rotation", "general", "none"]
 
 
 class RelposeFailure(StrEnum):
@@ -75,6 +77,8 @@ _GRIC_DK = {"essential": (3, 3), "ground": (2, 4), "rotation": (2, 3)}
 # With roll/pitch uncertain, hypotheses are scored allowing this many sigmas of relative tilt error.
 _TILT_SIGMAS = 2.0
 _TILT_ROUNDS = 8  # refine / re-select rounds under the attitude prior, at most
+_FALLBACK_BELOW_RATIO = 0.6  # fewer inliers than this fraction (or corrections beyond 3 sigma): try the general model
+_FALLBACK_MARGIN = 1.25  # ... and take it when it explains this many times the points
 _TILT_MIN_PARALLAX_SIGMAS = 1.0  # roll/pitch are corrected only with more median parallax than this many sigmas of their relative error
 
 
@@ -165,7 +169,9 @@ class UprightRelpose:
         success: a pose with a translation direction was found.
         reason: :class:`RelposeFailure` (``NONE`` on success; ``PURE_ROTATION``: ``R_2_1`` holds the
             estimated yaw and ``t_2_1`` is zero).
-        model: ``essential``, ``ground`` (all inliers on the horizontal ground plane), ``rotation`` or ``none``.
+        model: ``essential``, ``ground`` (all inliers on the horizontal ground plane), ``rotation``,
+            ``general`` (the 5-point without gravity: roll/pitch were worse than their sigma, the
+            tilt corrections say by how much) or ``none``.
         R_2_1: (3, 3) rotation about z between the (tilt-corrected) level frames.
         t_2_1: (3,) unit translation in level frame 2 (zeros when unknown).
         yaw_rad: the yaw of ``R_2_1``.
@@ -355,6 +361,8 @@ def estimate_upright_relpose(
         fit = _rotation_fit(rot.model[0], rotation_sq(rot.model[0], f1, f2))
     else:
         fit, sigma, gric = _select(f1, f2, run, opt, max_err_rad, rng, attitude_sigma_rad, sample_thr)
+        if attitude_sigma_rad is not None and fit.model != "rotation":
+            fit = _general_if_attitude_is_worse(f1, f2, fit, attitude_sigma_rad, max_err_rad, seed)
     final = RelposeStats(rs, sigma, gric, time.thread_time() - t_refine)
     return _result(fit, thr_sq, rs.iterations, final)
 
@@ -458,6 +466,35 @@ def _refine_with_attitude(
     return yaw, t, d1, d2
 
 
+def _general_if_attitude_is_worse(
+    f1: np.ndarray, f2: np.ndarray, fit: _Fit, attitude_sigma_rad: tuple[float, float], max_err_rad: float, seed: int,
+) -> _Fit:
+    """The general 5-point pose instead of ``fit`` when the attitude looks worse than its sigma says (the
+    corrections beyond 3 sigma, or under 60% of the points explained) and the general model explains
+    clearly more points (25%). Its rotation is given as a yaw and a tilt correction of view 2."""
+    thr_sq = max_err_rad**2
+    upright = int(np.count_nonzero(fit.err_sq < thr_sq))
+    beyond = np.linalg.norm(fit.tilt1) > 3 * attitude_sigma_rad[0] or np.linalg.norm(fit.tilt2) > 3 * attitude_sigma_rad[1]
+    if not beyond and upright >= _FALLBACK_BELOW_RATIO * len(f1):
+        return fit
+    general = estimate_general_relpose(f1, f2, max_err_rad, seed=seed)
+    if general is None:
+        return fit
+    R, t, E = general
+    err = sampson_sq_general(E, f1, f2)
+    if np.count_nonzero(err < thr_sq) <= _FALLBACK_MARGIN * upright:
+        return fit
+    # R = T2^T Rz(yaw) with all of the tilt on view 2: T2 = Rz(yaw) R^T, its axis made horizontal by
+    # moving the yaw (T2's rotation about z changes one for one with it), so T2 is exactly a tilt.
+    yaw = yaw_of(R)
+    for _ in range(4):
+        w = cv2.Rodrigues(rot_z(yaw) @ R.T)[0][:, 0]
+        yaw -= float(w[2])
+    T2 = rot_z(yaw) @ R.T
+    tilt2 = cv2.Rodrigues(T2)[0][:2, 0]
+    return _Fit("general", yaw, T2 @ t, err, None, np.zeros(2), tilt2)
+
+
 def _robust_sigma(err_sq_inliers: np.ndarray, max_err_rad: float) -> float:
     """Noise sigma from inlier residuals (MAD), floored at 1% of the threshold."""
     if err_sq_inliers.size == 0:
@@ -470,7 +507,7 @@ def _result(fit: _Fit, thr_sq: float, iterations: int, stats: RelposeStats) -> U
     inl = err_sq < thr_sq
     k = int(np.count_nonzero(inl))
     n = len(err_sq)
-    translation = fit.model in ("essential", "ground")
+    translation = fit.model in ("essential", "ground", "general")
     return UprightRelpose(
         success=translation,
         reason=RelposeFailure.NONE if translation else RelposeFailure.PURE_ROTATION,
