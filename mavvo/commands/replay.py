@@ -20,8 +20,9 @@ def add_parser(sub: Any) -> None:
         description=(
             "Feed a logged flight to the mavvo service through the simulated flight controller and camera: the service runs "
             "its normal code path on a lockstep clock, as fast as the computer allows, with the same result every time. "
-            "SOURCE is a mavvo recording (mavvo run --record), a flight-controller log (.tlog with ATTITUDE, or an ArduPilot "
-            "dataflash .bin with ATT) with --video and --config, or a EuRoC/ASL dataset folder (the one holding mav0/). "
+            "SOURCE is a mavvo recording (mavvo run --record), a flight-controller log (a telemetry .tlog, an ArduPilot "
+            "dataflash .bin or text .log of any firmware age, a PX4 .ulg) with --video and --config, or a EuRoC/ASL dataset "
+            "folder (the one holding mav0/). mavvo inspect SOURCE shows what would be read and what is missing. "
             "Writes estimate.tum, quality.csv/.png, summary.json and, with a reference, evaluation.png into --out."
         ),
     )
