@@ -55,6 +55,7 @@ bench: $(STAMP)
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/solvers.py --markdown docs/benchmarks.md
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/relpose.py --markdown docs/benchmarks.md --plots docs/img
 	$(BIN)/python benchmarks/relpose.py --threads --markdown docs/benchmarks.md
+	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/relpose_flight.py --markdown docs/benchmarks.md --plots docs/img
 	OMP_NUM_THREADS=1 $(BIN)/python benchmarks/render.py --markdown docs/benchmarks.md
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/pipeline.py --markdown docs/benchmarks.md
 

@@ -539,6 +539,7 @@ def estimate_relpose_known_gravity(
     seed: int = 0,
     options: RelposeOptions | None = None,
     attitude_sigma_rad: tuple[float, float] | None = None,
+    yaw_prior_rad: float | None = None,
 ) -> CameraRelpose:
     """Relative pose between two camera frames from matched pixels and each view's gravity.
 
@@ -549,7 +550,8 @@ def estimate_relpose_known_gravity(
             (:func:`mavvo.geometry.frames.R_lvl_cam` of the roll/pitch at each exposure).
         max_err_px: inlier threshold in pixels (default ``options.max_err_px``), converted once to an
             angle with the mean focal length.
-        seed, options, attitude_sigma_rad: as for :func:`estimate_upright_relpose`.
+        seed, options, attitude_sigma_rad, yaw_prior_rad: as for :func:`estimate_upright_relpose` (the
+            yaw prior between the level frames: the flight controller's yaw at view 1 minus at view 2).
 
     Returns:
         :class:`CameraRelpose` with ``x_c2 = R_c2_c1 @ x_c1 + t_c2_c1``.
@@ -569,7 +571,7 @@ def estimate_relpose_known_gravity(
     f1 = camera.pixels_to_bearings(uv1_px) @ R1.T
     f2 = camera.pixels_to_bearings(uv2_px) @ R2.T
     max_err_rad = max_err_px / (0.5 * (camera.fx_px + camera.fy_px))
-    up = estimate_upright_relpose(f1, f2, max_err_rad=max_err_rad, seed=seed, options=opt, attitude_sigma_rad=attitude_sigma_rad)
+    up = estimate_upright_relpose(f1, f2, max_err_rad=max_err_rad, seed=seed, options=opt, attitude_sigma_rad=attitude_sigma_rad, yaw_prior_rad=yaw_prior_rad)
     R1c = tilt_rotation(up.tilt1_rad) @ R1
     R2c = tilt_rotation(up.tilt2_rad) @ R2
     return CameraRelpose(
