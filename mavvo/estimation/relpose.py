@@ -79,7 +79,10 @@ _TILT_SIGMAS = 2.0
 _TILT_ROUNDS = 8  # refine / re-select rounds under the attitude prior, at most
 _FALLBACK_BELOW_RATIO = 0.6  # fewer inliers than this fraction (or corrections beyond 3 sigma): try the general model
 _FALLBACK_MARGIN = 1.25  # ... and take it when it explains this many times the points
-_TILT_MIN_PARALLAX_SIGMAS = 1.0  # roll/pitch are corrected only with more median parallax than this many sigmas of their relative error
+# Roll/pitch are corrected only with more median parallax than this many sigmas of their relative error
+# and this many inlier thresholds (a pixel's parallax would otherwise pass for a tilt).
+_TILT_MIN_PARALLAX_SIGMAS = 1.0
+_TILT_MIN_PARALLAX_THRESHOLDS = 3.0
 
 
 @dataclass(frozen=True)
@@ -103,7 +106,7 @@ class RelposeOptions(RansacOptions):
         30.0, "with a yaw prior, hypotheses further from it are dropped (a nadir camera over flat ground sees a twin at yaw + 180 deg)", gt=0, le=180
     )
     attitude_correction: bool = bounded(
-        False, "the odometry corrects roll/pitch of both views under odometry.attitude_sigma_deg (see docs/relpose.md for when it pays: a flight controller's attitude worse than about 0.2 deg)"
+        True, "the odometry corrects roll/pitch of both views under odometry.attitude_sigma_deg (docs/relpose.md: roll/pitch that are not exact)"
     )
 
     def __post_init__(self) -> None:
@@ -381,11 +384,11 @@ def _select(
     yaw, t = pose
     tilt1 = tilt2 = np.zeros(2)
     if attitude_sigma_rad is not None:
-        # With less parallax than the attitude's own relative error, vision cannot tell a tilt
-        # from a translation: roll/pitch are kept as given.
+        # With less parallax than the attitude's own relative error (or a few pixels), vision cannot
+        # tell a tilt from a translation: roll/pitch are kept as given.
         inl = run.err_sq < max_err_rad**2  # the points the hypothesis fits closely: outliers would inflate it
         parallax = float(np.median(np.sqrt(2.0 * rotation_sq(rot_z(yaw), f1[inl], f2[inl])))) if inl.any() else 0.0
-        if parallax < _TILT_MIN_PARALLAX_SIGMAS * math.hypot(*attitude_sigma_rad):
+        if parallax < max(_TILT_MIN_PARALLAX_SIGMAS * math.hypot(*attitude_sigma_rad), _TILT_MIN_PARALLAX_THRESHOLDS * max_err_rad):
             attitude_sigma_rad = None
     if attitude_sigma_rad is not None:
         yaw, t, tilt1, tilt2 = _refine_with_attitude(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, opt.refine_steps)
