@@ -40,7 +40,7 @@ def sampson_sq_general(E: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndar
 
 
 def estimate_general_relpose(
-    f1: np.ndarray, f2: np.ndarray, max_err_rad: float, *, seed: int = 0, confidence: float = 0.999,
+    f1: np.ndarray, f2: np.ndarray, max_err_rad: float, *, seed: int = 0, confidence: float = 0.99,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """``(R_2_1, unit t_2_1, E)`` between the level frames of two views from bearings (N, 3), or None
     when OpenCV finds nothing (fewer than 5 usable points)."""
@@ -52,7 +52,7 @@ def estimate_general_relpose(
     p1 = np.ascontiguousarray(g1[ok, :2] / g1[ok, 2:])
     p2 = np.ascontiguousarray(g2[ok, :2] / g2[ok, 2:])
     cv2.setRNGSeed(seed)
-    E_v, mask = cv2.findEssentialMat(p1, p2, focal=1.0, pp=(0.0, 0.0), method=cv2.USAC_MAGSAC, prob=confidence, threshold=max_err_rad)
+    E_v, mask = cv2.findEssentialMat(p1, p2, focal=1.0, pp=(0.0, 0.0), method=cv2.RANSAC, prob=confidence, threshold=max_err_rad)
     if E_v is None or E_v.shape != (3, 3):
         return None
     _, R_v, t_v, _ = cv2.recoverPose(E_v, p1, p2, focal=1.0, pp=(0.0, 0.0), mask=mask)

@@ -77,7 +77,7 @@ _GRIC_DK = {"essential": (3, 3), "ground": (2, 4), "rotation": (2, 3)}
 # With roll/pitch uncertain, hypotheses are scored allowing this many sigmas of relative tilt error.
 _TILT_SIGMAS = 2.0
 _TILT_ROUNDS = 8  # refine / re-select rounds under the attitude prior, at most
-_FALLBACK_BELOW_RATIO = 0.6  # fewer inliers than this fraction (or corrections beyond 3 sigma): try the general model
+_FALLBACK_BELOW_RATIO = 0.6  # fewer inliers than this fraction of the points (or corrections beyond 3 sigma): try the general model
 _FALLBACK_MARGIN = 1.25  # ... and take it when it explains this many times the points
 # Roll/pitch are corrected only with more median parallax than this many sigmas of their relative error
 # and this many inlier thresholds (a pixel's parallax would otherwise pass for a tilt).
@@ -365,7 +365,7 @@ def estimate_upright_relpose(
     else:
         fit, sigma, gric = _select(f1, f2, run, opt, max_err_rad, rng, attitude_sigma_rad, sample_thr)
         if attitude_sigma_rad is not None and fit.model != "rotation":
-            fit = _general_if_attitude_is_worse(f1, f2, fit, attitude_sigma_rad, max_err_rad, seed)
+            fit = _general_if_attitude_is_worse(f1, f2, fit, attitude_sigma_rad, max_err_rad, seed, run.inliers)
     final = RelposeStats(rs, sigma, gric, time.thread_time() - t_refine)
     return _result(fit, thr_sq, rs.iterations, final)
 
@@ -462,7 +462,8 @@ def _refine_with_attitude(
         if thr == max_err_rad and previous is not None and np.array_equal(inl, previous):
             break
         noise = _robust_sigma(err[inl], max_err_rad)
-        fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=steps, tilt_sigma_rad=sigmas, noise_sigma_rad=noise,  # type: ignore[arg-type]
+        # A few steps per round from the warm start: the rounds go on until the inliers settle.
+        fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=min(steps, 3), tilt_sigma_rad=sigmas, noise_sigma_rad=noise,  # type: ignore[arg-type]
                              tilt1_rad=d1, tilt2_rad=d2, robust_scale_rad=thr)
         yaw, t, d1, d2 = fit.yaw_rad, fit.t_2_1, fit.tilt1_rad, fit.tilt2_rad
         previous, thr = inl, max(max_err_rad, 0.5 * thr)
@@ -470,17 +471,19 @@ def _refine_with_attitude(
 
 
 def _general_if_attitude_is_worse(
-    f1: np.ndarray, f2: np.ndarray, fit: _Fit, attitude_sigma_rad: tuple[float, float], max_err_rad: float, seed: int,
+    f1: np.ndarray, f2: np.ndarray, fit: _Fit, attitude_sigma_rad: tuple[float, float], max_err_rad: float, seed: int, candidates: np.ndarray,
 ) -> _Fit:
     """The general 5-point pose instead of ``fit`` when the attitude looks worse than its sigma says (the
     corrections beyond 3 sigma, or under 60% of the points explained) and the general model explains
-    clearly more points (25%). Its rotation is given as a yaw and a tilt correction of view 2."""
+    clearly more points (25%). It is searched among the points the sampling's widened threshold
+    admitted (``candidates``: the true inliers and few others, so it is quick), and counted on all.
+    Its rotation is given as a yaw and a tilt correction of view 2."""
     thr_sq = max_err_rad**2
     upright = int(np.count_nonzero(fit.err_sq < thr_sq))
     beyond = np.linalg.norm(fit.tilt1) > 3 * attitude_sigma_rad[0] or np.linalg.norm(fit.tilt2) > 3 * attitude_sigma_rad[1]
     if not beyond and upright >= _FALLBACK_BELOW_RATIO * len(f1):
         return fit
-    general = estimate_general_relpose(f1, f2, max_err_rad, seed=seed)
+    general = estimate_general_relpose(f1[candidates], f2[candidates], max_err_rad, seed=seed)
     if general is None:
         return fit
     R, t, E = general
