@@ -334,3 +334,18 @@ def test_an_attitude_far_worse_than_its_sigma_falls_back_to_the_general_five_poi
         scene, _ = add_outliers(scene, 0.2, rng, fov_half_rad=math.radians(30.0))
         r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=1.0 / 500.0, seed=trial, attitude_sigma_rad=configured)
         assert r.success and r.model == "essential"
+
+
+def test_the_attitude_path_never_raises_on_hopeless_input() -> None:
+    """Correspondences that are mostly or all noise, with an attitude sigma: a result or a failure with a
+    reason, never an exception (the flight benchmark once found a refinement that lost every inlier and
+    a model selection that took the log of zero)."""
+    rng = np.random.default_rng(12)
+    for trial in range(40):
+        n = int(rng.integers(5, 200))
+        f1 = rng.standard_normal((n, 3))
+        f2 = f1 + rng.uniform(0.0, 0.5) * rng.standard_normal((n, 3))
+        f1[:, 2] = np.abs(f1[:, 2]) + 0.2
+        f2[:, 2] = np.abs(f2[:, 2]) + 0.2
+        r = estimate_upright_relpose(f1, f2, max_err_rad=1.0 / 500.0, seed=trial, attitude_sigma_rad=(math.radians(1.0), math.radians(0.5)))
+        assert r.num_inliers == int(np.count_nonzero(r.inliers)) and (r.success or r.reason != "")

@@ -230,6 +230,8 @@ def _frozen(a: np.ndarray) -> np.ndarray:
 def _gric(err_sq: np.ndarray, sigma_sq: float, model: str) -> float:
     d, k = _GRIC_DK[model]
     n = len(err_sq)
+    if n == 0:
+        return math.inf  # nothing to judge the model by
     rho = np.minimum(err_sq / sigma_sq, _GRIC_LAMBDA3 * (_GRIC_R - d))
     return float(rho.sum() + math.log(_GRIC_R) * d * n + math.log(_GRIC_R * n) * k)
 
@@ -453,6 +455,8 @@ def _refine_with_attitude(
     thr = sample_thr
     d1 = d2 = np.zeros(2)
     previous: np.ndarray | None = None
+    start = (yaw, t, d1, d2)
+    start_inliers = int(np.count_nonzero(sampson_sq_upright(upright_e(yaw, t)[None], upright_design(f1, f2))[0] < max_err_rad**2))
     sigmas = tuple(max(s, 1e-6) for s in attitude_sigma_rad)  # a view given as exact: held by a stiff prior
     for _ in range(_TILT_ROUNDS):
         err = sampson_sq_upright(upright_e(yaw, t)[None], upright_design(f1 @ tilt_rotation(d1).T, f2 @ tilt_rotation(d2).T))[0]
@@ -467,6 +471,9 @@ def _refine_with_attitude(
                              tilt1_rad=d1, tilt2_rad=d2, robust_scale_rad=thr)
         yaw, t, d1, d2 = fit.yaw_rad, fit.t_2_1, fit.tilt1_rad, fit.tilt2_rad
         previous, thr = inl, max(max_err_rad, 0.5 * thr)
+    final = sampson_sq_upright(upright_e(yaw, t)[None], upright_design(f1 @ tilt_rotation(d1).T, f2 @ tilt_rotation(d2).T))[0]
+    if np.count_nonzero(final < max_err_rad**2) < start_inliers:
+        return start  # the corrections made it worse (a bad start among outliers): the hypothesis as it was
     return yaw, t, d1, d2
 
 
