@@ -472,8 +472,10 @@ def _refine_with_attitude(
         yaw, t, d1, d2 = fit.yaw_rad, fit.t_2_1, fit.tilt1_rad, fit.tilt2_rad
         previous, thr = inl, max(max_err_rad, 0.5 * thr)
     final = sampson_sq_upright(upright_e(yaw, t)[None], upright_design(f1 @ tilt_rotation(d1).T, f2 @ tilt_rotation(d2).T))[0]
-    if np.count_nonzero(final < max_err_rad**2) < start_inliers:
-        return start  # the corrections made it worse (a bad start among outliers): the hypothesis as it was
+    if np.count_nonzero(final < max_err_rad**2) < 0.5 * start_inliers:
+        # The corrections lost most of what the hypothesis explained (a start among outliers): keep it. A
+        # few fewer tight inliers is normal: the hypothesis may fit a subset closely and the rest badly.
+        return start
     return yaw, t, d1, d2
 
 
