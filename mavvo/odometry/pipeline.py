@@ -164,7 +164,6 @@ class Odometry:
         self._carry_min_parallax_rad = math.radians(opt.scale.carry_min_parallax_deg)
         self._yaw_sigma_rad = math.radians(opt.yaw_sigma_deg)
         self._att_sigma_rad = math.radians(opt.attitude_sigma_deg)
-        self._att_var = self._att_sigma_rad**2
         if not 0 <= reset_counter <= 255:
             raise ValueError(f"reset_counter: expected 0..255, got {reset_counter}")
         self.reset_counter = reset_counter
@@ -332,7 +331,7 @@ class Odometry:
             reason = _UNTRUSTED_SCALE_REASON[m.scale.source]
         elif rp.num_inliers < opt.keyframes.min_inliers:
             reason = StateReason.FEW_INLIERS
-        elif frame.interpolation_sigma_rad ** 2 > self._att_var:
+        elif frame.interpolation_sigma_rad > self._att_sigma_rad:
             reason = StateReason.ATTITUDE_INTERPOLATED
         degraded = reason != StateReason.NONE
         quality = self._quality(rp, degraded=degraded)
@@ -375,7 +374,7 @@ class Odometry:
             state=VisionState.DEGRADED if degraded else VisionState.TRACKING, reason=reason, tracks=len(tracks.ids), inliers=rp.num_inliers,
             inlier_ratio=rp.inlier_ratio, parallax_px=m.parallax_px, residual_rms_px=rp.residual_rms_rad * self._focal_px,
             scale_source=m.scale.source if m.scale is not None else ScaleSource.NONE, keyframe=bool(why_kf),
-            attitude_gap_s=frame.attitude_gap_s, attitude_sigma_deg=math.degrees(math.sqrt(self._att_var + frame.interpolation_sigma_rad ** 2)),
+            attitude_gap_s=frame.attitude_gap_s, attitude_sigma_deg=math.degrees(self._attitude_sigma_rad(frame)),
         )
         return self._estimate(frame, diag, quality=quality, roll_pitch_rad=m.roll_pitch_rad)
 
@@ -427,7 +426,7 @@ class Odometry:
         f = self.filter
         cov = np.zeros((6, 6))
         cov[:3, :3] = f.position_covariance
-        cov[3, 3] = cov[4, 4] = self._att_var + frame.interpolation_sigma_rad ** 2
+        cov[3, 3] = cov[4, 4] = self._attitude_sigma_rad(frame) ** 2
         cov[5, 5] = f.yaw_variance
         p = f.position_ned_m
         drift = self._drift.sigma_m(p, self.options.drift_per_m, self._heading_sigma_rad)
