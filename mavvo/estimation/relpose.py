@@ -365,7 +365,7 @@ def estimate_upright_relpose(
             return _failure(RelposeFailure.NO_MODEL, n, rs.iterations, RelposeStats(rs))
         fit = _rotation_fit(rot.model[0], rotation_sq(rot.model[0], f1, f2))
     else:
-        fit, sigma, gric = _select(f1, f2, run, opt, max_err_rad, rng, attitude_sigma_rad, sample_thr)
+        fit, sigma, gric = _select(f1, f2, essential.G, run, opt, max_err_rad, rng, attitude_sigma_rad, sample_thr)
         if attitude_sigma_rad is not None and fit.model != "rotation":
             fit = _general_if_attitude_is_worse(f1, f2, fit, attitude_sigma_rad, max_err_rad, seed, run.inliers)
     final = RelposeStats(rs, sigma, gric, time.thread_time() - t_refine)
@@ -373,12 +373,12 @@ def estimate_upright_relpose(
 
 
 def _select(
-    f1: np.ndarray, f2: np.ndarray, run: RansacResult, opt: RelposeOptions, max_err_rad: float, rng: np.random.Generator,
+    f1: np.ndarray, f2: np.ndarray, G: np.ndarray, run: RansacResult, opt: RelposeOptions, max_err_rad: float, rng: np.random.Generator,
     attitude_sigma_rad: tuple[float, float] | None, sample_thr: float,
 ) -> tuple[_Fit, float, dict[str, float]]:
     """Refine the essential model found, then choose between it, the ground homography and a pure
     rotation (GRIC) on the bearings with the roll/pitch corrections the refinement found: the chosen
-    fit, the noise sigma and the GRIC scores."""
+    fit, the noise sigma and the GRIC scores. ``G``: the design of (f1, f2) the sampling used."""
     thr_sq = max_err_rad**2
     assert run.model is not None
     pose = decompose_upright(run.model[0], f1[run.inliers], f2[run.inliers])
@@ -393,9 +393,9 @@ def _select(
         if parallax < max(_TILT_MIN_PARALLAX_SIGMAS * math.hypot(*attitude_sigma_rad), _TILT_MIN_PARALLAX_THRESHOLDS * max_err_rad):
             attitude_sigma_rad = None
     if attitude_sigma_rad is not None:
-        yaw, t, tilt1, tilt2 = _refine_with_attitude(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, opt.refine_steps)
+        yaw, t, tilt1, tilt2 = _refine_with_attitude(f1, f2, G, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, opt.refine_steps)
         f1, f2 = f1 @ tilt_rotation(tilt1).T, f2 @ tilt_rotation(tilt2).T
-    G = upright_design(f1, f2)
+        G = upright_design(f1, f2)
     err_e = sampson_sq_upright(upright_e(yaw, t)[None], G)[0]
     if attitude_sigma_rad is None and opt.refine_steps > 0:
         # Refined on the inliers, which are then re-selected for a second round.
@@ -445,7 +445,7 @@ def _select(
 
 
 def _refine_with_attitude(
-    f1: np.ndarray, f2: np.ndarray, yaw: float, t: np.ndarray, attitude_sigma_rad: tuple[float, float], sample_thr: float, max_err_rad: float, steps: int,
+    f1: np.ndarray, f2: np.ndarray, G: np.ndarray, yaw: float, t: np.ndarray, attitude_sigma_rad: tuple[float, float], sample_thr: float, max_err_rad: float, steps: int,
 ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
     """Yaw, translation direction and the roll/pitch corrections of both views under the attitude
     prior, from the sampling's wide inlier set down to the tight one: each round refines on the current
@@ -456,7 +456,7 @@ def _refine_with_attitude(
     d1 = d2 = np.zeros(2)
     previous: np.ndarray | None = None
     start = (yaw, t, d1, d2)
-    start_inliers = int(np.count_nonzero(sampson_sq_upright(upright_e(yaw, t)[None], upright_design(f1, f2))[0] < max_err_rad**2))
+    start_inliers = int(np.count_nonzero(sampson_sq_upright(upright_e(yaw, t)[None], G)[0] < max_err_rad**2))
     sigmas = tuple(max(s, 1e-6) for s in attitude_sigma_rad)  # a view given as exact: held by a stiff prior
     for _ in range(_TILT_ROUNDS):
         err = sampson_sq_upright(upright_e(yaw, t)[None], upright_design(f1 @ tilt_rotation(d1).T, f2 @ tilt_rotation(d2).T))[0]
