@@ -114,6 +114,12 @@ def test_effects_gain_noise_and_blur():
     assert dark.max() == 10
     noisy = apply_effects(np.full((200, 200), 100, np.uint8), noise_sigma=3.0, rng=np.random.default_rng(1))
     assert abs(noisy.astype(float).std() - 3.0) < 0.2
+    # Successive frames get fresh noise: no correlation between them, nor between neighbouring pixels.
+    rng = np.random.default_rng(2)
+    flat = np.full((200, 200), 100, np.uint8)
+    n1, n2 = (apply_effects(flat, noise_sigma=3.0, rng=rng).astype(float) - 100.0 for _ in range(2))
+    assert abs(np.corrcoef(n1.ravel(), n2.ravel())[0, 1]) < 0.05
+    assert abs(np.corrcoef(n1[:, 1:].ravel(), n1[:, :-1].ravel())[0, 1]) < 0.05
     blurred = apply_effects(img, blur_px=(9.0, 0.0))
     ramp = blurred[50, 40:60].astype(float)
     assert np.all(np.diff(ramp) >= 0) and 3 < np.count_nonzero((ramp > 5) & (ramp < 195)) <= 10
