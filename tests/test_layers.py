@@ -21,7 +21,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 LAYERS = (
-    ("mavvo.errors", "mavvo.options", "mavvo.types", "mavvo"),
+    ("mavvo.errors", "mavvo.options", "mavvo.types", "mavvo.jit", "mavvo"),
     ("mavvo.geometry",),
     ("mavvo.estimation",),
     ("mavvo.odometry",),
@@ -36,7 +36,7 @@ LAYERS = (
     ("sim.faults",),  # above the command line: it checks settings files through it, as an operator would
 )
 # Outside libraries with exactly one importer.
-SOLE_IMPORTER = {"pymavlink": "mavvo.service.mavlink", "filterpy": "mavvo.odometry.filter"}
+SOLE_IMPORTER = {"pymavlink": "mavvo.service.mavlink", "filterpy": "mavvo.odometry.filter", "numba": "mavvo.jit"}
 
 
 @dataclass(frozen=True)

@@ -33,7 +33,7 @@ from mavvo.geometry import (
 )
 from mavvo.geometry.frames import rot_z, skew
 from mavvo.geometry.refine import fit_ground_similarity, fit_rotation, refine_upright
-from mavvo.geometry.residuals import ground_sq, rotation_sq, sampson_sq_upright, upright_design
+from mavvo.geometry.residuals import ground_sq, rotation_sq, sampson_sq_upright
 
 __all__ = ["UprightEssential", "GroundHomography", "PureRotation", "upright_e", "decompose_upright", "yaw_of"]
 
@@ -92,8 +92,7 @@ class UprightEssential:
         self.sample_size = SAMPLE_SIZE[solver]
         self.solver, self.nonminimal, self.lo_steps = solver, nonminimal, lo_steps
         self.yaw_prior_rad, self.yaw_tolerance_rad = yaw_prior_rad, yaw_tolerance_rad
-        self.G = upright_design(f1, f2)
-        self._sub: tuple[np.ndarray, np.ndarray] | None = None  # (rows, their design): the loop's fixed subset
+        self._sub: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (rows, f1, f2 of them): the loop's fixed subset
 
     def generate(self, samples: np.ndarray) -> np.ndarray:
         f1, f2 = self.f1, self.f2
@@ -110,10 +109,10 @@ class UprightEssential:
 
     def residuals_sq(self, models: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         if rows is None:
-            return sampson_sq_upright(models, self.G)
+            return sampson_sq_upright(models, self.f1, self.f2)
         if self._sub is None or self._sub[0] is not rows:
-            self._sub = (rows, upright_design(self.f1[rows], self.f2[rows]))
-        return sampson_sq_upright(models, self._sub[1])
+            self._sub = (rows, self.f1[rows], self.f2[rows])
+        return sampson_sq_upright(models, self._sub[1], self._sub[2])
 
     def refine(self, model: np.ndarray, inliers: np.ndarray) -> np.ndarray:
         f1, f2 = self.f1[inliers], self.f2[inliers]

@@ -14,17 +14,14 @@ view's level bearings: ``f_corrected = tilt_rotation(d) @ f``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from mavvo.geometry.frames import cross, rot_z, skew
+from mavvo.jit import kernel
 
 __all__ = ["UprightFit", "tilt_rotation", "refine_upright", "fit_ground_similarity", "fit_rotation"]
-
-_EX = np.array([1.0, 0.0, 0.0])
-_EY = np.array([0.0, 1.0, 0.0])
-
 
 @dataclass(frozen=True)
 class UprightFit:
@@ -46,20 +43,7 @@ class UprightFit:
 
 def tilt_rotation(d: np.ndarray) -> np.ndarray:
     """(3,3) rotation ``exp([dx, dy, 0]x)`` (Rodrigues) for a tilt correction d (2,) in radians."""
-    w = np.array([d[0], d[1], 0.0])
-    th = float(np.linalg.norm(w))
-    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if th < 1e-12:
-        return np.eye(3) + K
-    return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / th**2 * (K @ K)
-
-
-def _tangent_basis(t: np.ndarray) -> np.ndarray:
-    """(2, 3) orthonormal basis of the plane perpendicular to the unit vector t."""
-    helper = _EX if abs(t[0]) < 0.9 else _EY
-    b1 = cross(t, helper)
-    b1 /= np.sqrt(b1 @ b1)
-    return np.stack([b1, cross(t, b1)])
+    return _tilt_matrix(float(d[0]), float(d[1]))
 
 
 def refine_upright(
@@ -95,66 +79,170 @@ def refine_upright(
     with_tilt = tilt_sigma_rad is not None
     if with_tilt and not (noise_sigma_rad and noise_sigma_rad > 0 and np.all(np.asarray(tilt_sigma_rad) > 0)):
         raise ValueError("tilt_sigma_rad and noise_sigma_rad: both must be positive to refine tilt")
-    yaw = float(yaw_rad)
     t = np.asarray(t_2_1, dtype=float) / np.linalg.norm(t_2_1)
-    d1 = np.zeros(2) if tilt1_rad is None else np.asarray(tilt1_rad, dtype=float).copy()
-    d2 = np.zeros(2) if tilt2_rad is None else np.asarray(tilt2_rad, dtype=float).copy()
+    d = np.zeros(4)
+    if tilt1_rad is not None:
+        d[:2] = tilt1_rad
+    if tilt2_rad is not None:
+        d[2:] = tilt2_rad
+    if len(f1) < (3 if not with_tilt else 1):
+        return UprightFit(float(yaw_rad), t, d[:2], d[2:], 0)
+    prior_w = np.zeros(4)
     if with_tilt:
         s1, s2 = (tilt_sigma_rad, tilt_sigma_rad) if np.isscalar(tilt_sigma_rad) else tilt_sigma_rad  # type: ignore[misc]
-        prior_w = np.array([1.0 / s1, 1.0 / s1, 1.0 / s2, 1.0 / s2])  # type: ignore[operator]
+        prior_w[:] = (1.0 / s1, 1.0 / s1, 1.0 / s2, 1.0 / s2)  # type: ignore[operator]
+    x = np.array([float(yaw_rad), *t, *d])  # (yaw, t, d1, d2): the kernel's state, updated in place
+    steps = _gauss_newton_upright(
+        x, np.ascontiguousarray(f1, dtype=np.float64), np.ascontiguousarray(f2, dtype=np.float64), int(iterations), with_tilt, prior_w,
+        1.0 / noise_sigma_rad if with_tilt else 1.0, robust_scale_rad or 0.0,  # type: ignore[operator]
+    )
+    return UprightFit(float(np.arctan2(np.sin(x[0]), np.cos(x[0]))), x[1:4].copy(), x[4:6].copy(), x[6:8].copy(), int(steps))
+
+
+@kernel
+def _tilt_matrix(dx: float, dy: float) -> np.ndarray:
+    """(3, 3) ``exp([dx, dy, 0]x)`` (Rodrigues), as :func:`tilt_rotation`."""
+    th = math.sqrt(dx * dx + dy * dy)
+    K = np.array([[0.0, 0.0, dy], [0.0, 0.0, -dx], [-dy, dx, 0.0]])
+    if th < 1e-12:
+        return np.eye(3) + K
+    return np.eye(3) + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / (th * th)) * (K @ K)
+
+
+@kernel
+def _solve_spd(A: np.ndarray, b: np.ndarray) -> bool:
+    """Solve ``A x = b`` for symmetric positive definite A (n, n) by Cholesky; x overwrites b, A is
+    overwritten by its factor. False (b unchanged in meaning) when A is not positive definite."""
+    n = A.shape[0]
+    for j in range(n):
+        s = A[j, j]
+        for k in range(j):
+            s -= A[j, k] * A[j, k]
+        if not s > 0.0:
+            return False
+        A[j, j] = math.sqrt(s)
+        for i in range(j + 1, n):
+            s = A[i, j]
+            for k in range(j):
+                s -= A[i, k] * A[j, k]
+            A[i, j] = s / A[j, j]
+    for i in range(n):  # L y = b
+        s = b[i]
+        for k in range(i):
+            s -= A[i, k] * b[k]
+        b[i] = s / A[i, i]
+    for i in range(n - 1, -1, -1):  # L^T x = y
+        s = b[i]
+        for k in range(i + 1, n):
+            s -= A[k, i] * b[k]
+        b[i] = s / A[i, i]
+    return True
+
+
+@kernel
+def _gauss_newton_upright(
+    x: np.ndarray, f1: np.ndarray, f2: np.ndarray, iterations: int, with_tilt: bool, prior_w: np.ndarray, noise_w: float, robust_c: float
+) -> int:
+    """The steps of :func:`refine_upright` on x = (yaw, t (3), d1 (2), d2 (2)), updated in place; the
+    number of steps taken. Per point the Jacobian row is accumulated straight into J^T J and J^T r."""
     n_params = 7 if with_tilt else 3
     steps = 0
-    if len(f1) < (3 if not with_tilt else 1):
-        return UprightFit(yaw, t, d1, d2, 0)
-    for steps in range(1, iterations + 1):
-        f1c = f1 @ tilt_rotation(d1).T if with_tilt else f1
-        f2c = f2 @ tilt_rotation(d2).T if with_tilt else f2
-        Rz = rot_z(yaw)
-        E = skew(t) @ Rz
-        g = f1c @ Rz.T
-        Ef1 = f1c @ E.T  # rows E @ f1 = t x g
-        Etf2 = f2c @ E  # rows E^T @ f2
-        n = np.einsum("ij,ij->i", f2c, Ef1)  # f2 . (t x g) = t . (g x f2)
-        # Sampson scale: the tangent gradients of n at both bearings, held fixed within a step.
-        den = np.einsum("ij,ij->i", Ef1, Ef1) + np.einsum("ij,ij->i", Etf2, Etf2) - 2.0 * n * n
-        inv_s = 1.0 / np.sqrt(np.maximum(den, 1e-30))
-        B = _tangent_basis(t)
-        c = cross(g, f2c)
-        # d g / d yaw = e_z x g, so d n / d yaw = t . ((e_z x g) x f2) = (t . g) f2_z - t_z (g . f2)
-        gf2 = np.einsum("ij,ij->i", g, f2c)
-        cols = [(g @ t) * f2c[:, 2] - t[2] * gf2, *(c @ B.T).T]
-        if with_tilt:
-            q = cross(f2c, t)
-            for e in (_EX, _EY):
-                cols.append(np.einsum("ij,ij->i", cross(e, f1c) @ Rz.T, q))
-            for e in (_EX, _EY):
-                cols.append(np.einsum("ij,ij->i", cross(e, f2c), Ef1))
-        J = np.stack(cols, axis=1) * inv_s[:, None]
-        r = n * inv_s
-        if robust_scale_rad is not None:
-            # Cauchy IRLS: weight 1 / (1 + r^2/c^2) on the squared residual, its root on the rows.
-            sw = 1.0 / np.sqrt(1.0 + (r / robust_scale_rad) ** 2)
-            J, r = J * sw[:, None], r * sw
-        if with_tilt:
-            w = 1.0 / noise_sigma_rad  # type: ignore[operator]
-            J = np.concatenate([J * w, np.zeros((4, n_params))])
-            r = np.concatenate([r * w, np.concatenate([d1, d2]) * prior_w])
-            J[-4:, 3:] = np.diag(prior_w)
-        JtJ = J.T @ J
-        try:
-            delta = -np.linalg.solve(JtJ + 1e-12 * np.trace(JtJ) * np.eye(n_params), J.T @ r)
-        except np.linalg.LinAlgError:
+    row = np.zeros(7)
+    for it in range(1, iterations + 1):
+        steps = it
+        yaw, t0, t1, t2 = x[0], x[1], x[2], x[3]
+        T1 = _tilt_matrix(x[4], x[5])
+        T2 = _tilt_matrix(x[6], x[7])
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        # E = [t]x Rz: rows of Rz are (cy, -sy, 0), (sy, cy, 0), (0, 0, 1)
+        E = np.array([[-t2 * sy, -t2 * cy, t1], [t2 * cy, -t2 * sy, -t0], [-t1 * cy + t0 * sy, t1 * sy + t0 * cy, 0.0]])
+        # Tangent basis of t: b1 = t x helper (normalised), b2 = t x b1.
+        if abs(t0) < 0.9:
+            b10, b11, b12 = 0.0, t2, -t1  # t x e_x
+        else:
+            b10, b11, b12 = -t2, 0.0, t0  # t x e_y
+        nb = math.sqrt(b10 * b10 + b11 * b11 + b12 * b12)
+        b10, b11, b12 = b10 / nb, b11 / nb, b12 / nb
+        b20, b21, b22 = t1 * b12 - t2 * b11, t2 * b10 - t0 * b12, t0 * b11 - t1 * b10
+        JtJ = np.zeros((n_params, n_params))
+        Jtr = np.zeros(n_params)
+        for i in range(f1.shape[0]):
+            p0 = T1[0, 0] * f1[i, 0] + T1[0, 1] * f1[i, 1] + T1[0, 2] * f1[i, 2]  # f1c = T1 f1
+            p1 = T1[1, 0] * f1[i, 0] + T1[1, 1] * f1[i, 1] + T1[1, 2] * f1[i, 2]
+            p2 = T1[2, 0] * f1[i, 0] + T1[2, 1] * f1[i, 1] + T1[2, 2] * f1[i, 2]
+            q0 = T2[0, 0] * f2[i, 0] + T2[0, 1] * f2[i, 1] + T2[0, 2] * f2[i, 2]  # f2c = T2 f2
+            q1 = T2[1, 0] * f2[i, 0] + T2[1, 1] * f2[i, 1] + T2[1, 2] * f2[i, 2]
+            q2 = T2[2, 0] * f2[i, 0] + T2[2, 1] * f2[i, 1] + T2[2, 2] * f2[i, 2]
+            g0, g1, g2 = cy * p0 - sy * p1, sy * p0 + cy * p1, p2  # g = Rz f1c
+            a0 = E[0, 0] * p0 + E[0, 1] * p1 + E[0, 2] * p2  # E f1c = t x g
+            a1 = E[1, 0] * p0 + E[1, 1] * p1 + E[1, 2] * p2
+            a2 = E[2, 0] * p0 + E[2, 1] * p1
+            c0 = E[0, 0] * q0 + E[1, 0] * q1 + E[2, 0] * q2  # E^T f2c
+            c1 = E[0, 1] * q0 + E[1, 1] * q1 + E[2, 1] * q2
+            c2 = E[0, 2] * q0 + E[1, 2] * q1
+            n = q0 * a0 + q1 * a1 + q2 * a2  # f2c . (t x g)
+            # Sampson scale: the tangent gradients of n at both bearings, held fixed within a step.
+            den = a0 * a0 + a1 * a1 + a2 * a2 + c0 * c0 + c1 * c1 + c2 * c2 - 2.0 * n * n
+            inv_s = 1.0 / math.sqrt(max(den, 1e-30))
+            # d n / d yaw = (t . g) f2_z - t_z (g . f2)   (d g / d yaw = e_z x g)
+            row[0] = (t0 * g0 + t1 * g1 + t2 * g2) * q2 - t2 * (g0 * q0 + g1 * q1 + g2 * q2)
+            k0, k1, k2 = g1 * q2 - g2 * q1, g2 * q0 - g0 * q2, g0 * q1 - g1 * q0  # g x f2c: d n / d t
+            row[1] = k0 * b10 + k1 * b11 + k2 * b12
+            row[2] = k0 * b20 + k1 * b21 + k2 * b22
+            if with_tilt:
+                w0, w1, w2 = q1 * t2 - q2 * t1, q2 * t0 - q0 * t2, q0 * t1 - q1 * t0  # f2c x t
+                # d n / d d1: (Rz (e x f1c)) . (f2c x t) for e = e_x (0, -p2, p1) and e_y (p2, 0, -p0)
+                ux0, ux1, ux2 = cy * 0.0 - sy * (-p2), sy * 0.0 + cy * (-p2), p1
+                uy0, uy1, uy2 = cy * p2, sy * p2, -p0
+                row[3] = ux0 * w0 + ux1 * w1 + ux2 * w2
+                row[4] = uy0 * w0 + uy1 * w1 + uy2 * w2
+                # d n / d d2: (e x f2c) . E f1c
+                row[5] = -q2 * a1 + q1 * a2
+                row[6] = q2 * a0 - q0 * a2
+            r = n * inv_s
+            wgt = inv_s
+            if robust_c > 0.0:
+                # Cauchy IRLS: weight 1 / (1 + r^2/c^2) on the squared residual, its root on the rows.
+                sw = 1.0 / math.sqrt(1.0 + (r / robust_c) ** 2)
+                wgt *= sw
+                r *= sw
+            if with_tilt:
+                wgt *= noise_w
+                r *= noise_w
+            for a in range(n_params):
+                ja = row[a] * wgt
+                Jtr[a] += ja * r
+                for b in range(a + 1):
+                    JtJ[a, b] += ja * row[b] * wgt
+        if with_tilt:  # the prior rows: prior_w * d, Jacobian diag(prior_w)
+            for a in range(4):
+                JtJ[3 + a, 3 + a] += prior_w[a] * prior_w[a]
+                Jtr[3 + a] += prior_w[a] * prior_w[a] * x[4 + a]
+        trace = 0.0
+        for a in range(n_params):
+            trace += JtJ[a, a]
+            for b in range(a):
+                JtJ[b, a] = JtJ[a, b]
+        for a in range(n_params):
+            JtJ[a, a] += 1e-12 * trace
+        if not _solve_spd(JtJ, Jtr):
             break
-        yaw += float(delta[0])
-        t = t + delta[1] * B[0] + delta[2] * B[1]
-        t /= np.linalg.norm(t)
+        # delta = -Jtr
+        x[0] -= Jtr[0]
+        t0 -= Jtr[1] * b10 + Jtr[2] * b20
+        t1 -= Jtr[1] * b11 + Jtr[2] * b21
+        t2 -= Jtr[1] * b12 + Jtr[2] * b22
+        nt = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+        x[1], x[2], x[3] = t0 / nt, t1 / nt, t2 / nt
+        biggest = 0.0
+        for a in range(n_params):
+            biggest = max(biggest, abs(Jtr[a]))
         if with_tilt:
-            d1 = d1 + delta[3:5]
-            d2 = d2 + delta[5:7]
-        if np.max(np.abs(delta)) < 1e-8:
+            for a in range(4):
+                x[4 + a] -= Jtr[3 + a]
+        if biggest < 1e-8:
             break
-    yaw = float(np.arctan2(np.sin(yaw), np.cos(yaw)))
-    return UprightFit(yaw, t, d1, d2, steps)
+    return steps
 
 
 def fit_ground_similarity(f1: np.ndarray, f2: np.ndarray) -> tuple[complex, complex] | None:

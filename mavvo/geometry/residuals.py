@@ -11,48 +11,49 @@ from __future__ import annotations
 import numpy as np
 
 from mavvo.geometry.frames import cross
+from mavvo.jit import kernel
 
-__all__ = ["upright_design", "sampson_sq_upright", "ground_sq", "rotation_sq"]
+__all__ = ["sampson_sq_upright", "ground_sq", "rotation_sq"]
 
 # Squared residual returned where a model cannot map a point at all (ground point above the horizon).
 UNMAPPABLE_SQ = 1e6
 
 
-def upright_design(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
-    """(6, 7N) matrix G with ``e @ G`` = (r, E f1, E^T f2 without its redundant row) for all points.
+def sampson_sq_upright(e: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
+    """Squared Sampson errors (M, N) of M upright models e (M, 6) on the pairs f1, f2 (N, 3).
 
     For upright E given by e = (E13, E21, E22, E23, E31, E32) the epipolar residual r = f2 E f1 and
-    the gradients E f1, E^T f2 are all linear in e, so scoring M models is one (M,6) @ (6,7N) product.
+    the gradients E f1, E^T f2; on the sphere the gradient of r is projected onto the tangent planes of
+    both bearings: ``err^2 = r^2 / (|E f1|^2 + |E^T f2|^2 - 2 r^2)``. Compiled (the scoring's kernel).
     """
-    x, y, z = f1.T
-    xp, yp, zp = f2.T
-    zero = np.zeros_like(x)
-    # Row k of each block: coefficient of e_k.
-    blocks = [
-        [xp * z, yp * x - xp * y, xp * x + yp * y, yp * z, zp * x, zp * y],  # r
-        [z, -y, x, zero, zero, zero],  # (E f1)_x = E22 x - E21 y + E13 z
-        [zero, x, y, z, zero, zero],  # (E f1)_y = E21 x + E22 y + E23 z
-        [zero, zero, zero, zero, x, y],  # (E f1)_z = E31 x + E32 y
-        [zero, yp, xp, zero, zp, zero],  # (E^T f2)_x = E22 x' + E21 y' + E31 z'
-        [zero, -xp, yp, zero, zero, zp],  # (E^T f2)_y = -E21 x' + E22 y' + E32 z'
-        [xp, zero, zero, yp, zero, zero],  # (E^T f2)_z = E13 x' + E23 y'
-    ]
-    return np.concatenate([np.stack(b) for b in blocks], axis=1)
+    return _sampson_sq_upright(np.ascontiguousarray(e, dtype=np.float64).reshape(-1, 6), np.ascontiguousarray(f1, dtype=np.float64),
+                               np.ascontiguousarray(f2, dtype=np.float64))
 
 
-def sampson_sq_upright(e: np.ndarray, G: np.ndarray) -> np.ndarray:
-    """Squared Sampson errors (M, N) of M upright models e (M, 6) on the points behind G (6, 7N).
-
-    On the sphere the gradient of r = f2 E f1 is projected onto the tangent planes of both bearings:
-    ``err^2 = r^2 / (|E f1|^2 + |E^T f2|^2 - 2 r^2)``.
-    """
-    M = e.shape[0]
-    V = (e @ G).reshape(M, 7, -1)
-    r2 = V[:, 0] ** 2
-    den = np.einsum("mkn,mkn->mn", V[:, 1:], V[:, 1:]) - 2.0 * r2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out = r2 / den
-    return np.where(den > 1e-300, out, np.where(r2 > 0, UNMAPPABLE_SQ, 0.0))
+@kernel
+def _sampson_sq_upright(e: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
+    M, N = e.shape[0], f1.shape[0]
+    out = np.empty((M, N))
+    for m in range(M):
+        e13, e21, e22, e23, e31, e32 = e[m, 0], e[m, 1], e[m, 2], e[m, 3], e[m, 4], e[m, 5]
+        for i in range(N):
+            x, y, z = f1[i, 0], f1[i, 1], f1[i, 2]
+            xp, yp, zp = f2[i, 0], f2[i, 1], f2[i, 2]
+            # E = [[e22, -e21, e13], [e21, e22, e23], [e31, e32, 0]]
+            a0 = e22 * x - e21 * y + e13 * z  # E f1
+            a1 = e21 * x + e22 * y + e23 * z
+            a2 = e31 * x + e32 * y
+            b0 = e22 * xp + e21 * yp + e31 * zp  # E^T f2
+            b1 = -e21 * xp + e22 * yp + e32 * zp
+            b2 = e13 * xp + e23 * yp
+            r = xp * a0 + yp * a1 + zp * a2
+            r2 = r * r
+            den = a0 * a0 + a1 * a1 + a2 * a2 + b0 * b0 + b1 * b1 + b2 * b2 - 2.0 * r2
+            if den > 1e-300:
+                out[m, i] = r2 / den
+            else:
+                out[m, i] = UNMAPPABLE_SQ if r2 > 0.0 else 0.0
+    return out
 
 
 def ground_sq(H: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
