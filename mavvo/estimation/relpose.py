@@ -40,7 +40,7 @@ from mavvo.estimation.ransac import RansacOptions, RansacResult, RansacStats, lo
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import as_rotation, rot_z
 from mavvo.geometry.refine import fit_rotation, refine_upright, tilt_rotation
-from mavvo.geometry.residuals import ground_sq, rotation_sq, sampson_sq_upright, upright_design
+from mavvo.geometry.residuals import ground_sq, rotation_sq, sampson_sq_upright
 from mavvo.geometry import as_bearing_pair, ground_pose_from_homography
 
 __all__ = [
@@ -77,7 +77,10 @@ _GRIC_DK = {"essential": (3, 3), "ground": (2, 4), "rotation": (2, 3)}
 # With roll/pitch uncertain, hypotheses are scored allowing this many sigmas of relative tilt error.
 _TILT_SIGMAS = 2.0
 _TILT_ROUNDS = 8  # refine / re-select rounds under the attitude prior, at most
-_FALLBACK_BELOW_RATIO = 0.6  # fewer inliers than this fraction of the points (or corrections beyond 3 sigma): try the general model
+# Fewer tight inliers than this fraction of the points the widened sampling threshold admitted (or
+# corrections beyond 3 sigma): try the general model. Relative to the admitted points, not to all, so
+# that a high outlier rate alone never pays for the 5-point search.
+_FALLBACK_BELOW_RATIO = 0.6
 _FALLBACK_MARGIN = 1.25  # ... and take it when it explains this many times the points
 # Roll/pitch are corrected only with more median parallax than this many sigmas of their relative error
 # and this many inlier thresholds (a pixel's parallax would otherwise pass for a tilt).
@@ -365,7 +368,7 @@ def estimate_upright_relpose(
             return _failure(RelposeFailure.NO_MODEL, n, rs.iterations, RelposeStats(rs))
         fit = _rotation_fit(rot.model[0], rotation_sq(rot.model[0], f1, f2))
     else:
-        fit, sigma, gric = _select(f1, f2, essential.G, run, opt, max_err_rad, rng, attitude_sigma_rad, sample_thr)
+        fit, sigma, gric = _select(f1, f2, run, opt, max_err_rad, rng, attitude_sigma_rad, sample_thr)
         if attitude_sigma_rad is not None and fit.model != "rotation":
             fit = _general_if_attitude_is_worse(f1, f2, fit, attitude_sigma_rad, max_err_rad, seed, run.inliers)
     final = RelposeStats(rs, sigma, gric, time.thread_time() - t_refine)
@@ -373,12 +376,12 @@ def estimate_upright_relpose(
 
 
 def _select(
-    f1: np.ndarray, f2: np.ndarray, G: np.ndarray, run: RansacResult, opt: RelposeOptions, max_err_rad: float, rng: np.random.Generator,
+    f1: np.ndarray, f2: np.ndarray, run: RansacResult, opt: RelposeOptions, max_err_rad: float, rng: np.random.Generator,
     attitude_sigma_rad: tuple[float, float] | None, sample_thr: float,
 ) -> tuple[_Fit, float, dict[str, float]]:
     """Refine the essential model found, then choose between it, the ground homography and a pure
     rotation (GRIC) on the bearings with the roll/pitch corrections the refinement found: the chosen
-    fit, the noise sigma and the GRIC scores. ``G``: the design of (f1, f2) the sampling used."""
+    fit, the noise sigma and the GRIC scores."""
     thr_sq = max_err_rad**2
     assert run.model is not None
     pose = decompose_upright(run.model[0], f1[run.inliers], f2[run.inliers])
@@ -393,17 +396,16 @@ def _select(
         if parallax < max(_TILT_MIN_PARALLAX_SIGMAS * math.hypot(*attitude_sigma_rad), _TILT_MIN_PARALLAX_THRESHOLDS * max_err_rad):
             attitude_sigma_rad = None
     if attitude_sigma_rad is not None:
-        yaw, t, tilt1, tilt2 = _refine_with_attitude(f1, f2, G, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, opt.refine_steps)
+        yaw, t, tilt1, tilt2 = _refine_with_attitude(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, opt.refine_steps)
         f1, f2 = f1 @ tilt_rotation(tilt1).T, f2 @ tilt_rotation(tilt2).T
-        G = upright_design(f1, f2)
-    err_e = sampson_sq_upright(upright_e(yaw, t)[None], G)[0]
+    err_e = sampson_sq_upright(upright_e(yaw, t)[None], f1, f2)[0]
     if attitude_sigma_rad is None and opt.refine_steps > 0:
         # Refined on the inliers, which are then re-selected for a second round.
         for steps in (opt.refine_steps, min(opt.refine_steps, 2)):
             inl = err_e < thr_sq
             fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=steps)
             yaw, t = fit.yaw_rad, fit.t_2_1
-            err_e = sampson_sq_upright(upright_e(yaw, t)[None], G)[0]
+            err_e = sampson_sq_upright(upright_e(yaw, t)[None], f1, f2)[0]
     sigma = _robust_sigma(err_e[err_e < thr_sq], max_err_rad)
     essential = _Fit("essential", yaw, t, err_e, None, tilt1, tilt2)
 
@@ -445,7 +447,7 @@ def _select(
 
 
 def _refine_with_attitude(
-    f1: np.ndarray, f2: np.ndarray, G: np.ndarray, yaw: float, t: np.ndarray, attitude_sigma_rad: tuple[float, float], sample_thr: float, max_err_rad: float, steps: int,
+    f1: np.ndarray, f2: np.ndarray, yaw: float, t: np.ndarray, attitude_sigma_rad: tuple[float, float], sample_thr: float, max_err_rad: float, steps: int,
 ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
     """Yaw, translation direction and the roll/pitch corrections of both views under the attitude
     prior, from the sampling's wide inlier set down to the tight one: each round refines on the current
@@ -456,10 +458,10 @@ def _refine_with_attitude(
     d1 = d2 = np.zeros(2)
     previous: np.ndarray | None = None
     start = (yaw, t, d1, d2)
-    start_inliers = int(np.count_nonzero(sampson_sq_upright(upright_e(yaw, t)[None], G)[0] < max_err_rad**2))
+    start_inliers = int(np.count_nonzero(sampson_sq_upright(upright_e(yaw, t)[None], f1, f2)[0] < max_err_rad**2))
     sigmas = tuple(max(s, 1e-6) for s in attitude_sigma_rad)  # a view given as exact: held by a stiff prior
     for _ in range(_TILT_ROUNDS):
-        err = sampson_sq_upright(upright_e(yaw, t)[None], upright_design(f1 @ tilt_rotation(d1).T, f2 @ tilt_rotation(d2).T))[0]
+        err = sampson_sq_upright(upright_e(yaw, t)[None], f1 @ tilt_rotation(d1).T, f2 @ tilt_rotation(d2).T)[0]
         inl = err < thr**2
         if np.count_nonzero(inl) < 5 or steps == 0:
             break
@@ -471,7 +473,7 @@ def _refine_with_attitude(
                              tilt1_rad=d1, tilt2_rad=d2, robust_scale_rad=thr)
         yaw, t, d1, d2 = fit.yaw_rad, fit.t_2_1, fit.tilt1_rad, fit.tilt2_rad
         previous, thr = inl, max(max_err_rad, 0.5 * thr)
-    final = sampson_sq_upright(upright_e(yaw, t)[None], upright_design(f1 @ tilt_rotation(d1).T, f2 @ tilt_rotation(d2).T))[0]
+    final = sampson_sq_upright(upright_e(yaw, t)[None], f1 @ tilt_rotation(d1).T, f2 @ tilt_rotation(d2).T)[0]
     if np.count_nonzero(final < max_err_rad**2) < 0.5 * start_inliers:
         # The corrections lost most of what the hypothesis explained (a start among outliers): keep it. A
         # few fewer tight inliers is normal: the hypothesis may fit a subset closely and the rest badly.
@@ -483,14 +485,14 @@ def _general_if_attitude_is_worse(
     f1: np.ndarray, f2: np.ndarray, fit: _Fit, attitude_sigma_rad: tuple[float, float], max_err_rad: float, seed: int, candidates: np.ndarray,
 ) -> _Fit:
     """The general 5-point pose instead of ``fit`` when the attitude looks worse than its sigma says (the
-    corrections beyond 3 sigma, or under 60% of the points explained) and the general model explains
+    corrections beyond 3 sigma, or under 60% of the points the sampling admitted explained) and the general model explains
     clearly more points (25%). It is searched among the points the sampling's widened threshold
     admitted (``candidates``: the true inliers and few others, so it is quick), and counted on all.
     Its rotation is given as a yaw and a tilt correction of view 2."""
     thr_sq = max_err_rad**2
     upright = int(np.count_nonzero(fit.err_sq < thr_sq))
     beyond = np.linalg.norm(fit.tilt1) > 3 * attitude_sigma_rad[0] or np.linalg.norm(fit.tilt2) > 3 * attitude_sigma_rad[1]
-    if not beyond and upright >= _FALLBACK_BELOW_RATIO * len(f1):
+    if not beyond and upright >= _FALLBACK_BELOW_RATIO * np.count_nonzero(candidates):
         return fit
     general = estimate_general_relpose(f1[candidates], f2[candidates], max_err_rad, seed=seed)
     if general is None:
