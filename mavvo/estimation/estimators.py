@@ -26,12 +26,12 @@ from mavvo.geometry import (
     essential_to_vector,
     ground_homography_from_similarity,
     solve_ground_2pt_batch,
-    solve_upright_3pt_batch,
     solve_upright_4pt,
     solve_upright_linear5pt,
     upright_pose_from_essential,
 )
 from mavvo.geometry.frames import rot_z, skew
+from mavvo.geometry.upright_3pt import solve_samples as solve_upright_3pt_samples
 from mavvo.geometry.refine import fit_ground_similarity, fit_rotation, refine_upright
 from mavvo.geometry.residuals import ground_sq, rotation_sq, sampson_sq_upright
 
@@ -97,8 +97,8 @@ class UprightEssential:
     def generate(self, samples: np.ndarray) -> np.ndarray:
         f1, f2 = self.f1, self.f2
         if self.solver == "3pt":
-            E, valid = solve_upright_3pt_batch(f1[samples], f2[samples])
-            e = essential_to_vector(E[valid])
+            e, valid = solve_upright_3pt_samples(f1[samples], f2[samples])
+            e = e[valid]
         else:
             solve = solve_upright_4pt if self.solver == "4pt" else solve_upright_linear5pt
             out = [essential_to_vector(solve(f1[row], f2[row])) for row in samples]

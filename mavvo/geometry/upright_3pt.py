@@ -1,23 +1,20 @@
 """The 3-point solver (section 3.3), single and batched: null space, elimination template, quartic.
 
-Conventions: see :mod:`mavvo.geometry.essential`.
+One compiled kernel solves one sample (:func:`solve_sample`); the batch runs it per sample, also in
+compiled code. Conventions: see :mod:`mavvo.geometry.essential`.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from mavvo.geometry.essential import (
-    as_bearing_pair,
-    as_sample_batch,
-    complex_entries,
-    constraint_values,
-    constraint_violation,
-    epipolar_coefficients,
-    essential_from_vector,
-)
-from mavvo.geometry.polyroots import quartic_real_roots
+from mavvo.geometry.essential import as_bearing_pair, as_sample_batch, essential_from_vector
+from mavvo.geometry.polyroots import quartic_roots
+from mavvo.jit import kernel
 
+# A solution violating the det/trace constraints by more than this (unit Frobenius norm) is not an
 # essential matrix of the upright form: it comes from an ill-conditioned elimination, not the data.
 _MAX_CONSTRAINT_RESIDUAL = 1e-7
 # The 3x6 system counts as rank-deficient (repeated or degenerate points) below this relative size.
@@ -76,97 +73,15 @@ def _template_map() -> np.ndarray:
     return np.einsum("rs,smkp->rmkp", mix, template).reshape(60, 40)
 
 
-# The batched 3-point works on component-major arrays: a (6, B) array holds one 6-vector per
-# sample in its columns, so every arithmetic step is one numpy call over contiguous rows of B values.
-# (Sample-major (B, 3, 6) arrays make numpy loop over tiny inner axes and cost several times more.)
 # The template is filled by evaluating Q, D and T on the null space at the Padua points, e(a, b) =
 # a N0 + b N1 + N2, and mapping those values to the row-mixed template in one product.
-_PADUA_AB1 = np.column_stack([_padua_points(), np.ones(10)])  # (10 points, 3): (a, b, 1)
-_TEMPLATE_FROM_VALUES = _template_map()
-# Elimination runs without row exchanges; a sample whose pivot is below this fraction of the
-# largest entry left in its column (where partial pivoting would exchange rows) is solved by LAPACK.
-_MIN_PIVOT_RATIO = 1e-2
-
-
-def null_space_batch(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Orthonormal bases of the null spaces of B 3x6 systems, by Householder QR of their transposes.
-
-    Args:
-        A: (6 entries, 3 rows, B), component-major.
-
-    Returns:
-        basis (3, 6, B): N0, N1, N2 with e = a N0 + b N1 + N2 (the last three columns of Q), and
-        |R_kk| (3, B): the size of each row after projecting out the rows before it (rank test).
-    """
-    X = A.copy()
-    reflectors = []
-    sizes = []
-    for k in range(3):
-        x = X[k:, k]  # (6 - k, B)
-        size = np.sqrt((x * x).sum(axis=0))
-        v = x.copy()
-        v[0] += np.where(x[0] >= 0.0, size, -size)  # x + sign(x0) |x| e0: no cancellation
-        vv = (v * v).sum(axis=0)
-        beta = 2.0 / np.where(vv > 0.0, vv, 1.0)
-        if k < 2:
-            rest = X[k:, k + 1 :]
-            rest -= v[:, None] * (beta * (v[:, None] * rest).sum(axis=0))
-        reflectors.append((k, v, beta))
-        sizes.append(size)
-    Z = np.zeros((6, 3, A.shape[2]))
-    Z[3, 0] = Z[4, 1] = Z[5, 2] = 1.0
-    for k, v, beta in reversed(reflectors):  # Q = H0 H1 H2 applied to e3, e4, e5
-        part = Z[k:]
-        part -= v[:, None] * (beta * (v[:, None] * part).sum(axis=0))
-    return np.ascontiguousarray(Z.transpose(1, 0, 2)), np.stack(sizes)
-
-
-def elimination_template(basis: np.ndarray) -> np.ndarray:
-    """The row-mixed template (6 equations, 10 monomials, B) of null spaces ``basis`` (3, 6, B)."""
-    B = basis.shape[2]
-    at_points = (_PADUA_AB1 @ basis.reshape(3, -1)).reshape(10, 6, B)  # e(a, b) at the Padua points
-    q, d, t = constraint_values(*complex_entries(*at_points.transpose(1, 0, 2)))  # (10, B) each
-    return (_TEMPLATE_FROM_VALUES @ np.stack([q, d, t.real, t.imag]).reshape(40, B)).reshape(6, 10, B)
-
-
-def solve_template(C: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Gauss elimination on the template C (6, 10, B), component-major, without row exchanges; C is
-    overwritten.
-
-    Returns rows <h> and <i> (4, B) each: ``ab + <h> . (b^3, b^2, b, 1) = 0`` and
-    ``a + <i> . (b^3, b^2, b, 1) = 0``, the paper's (21) and (22); only these two rows are
-    back-substituted. Without row exchanges the elimination is a few whole-batch operations; it
-    also returns the indices of the samples with a small pivot (``_MIN_PIVOT_RATIO``), whose rows
-    are to be taken from :func:`solve_template_pivoted` instead. Singular templates (degenerate
-    data) give non-finite rows.
-    """
-    small_pivot = np.zeros(C.shape[2], dtype=bool)
-    for k in range(5):
-        column = C[k:, k]
-        small_pivot |= np.abs(column[0]) < _MIN_PIVOT_RATIO * np.abs(column).max(axis=0)
-        C[k + 1 :, k + 1 :] -= (column[1:] / column[0])[:, None] * C[k, k + 1 :]
-    i = C[5, 6:] / C[5, 5]
-    h = (C[4, 6:] - C[4, 5] * i) / C[4, 4]
-    return h, i, np.nonzero(small_pivot)[0]
-
-
-def solve_template_pivoted(C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rows <h> and <i> of templates C (6, 10, n) by LAPACK with partial pivoting."""
-    left, right = C[:, :6].transpose(2, 0, 1), C[:, 6:].transpose(2, 0, 1)
-    try:
-        X = np.linalg.solve(left, right)
-    except np.linalg.LinAlgError:
-        X = np.full(right.shape, np.nan)
-        for n in range(len(X)):
-            try:
-                X[n] = np.linalg.solve(left[n], right[n])
-            except np.linalg.LinAlgError:
-                pass
-    return X[:, 4].T, X[:, 5].T
+_PADUA = _padua_points()  # (10 points, 2): (a, b)
+_TEMPLATE_FROM_VALUES = _template_map()  # (60, 40)
+# Slots of e = (E13, E21, E22, E23, E31, E32) in alpha = E22 + i E21, beta = E13 + i E23, gamma = E31 + i E32.
 
 
 def solve_upright_3pt_batch(F1: np.ndarray, F2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The 3-point minimal solver for B samples in one vectorised call.
+    """The 3-point minimal solver for B samples in one call.
 
     Args:
         F1, F2: (B, 3, 3) level-frame bearings; sample b is the three pairs ``F1[b, i] <-> F2[b, i]``.
@@ -175,72 +90,231 @@ def solve_upright_3pt_batch(F1: np.ndarray, F2: np.ndarray) -> tuple[np.ndarray,
         E (B, 4, 3, 3) essential matrices with unit Frobenius norm (NaN in unused slots) and
         valid (B, 4) bool. Each sample has 0 to 4 valid solutions.
     """
-    F1 = as_sample_batch("F1", F1)
-    F2 = as_sample_batch("F2", F2)
-    if F1.shape != F2.shape:
-        raise ValueError(f"F1 and F2: expected the same shape, got {F1.shape} and {F2.shape}")
-    e, valid = _upright_3pt(F1, F2)
-    E = essential_from_vector(e.T)  # (B, 4, 3, 3)
-    E[~valid.T] = np.nan
-    return E, valid.T
+    X1 = as_sample_batch("F1", F1)
+    X2 = as_sample_batch("F2", F2)
+    if X1.shape != X2.shape:
+        raise ValueError(f"F1 and F2: expected the same shape, got {np.shape(F1)} and {np.shape(F2)}")
+    e, valid = solve_samples(np.ascontiguousarray(X1.transpose(2, 1, 0)), np.ascontiguousarray(X2.transpose(2, 1, 0)))
+    E = essential_from_vector(e)  # (B, 4, 3, 3)
+    E[~valid] = np.nan
+    return E, valid
 
 
-def _upright_3pt(X1: np.ndarray, X2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The 3-point on validated unit bearings X1, X2, component-major (3 components, 3 points, B).
-
-    Returns e (6, 4, B), component-major and scaled so that E has unit Frobenius norm, and
-    valid (4, B).
-    """
-    with np.errstate(all="ignore"):
-        A = epipolar_coefficients(X1, X2)  # (6 entries, 3 points, B)
-        basis, sizes = null_space_batch(A)  # (3 basis vectors, 6 entries, B): e = a N0 + b N1 + N2
-        full_rank = sizes.min(axis=0) > _MIN_ROW_RANK_RATIO * np.sqrt((A * A).sum(axis=0)).max(axis=0)
-
-        template = elimination_template(basis)
-        usable = full_rank & (np.abs(template).max(axis=(0, 1)) > _MIN_TEMPLATE_NORM)
-        template[:, :, ~usable] = np.eye(6, 10)[:, :, None]  # solvable dummy; its solutions are discarded below
-
-        h, i, redo = solve_template(template)  # (4, B) each
-        if redo.size:
-            h[:, redo], i[:, redo] = solve_template_pivoted(elimination_template(basis[:, :, redo]))
-        del template  # 60 values per sample: not kept through the rest, for the batch's peak memory
-        # <k> = <h> - b <i>  (23): a quartic in b; a from <i>  (22).
-        b, valid = quartic_real_roots(np.stack([i[0], i[1] - h[0], i[2] - h[1], i[3] - h[2], -h[3]]), axis=0)  # (4 roots, B)
-        a = -(((i[0] * b + i[1]) * b + i[2]) * b + i[3])
-        e = a * basis[0][:, None] + b * basis[1][:, None] + basis[2][:, None]  # (6, 4, B)
-
-        _use_sheet_solutions(e, valid, basis, usable)
-        e = _unit_frobenius(e)
-        valid &= usable
-        valid &= np.isfinite(e).all(axis=0)
-        valid &= _distinct_epipolar_planes(e, X1)
-        valid &= constraint_violation(np.where(valid, e, 0.0)) < _MAX_CONSTRAINT_RESIDUAL
+@kernel
+def solve_samples(F1: np.ndarray, F2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`solve_sample` over unit bearings F1, F2 (B, 3, 3): e (B, 4, 6), valid (B, 4)."""
+    B = F1.shape[0]
+    e = np.full((B, 4, 6), np.nan)
+    valid = np.zeros((B, 4), dtype=np.bool_)
+    for b in range(B):
+        solve_sample(F1[b], F2[b], e[b], valid[b])
     return e, valid
 
 
-def _unit_frobenius(e: np.ndarray) -> np.ndarray:
-    """Component-major e (6, ...) scaled so that its E has unit Frobenius norm (E11 = E22, E12 = -E21 count twice)."""
-    return e / np.sqrt(e[0] * e[0] + 2.0 * (e[1] * e[1] + e[2] * e[2]) + e[3] * e[3] + e[4] * e[4] + e[5] * e[5])
+@kernel
+def solve_sample(X1: np.ndarray, X2: np.ndarray, e: np.ndarray, valid: np.ndarray) -> None:
+    """The 3-point on one sample of unit bearings X1, X2 (3 points, 3): writes e (4 slots, 6) scaled to
+    unit Frobenius norm and valid (4,); invalid slots hold anything."""
+    valid[:] = False
+    A = np.empty((3, 6))
+    for j in range(3):
+        x, y, z = X1[j, 0], X1[j, 1], X1[j, 2]
+        xp, yp, zp = X2[j, 0], X2[j, 1], X2[j, 2]
+        A[j, 0], A[j, 1], A[j, 2] = xp * z, yp * x - xp * y, xp * x + yp * y  # the paper's row (11)
+        A[j, 3], A[j, 4], A[j, 5] = yp * z, zp * x, zp * y
+    basis = np.empty((3, 6))
+    if not _null_space(A, basis):
+        return  # repeated or degenerate points
+    C = _TEMPLATE_FROM_VALUES @ _constraint_values_at_padua(basis)  # (60,)
+    C = C.reshape(6, 10)
+    biggest = 0.0
+    for v in C.ravel():
+        biggest = max(biggest, abs(v))
+    if not biggest > _MIN_TEMPLATE_NORM:
+        return  # a pure rotation or a degenerate line: the template vanishes
+    hi = np.empty((2, 4))
+    if not _eliminate(C, hi):
+        return
+    h, i = hi[0], hi[1]
+    # <k> = <h> - b <i>  (23): a quartic in b; a from <i>  (22).
+    quartic = np.array([i[0], i[1] - h[0], i[2] - h[1], i[3] - h[2], -h[3]])
+    roots = np.empty(4)
+    quartic_roots(quartic, 1e-10, roots, valid)
+    for k in range(4):
+        b = roots[k]
+        a = -(((i[0] * b + i[1]) * b + i[2]) * b + i[3])
+        for m in range(6):
+            e[k, m] = a * basis[0, m] + b * basis[1, m] + basis[2, m]
+    if _maybe_near_vertical(basis):
+        _use_sheet_solutions(e, valid, basis)
+    for k in range(4):
+        if valid[k]:
+            _unit_frobenius(e[k])
+            valid[k] = _is_finite(e[k]) and _distinct_epipolar_planes(e[k], X1) and _constraint_violation(e[k]) < _MAX_CONSTRAINT_RESIDUAL
 
 
-def _distinct_epipolar_planes(e: np.ndarray, X1: np.ndarray) -> np.ndarray:
-    """(4, B) bool: under e (6, 4, B) the three points X1 (3, 3, B) do not share one epipolar plane.
+@kernel
+def _null_space(A: np.ndarray, basis: np.ndarray) -> bool:
+    """Orthonormal basis (3, 6) of the null space of the 3x6 system A, by Householder QR of its
+    transpose: e = a N0 + b N1 + N2 with the rows N0, N1, N2 written into ``basis`` (the last three
+    columns of Q). False when a row is (nearly) a combination of the others (rank below 3)."""
+    M = A.T.copy()  # (6, 3)
+    vs = np.zeros((3, 6))
+    betas = np.zeros(3)
+    smallest, largest_row = np.inf, 0.0
+    for j in range(3):
+        largest_row = max(largest_row, math.sqrt(A[j, 0] ** 2 + A[j, 1] ** 2 + A[j, 2] ** 2 + A[j, 3] ** 2 + A[j, 4] ** 2 + A[j, 5] ** 2))
+    for k in range(3):
+        size = 0.0
+        for r in range(k, 6):
+            size += M[r, k] * M[r, k]
+        size = math.sqrt(size)
+        smallest = min(smallest, size)  # |R_kk|: the row's size after projecting out the rows before it
+        for r in range(k, 6):
+            vs[k, r] = M[r, k]
+        vs[k, k] += size if M[k, k] >= 0.0 else -size  # x + sign(x0) |x| e0: no cancellation
+        vv = 0.0
+        for r in range(k, 6):
+            vv += vs[k, r] * vs[k, r]
+        betas[k] = 2.0 / vv if vv > 0.0 else 0.0
+        for c in range(k + 1, 3):
+            dot = 0.0
+            for r in range(k, 6):
+                dot += vs[k, r] * M[r, c]
+            for r in range(k, 6):
+                M[r, c] -= betas[k] * dot * vs[k, r]
+    for c in range(3):  # Q = H0 H1 H2 applied to e3, e4, e5
+        col = np.zeros(6)
+        col[3 + c] = 1.0
+        for k in range(2, -1, -1):
+            dot = 0.0
+            for r in range(k, 6):
+                dot += vs[k, r] * col[r]
+            for r in range(k, 6):
+                col[r] -= betas[k] * dot * vs[k, r]
+        basis[c] = col
+    return smallest > _MIN_ROW_RANK_RATIO * largest_row
+
+
+@kernel
+def _constraint_values_at_padua(basis: np.ndarray) -> np.ndarray:
+    """(40,) Q, D, Re T, Im T (10 each) of e(a, b) = a N0 + b N1 + N2 at the ten Padua points."""
+    out = np.empty(40)
+    for p in range(10):
+        a, b = _PADUA[p, 0], _PADUA[p, 1]
+        ev = a * basis[0] + b * basis[1] + basis[2]
+        q, d, tr, ti = _qdt(ev)
+        out[p], out[10 + p], out[20 + p], out[30 + p] = q, d, tr, ti
+    return out
+
+
+@kernel
+def _qdt(e: np.ndarray) -> tuple[float, float, float, float]:
+    """Q, D, Re T, Im T of e (6,) (:mod:`mavvo.geometry.essential`), in real arithmetic."""
+    br, ar, ai, bi, gr, gi = e[0], e[2], e[1], e[3], e[4], e[5]  # beta = E13 + i E23, alpha = E22 + i E21, gamma = E31 + i E32
+    q = br * br + bi * bi - gr * gr - gi * gi
+    pr, pi = ar * gr - ai * gi, ar * gi + ai * gr  # alpha gamma
+    d = pr * br + pi * bi  # Re(alpha gamma conj(beta))
+    b2r, b2i = br * br - bi * bi, 2.0 * br * bi
+    g2r, g2i = gr * gr - gi * gi, 2.0 * gr * gi
+    tr = b2r * ar + b2i * ai + ar * g2r - ai * g2i  # beta^2 conj(alpha) + alpha gamma^2
+    ti = b2i * ar - b2r * ai + ar * g2i + ai * g2r
+    return q, d, tr, ti
+
+
+@kernel
+def _constraint_violation(e: np.ndarray) -> float:
+    """Largest of |Q|, |D|, |T| at e (6,), as given (no scaling)."""
+    q, d, tr, ti = _qdt(e)
+    return max(abs(q), abs(d), math.sqrt(tr * tr + ti * ti))
+
+
+@kernel
+def _eliminate(C: np.ndarray, hi: np.ndarray) -> bool:
+    """Gauss elimination with partial pivoting on the template C (6, 10), overwritten: rows <h> and
+    <i> (written into hi (2, 4)) with ``ab + <h> . (b^3, b^2, b, 1) = 0`` and
+    ``a + <i> . (b^3, b^2, b, 1) = 0``, the paper's (21) and (22); only these two rows are
+    back-substituted. False for a singular template."""
+    for k in range(6):
+        piv = k
+        for r in range(k + 1, 6):
+            if abs(C[r, k]) > abs(C[piv, k]):
+                piv = r
+        if not abs(C[piv, k]) > 0.0:
+            return False
+        if piv != k:
+            for c in range(k, 10):
+                C[k, c], C[piv, c] = C[piv, c], C[k, c]
+        for r in range(k + 1, 6):
+            f = C[r, k] / C[k, k]
+            for c in range(k + 1, 10):
+                C[r, c] -= f * C[k, c]
+    for c in range(4):
+        hi[1, c] = C[5, 6 + c] / C[5, 5]
+        hi[0, c] = (C[4, 6 + c] - C[4, 5] * hi[1, c]) / C[4, 4]
+    return True
+
+
+@kernel
+def _unit_frobenius(e: np.ndarray) -> None:
+    """e (6,) scaled in place so that its E has unit Frobenius norm (E11 = E22, E12 = -E21 count twice)."""
+    n = math.sqrt(e[0] * e[0] + 2.0 * (e[1] * e[1] + e[2] * e[2]) + e[3] * e[3] + e[4] * e[4] + e[5] * e[5])
+    if n > 0.0:
+        e /= n
+
+
+@kernel
+def _is_finite(e: np.ndarray) -> bool:
+    for v in e:
+        if not math.isfinite(v):
+            return False
+    return True
+
+
+@kernel
+def _distinct_epipolar_planes(e: np.ndarray, X1: np.ndarray) -> bool:
+    """Under e (6,) the three points X1 (3, 3) do not share one epipolar plane.
 
     Three points on a line coplanar with the baseline (the paper's line parallel to it, or one
     crossing it) lie in one epipolar plane: then the true yaw fits with any translation in that
     plane, and a solver may return a member of that continuum. Its epipolar lines E f1 coincide.
     """
-    x, y, z = X1[:, :, None]  # (3 points, 1, B) each
-    e13, e21, e22, e23, e31, e32 = e
-    lines = np.stack([e22 * x - e21 * y + e13 * z, e21 * x + e22 * y + e23 * z, e31 * x + e32 * y])  # (3, 3 points, 4, B)
-    sq = (lines * lines).sum(axis=0)  # (3 points, 4, B)
-    dots = (lines[:, :1] * lines[:, 1:]).sum(axis=0)  # line 0 against lines 1 and 2
-    # sin^2 of the angle between two lines is (|u|^2 |v|^2 - (u.v)^2) / (|u|^2 |v|^2); zero lines count as coincident.
-    norms = sq[0] * sq[1:]
-    return np.any(norms - dots * dots > _MIN_EPIPOLAR_PLANE_ANGLE**2 * norms, axis=0)
+    e13, e21, e22, e23, e31, e32 = e[0], e[1], e[2], e[3], e[4], e[5]
+    lines = np.empty((3, 3))
+    for j in range(3):
+        x, y, z = X1[j, 0], X1[j, 1], X1[j, 2]
+        lines[j, 0] = e22 * x - e21 * y + e13 * z
+        lines[j, 1] = e21 * x + e22 * y + e23 * z
+        lines[j, 2] = e31 * x + e32 * y
+    sq0 = lines[0, 0] ** 2 + lines[0, 1] ** 2 + lines[0, 2] ** 2
+    for j in (1, 2):
+        # sin^2 of the angle between two lines is (|u|^2 |v|^2 - (u.v)^2) / (|u|^2 |v|^2); zero lines count as coincident.
+        norms = sq0 * (lines[j, 0] ** 2 + lines[j, 1] ** 2 + lines[j, 2] ** 2)
+        dot = lines[0, 0] * lines[j, 0] + lines[0, 1] * lines[j, 1] + lines[0, 2] * lines[j, 2]
+        if norms - dot * dot > _MIN_EPIPOLAR_PLANE_ANGLE**2 * norms:
+            return True
+    return False
 
 
-def _use_sheet_solutions(e: np.ndarray, valid: np.ndarray, basis: np.ndarray, usable: np.ndarray) -> None:
+@kernel
+def _maybe_near_vertical(basis: np.ndarray) -> bool:
+    """Cheap and conservative: the null space, basis (3, 6), may pass within ``_NEAR_VERTICAL`` of
+    E13 = E23 = E31 = E32 = 0 (its 4x3 restriction has a small singular value)."""
+    V = np.empty((3, 4))
+    for r in range(3):
+        V[r, 0], V[r, 1], V[r, 2], V[r, 3] = basis[r, 0], basis[r, 3], basis[r, 4], basis[r, 5]
+    G = V @ V.T  # Gram matrix; det = product of squared singular values
+    det = (
+        G[0, 0] * (G[1, 1] * G[2, 2] - G[1, 2] * G[2, 1])
+        - G[0, 1] * (G[1, 0] * G[2, 2] - G[1, 2] * G[2, 0])
+        + G[0, 2] * (G[1, 0] * G[2, 1] - G[1, 1] * G[2, 0])
+    )
+    half_trace = 0.5 * (G[0, 0] + G[1, 1] + G[2, 2])
+    return det <= (_NEAR_VERTICAL**2) * half_trace**2  # sigma_min^2 >= det / (trace/2)^2
+
+
+@kernel
+def _use_sheet_solutions(e: np.ndarray, valid: np.ndarray, basis: np.ndarray) -> None:
     """Near motion along gravity, put each sheet's solution in place of the template's roots there.
 
     The true E of motion along gravity has E13 = E23 = E31 = E32 = 0, where the two sheets of
@@ -252,53 +326,40 @@ def _use_sheet_solutions(e: np.ndarray, valid: np.ndarray, basis: np.ndarray, us
     nearest to them (free slots first), and the second is dropped where it equals the first (exactly
     vertical motion).
 
-    e (6, 4, B) and valid (4, B) are updated in place; basis (3, 6, B); usable (B,).
+    e (4, 6) and valid (4,) are updated in place; basis (3, 6).
     """
-    rows = np.nonzero(_maybe_near_vertical(basis) & usable)[0]
-    if rows.size == 0:
+    sheets = np.empty((2, 6))
+    if not _near_vertical_solutions(basis, sheets):
         return
-    near, sheets = _near_vertical_solutions(basis[:, :, rows])  # (n,), (6, 2, n)
-    sheets = _unit_frobenius(sheets)
-    ok = near & np.all(constraint_violation(sheets) < _MAX_CONSTRAINT_RESIDUAL, axis=0)
-    rows, sheets = rows[ok], sheets[:, :, ok]
-    candidates = e[:, :, rows] / np.sqrt((e[:, :, rows] ** 2).sum(axis=0))  # (6, 4, n)
-    cosines = np.abs(np.einsum("ikn,ijn->jkn", candidates, sheets))  # (2 sheets, 4, n)
-    closest = np.maximum(cosines[0], cosines[1])
-    valid[:, rows] &= closest < 1.0 - 0.5 * _SHEET_COPY_DISTANCE**2  # ill-conditioned copies of them go
-    slots = np.argsort(-np.where(valid[:, rows], closest, 2.0), axis=0)[:2]  # free slots first
-    sign = np.where((sheets[:, 0] * sheets[:, 1]).sum(axis=0) < 0.0, -1.0, 1.0)
-    gap = sheets[:, 0] - sign * sheets[:, 1]
-    same = (gap * gap).sum(axis=0) < _SHEET_SAME_DISTANCE**2
-    e[:, slots[0], rows] = sheets[:, 0]
-    e[:, slots[1], rows] = sheets[:, 1]
-    valid[slots[0], rows] = True
-    valid[slots[1], rows] = ~same
+    for s in range(2):
+        _unit_frobenius(sheets[s])
+        if not _constraint_violation(sheets[s]) < _MAX_CONSTRAINT_RESIDUAL:
+            return
+    key = np.empty(4)
+    for k in range(4):
+        norm = math.sqrt(np.sum(e[k] * e[k]))
+        closest = max(abs(np.sum(e[k] * sheets[0])), abs(np.sum(e[k] * sheets[1]))) / norm if norm > 0.0 else 0.0
+        valid[k] = valid[k] and closest < 1.0 - 0.5 * _SHEET_COPY_DISTANCE**2  # ill-conditioned copies of them go
+        key[k] = closest if valid[k] else 2.0  # free slots first, then the candidates nearest to them
+    order = np.argsort(-key, kind="mergesort")
+    sign = -1.0 if np.sum(sheets[0] * sheets[1]) < 0.0 else 1.0
+    gap = sheets[0] - sign * sheets[1]
+    e[order[0]] = sheets[0]
+    e[order[1]] = sheets[1]
+    valid[order[0]] = True
+    valid[order[1]] = not np.sum(gap * gap) < _SHEET_SAME_DISTANCE**2
 
 
-def _maybe_near_vertical(basis: np.ndarray) -> np.ndarray:
-    """(B,) bool, cheap and conservative: the null space, basis (3, 6, B), may pass within
-    ``_NEAR_VERTICAL`` of E13 = E23 = E31 = E32 = 0 (its 4x3 restriction has a small singular value)."""
-    V = basis[:, [0, 3, 4, 5]]
-    G = (V[:, None] * V[None]).sum(axis=2)  # (3, 3, B) Gram matrix; det = product of squared singular values
-    det = (
-        G[0, 0] * (G[1, 1] * G[2, 2] - G[1, 2] * G[2, 1])
-        - G[0, 1] * (G[1, 0] * G[2, 2] - G[1, 2] * G[2, 0])
-        + G[0, 2] * (G[1, 0] * G[2, 1] - G[1, 1] * G[2, 0])
-    )
-    half_trace = 0.5 * (G[0, 0] + G[1, 1] + G[2, 2])
-    return det <= (_NEAR_VERTICAL**2) * half_trace**2  # sigma_min^2 >= det / (trace/2)^2
-
-
-def _near_vertical_solutions(basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+@kernel
+def _near_vertical_solutions(basis: np.ndarray, sheets: np.ndarray) -> bool:
     """Solutions near motion along gravity, one per sheet, iterated from the vertical point.
 
     Args:
-        basis: (3, 6, n) orthonormal basis of each sample's null space.
+        basis: (3, 6) orthonormal basis of the sample's null space.
+        sheets: (2, 6) written: the solution on the sheet tz = +|alpha| and on tz = -|alpha|.
 
-    Returns:
-        near (n,) bool: the null space passes within ``_NEAR_VERTICAL`` of E13 = E23 = E31 = E32 = 0
-        and each sheet has an isolated solution there; e (6, 2, n): the solution on the sheet
-        tz = +|alpha| and on tz = -|alpha| (columns where ``near`` is false are meaningless).
+    Returns whether the null space passes within ``_NEAR_VERTICAL`` of E13 = E23 = E31 = E32 = 0 and
+    each sheet has an isolated solution there (``sheets`` is meaningless otherwise).
 
     On sheet s the upright E satisfy ``s u gamma + i beta = 0`` with u = alpha / |alpha|: two real
     equations in the two coordinates of the null space, regular where alpha != 0, unlike the
@@ -309,26 +370,39 @@ def _near_vertical_solutions(basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     """
     # Right singular vectors of the null space's E13, E23, E31, E32 part: the last, c, points to the
     # nearest vertical point; the other two span a local chart e = (c + x v1 + y v2) @ basis.
-    _, sv, vt = np.linalg.svd(basis[:, [0, 3, 4, 5]].transpose(2, 1, 0))  # (n, 4, 3)
-    e0, e1, e2 = (np.einsum("nk,kin->in", vt[:, r], basis) for r in (2, 0, 1))  # (6, n) each
-    (a0, b0, g0), (a1, b1, g1), (a2, b2, g2) = (complex_entries(*v) for v in (e0, e1, e2))
-    ib0, ib1, ib2 = 1j * b0, 1j * b1, 1j * b2
-    sheet = np.array([[1.0], [-1.0]])
-    x = np.zeros((2, e0.shape[1]))
-    y = np.zeros_like(x)
-    for _ in range(_SHEET_STEPS):
-        alpha = a0 + x * a1 + y * a2
-        su = sheet * alpha / np.abs(alpha)
-        # c1 x + c2 y + c0 = 0 in complex numbers: two real equations in x, y.
-        c0, c1, c2 = su * g0 + ib0, su * g1 + ib1, su * g2 + ib2
-        det = c1.real * c2.imag - c2.real * c1.imag
-        x = (c2.real * c0.imag - c0.real * c2.imag) / det
-        y = (c0.real * c1.imag - c1.real * c0.imag) / det
-    # Isolated roots only: a pure rotation makes one sheet's equations vanish on a whole region.
-    scale = (c1 * np.conj(c1)).real + (c2 * np.conj(c2)).real
-    near = (sv[:, 2] < _NEAR_VERTICAL) & (sv[:, 1] > _NEAR_VERTICAL)
-    near &= np.all((np.abs(det) > _MIN_ISOLATION * scale) & (x * x + y * y < _SHEET_RADIUS**2), axis=0)
-    return near, e0[:, None] + x * e1[:, None] + y * e2[:, None]
+    V = np.empty((4, 3))
+    for r in range(3):
+        V[0, r], V[1, r], V[2, r], V[3, r] = basis[r, 0], basis[r, 3], basis[r, 4], basis[r, 5]
+    _, sv, vt = np.linalg.svd(V)
+    vt = np.ascontiguousarray(vt)
+    if not (sv[2] < _NEAR_VERTICAL and sv[1] > _NEAR_VERTICAL):
+        return False
+    e0, e1, e2 = vt[2] @ basis, vt[0] @ basis, vt[1] @ basis
+    a0, b0, g0 = complex(e0[2], e0[1]), complex(e0[0], e0[3]), complex(e0[4], e0[5])
+    a1, b1, g1 = complex(e1[2], e1[1]), complex(e1[0], e1[3]), complex(e1[4], e1[5])
+    a2, b2, g2 = complex(e2[2], e2[1]), complex(e2[0], e2[3]), complex(e2[4], e2[5])
+    for s in range(2):
+        sheet = 1.0 if s == 0 else -1.0
+        x = y = 0.0
+        det = scale = 0.0
+        for _ in range(_SHEET_STEPS):
+            alpha = a0 + x * a1 + y * a2
+            if abs(alpha) == 0.0:
+                return False
+            su = sheet * alpha / abs(alpha)
+            # c1 x + c2 y + c0 = 0 in complex numbers: two real equations in x, y.
+            c0, c1, c2 = su * g0 + 1j * b0, su * g1 + 1j * b1, su * g2 + 1j * b2
+            det = c1.real * c2.imag - c2.real * c1.imag
+            if det == 0.0:
+                return False
+            x = (c2.real * c0.imag - c0.real * c2.imag) / det
+            y = (c0.real * c1.imag - c1.real * c0.imag) / det
+            scale = abs(c1) ** 2 + abs(c2) ** 2
+        # Isolated roots only: a pure rotation makes one sheet's equations vanish on a whole region.
+        if not (abs(det) > _MIN_ISOLATION * scale and x * x + y * y < _SHEET_RADIUS**2):
+            return False
+        sheets[s] = e0 + x * e1 + y * e2
+    return True
 
 
 def solve_upright_3pt(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
@@ -340,8 +414,36 @@ def solve_upright_3pt(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
     Returns:
         (k, 3, 3) essential matrices with unit Frobenius norm, 0 <= k <= 4.
     """
-    a, b = as_bearing_pair(f1, f2, 3, exact_rows=3)
-    e, valid = _upright_3pt(a.T[:, :, None], b.T[:, :, None])
-    return essential_from_vector(e[:, valid[:, 0], 0].T)
+    a, b = np.asarray(f1, dtype=float), np.asarray(f2, dtype=float)
+    if a.shape == (3, 3) and b.shape == (3, 3):
+        E = np.empty((4, 3, 3))
+        k = _solve_one(a, b, E)
+        if k >= 0:
+            return E[:k]
+    as_bearing_pair(f1, f2, 3, exact_rows=3)  # raises, naming what is wrong
+    raise AssertionError("unreachable: the input was valid")
 
 
+@kernel
+def _solve_one(f1: np.ndarray, f2: np.ndarray, E: np.ndarray) -> int:
+    """One sample of (3, 3) bearings of any non-zero length: its valid solutions as (3, 3) matrices
+    in the first slots of E (4, 3, 3), their count; -1 for non-finite or zero-length bearings."""
+    X1, X2 = np.empty((3, 3)), np.empty((3, 3))
+    for X, f in ((X1, f1), (X2, f2)):
+        for j in range(3):
+            n = math.sqrt(f[j, 0] ** 2 + f[j, 1] ** 2 + f[j, 2] ** 2)
+            if not (math.isfinite(n) and n >= 1e-12):
+                return -1
+            for c in range(3):
+                X[j, c] = f[j, c] / n
+    e, valid = np.empty((4, 6)), np.empty(4, dtype=np.bool_)
+    solve_sample(X1, X2, e, valid)
+    k = 0
+    for s in range(4):
+        if valid[s]:
+            e13, e21, e22, e23, e31, e32 = e[s, 0], e[s, 1], e[s, 2], e[s, 3], e[s, 4], e[s, 5]
+            E[k, 0, 0], E[k, 0, 1], E[k, 0, 2] = e22, -e21, e13
+            E[k, 1, 0], E[k, 1, 1], E[k, 1, 2] = e21, e22, e23
+            E[k, 2, 0], E[k, 2, 1], E[k, 2, 2] = e31, e32, 0.0
+            k += 1
+    return k
