@@ -22,16 +22,15 @@ import numpy as np
 
 from mavvo.geometry import (
     alpha_beta_gamma,
-    essential_from_vector,
     essential_to_vector,
     ground_homography_from_similarity,
     solve_ground_2pt_batch,
     solve_upright_4pt,
     solve_upright_linear5pt,
-    upright_pose_from_essential,
 )
 from mavvo.geometry.frames import rot_z, skew
 from mavvo.geometry.upright_3pt import solve_samples as solve_upright_3pt_samples
+from mavvo.geometry.upright_pose import upright_pose_kernel
 from mavvo.geometry.refine import fit_ground_similarity, fit_rotation, refine_upright
 from mavvo.geometry.residuals import ground_sq, rotation_sq, sampson_sq_upright
 
@@ -53,11 +52,12 @@ def upright_e(yaw: float, t: np.ndarray) -> np.ndarray:
 
 
 def decompose_upright(e: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> tuple[float, np.ndarray] | None:
-    """(yaw, unit t) of an upright e (6,), cheirality decided on the given inliers; None without any."""
-    if len(f1) == 0:
+    """(yaw, unit t) of an upright e (6,), cheirality decided on the given unit bearings; None without any."""
+    n = float(np.linalg.norm(e))
+    if len(f1) == 0 or not n > 0:
         return None
-    R, t = upright_pose_from_essential(essential_from_vector(e), f1, f2)
-    return yaw_of(R), t
+    yaw, t = upright_pose_kernel(np.ascontiguousarray(e, dtype=np.float64) / n, np.ascontiguousarray(f1), np.ascontiguousarray(f2))
+    return float(yaw), t
 
 
 def _near_yaw(e: np.ndarray, prior: float, tol: float) -> np.ndarray:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from mavvo.geometry.frames import cross
 from mavvo.jit import kernel
 
 __all__ = ["sampson_sq_upright", "ground_sq", "rotation_sq"]
@@ -61,17 +60,53 @@ def ground_sq(H: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
 
     The transfer angle between f2 and H f1, halved in square because the noise of both bearings
     shares it (exact for a rotation, first order for the small scale changes of a ground homography).
-    A point that H sends behind view 2 gets ``UNMAPPABLE_SQ``.
+    A point that H sends behind view 2 gets ``UNMAPPABLE_SQ``. Compiled.
     """
-    g = f1 @ np.swapaxes(H, -1, -2)
-    n_sq = np.sum(g * g, axis=-1)
-    c = cross(g, f2)  # |g x f2|^2 / |g|^2 = sin^2 of the angle, precise also for tiny angles
-    sin_sq = np.sum(c * c, axis=-1) / np.where(n_sq > 0, n_sq, 1.0)
-    ok = (n_sq > 0) & (np.sum(g * f2, axis=-1) > 0) & (f1[:, 2] > 0)
-    return np.where(ok, 0.5 * sin_sq, UNMAPPABLE_SQ)
+    return _per_model(_ground_sq, H, f1, f2)
 
 
 def rotation_sq(R: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
-    """Squared residuals (..., N) of pure rotations ``f2 = R f1``, R (..., 3, 3): half the squared chord."""
-    d = f2 - f1 @ np.swapaxes(R, -1, -2)
-    return 0.5 * np.sum(d * d, axis=-1)
+    """Squared residuals (..., N) of pure rotations ``f2 = R f1``, R (..., 3, 3): half the squared chord. Compiled."""
+    return _per_model(_rotation_sq, R, f1, f2)
+
+
+def _per_model(fn, M: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """A (K, N) kernel over models M (..., 3, 3), shaped back to (..., N)."""
+    M = np.asarray(M, dtype=np.float64)
+    out = fn(np.ascontiguousarray(M.reshape(-1, 3, 3)), np.ascontiguousarray(f1, dtype=np.float64), np.ascontiguousarray(f2, dtype=np.float64))
+    return out.reshape(M.shape[:-2] + (out.shape[1],))
+
+
+@kernel
+def _ground_sq(H: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
+    out = np.empty((H.shape[0], f1.shape[0]))
+    for m in range(H.shape[0]):
+        h = H[m]
+        for i in range(f1.shape[0]):
+            x, y, z = f1[i, 0], f1[i, 1], f1[i, 2]
+            g0 = h[0, 0] * x + h[0, 1] * y + h[0, 2] * z  # g = H f1
+            g1 = h[1, 0] * x + h[1, 1] * y + h[1, 2] * z
+            g2 = h[2, 0] * x + h[2, 1] * y + h[2, 2] * z
+            b0, b1, b2 = f2[i, 0], f2[i, 1], f2[i, 2]
+            n_sq = g0 * g0 + g1 * g1 + g2 * g2
+            # |g x f2|^2 / |g|^2 = sin^2 of the angle, precise also for tiny angles
+            c0, c1, c2 = g1 * b2 - g2 * b1, g2 * b0 - g0 * b2, g0 * b1 - g1 * b0
+            if n_sq > 0.0 and g0 * b0 + g1 * b1 + g2 * b2 > 0.0 and z > 0.0:
+                out[m, i] = 0.5 * (c0 * c0 + c1 * c1 + c2 * c2) / n_sq
+            else:
+                out[m, i] = UNMAPPABLE_SQ
+    return out
+
+
+@kernel
+def _rotation_sq(R: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
+    out = np.empty((R.shape[0], f1.shape[0]))
+    for m in range(R.shape[0]):
+        r = R[m]
+        for i in range(f1.shape[0]):
+            x, y, z = f1[i, 0], f1[i, 1], f1[i, 2]
+            d0 = f2[i, 0] - (r[0, 0] * x + r[0, 1] * y + r[0, 2] * z)
+            d1 = f2[i, 1] - (r[1, 0] * x + r[1, 1] * y + r[1, 2] * z)
+            d2 = f2[i, 2] - (r[2, 0] * x + r[2, 1] * y + r[2, 2] * z)
+            out[m, i] = 0.5 * (d0 * d0 + d1 * d1 + d2 * d2)
+    return out

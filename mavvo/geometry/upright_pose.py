@@ -5,21 +5,26 @@ Conventions: see :mod:`mavvo.geometry.essential`.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from mavvo.geometry.essential import as_bearing_pair, essential_to_vector
 from mavvo.geometry.frames import rot_z
+from mavvo.jit import kernel
 
 # --------------------------------------------------------------------------- decomposition
 
 
+@kernel
 def _translation_for_yaw(e: np.ndarray, yaw: float) -> np.ndarray:
     """Least-squares t with ``[t]x Rz(yaw)`` closest to e (6,): the columns are orthogonal."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    e13, e21, e22, e23, e31, e32 = e
+    c, s = math.cos(yaw), math.sin(yaw)
+    e13, e21, e22, e23, e31, e32 = e[0], e[1], e[2], e[3], e[4], e[5]
     return np.array([(-e23 + s * e31 + c * e32) / 2.0, (e13 - c * e31 + s * e32) / 2.0, c * e21 - s * e22])
 
 
+@kernel
 def _yaw_candidates(e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Stationary yaws of the fit of ``[t]x Rz(yaw)`` to e, and the fitted energy at each.
 
@@ -27,43 +32,75 @@ def _yaw_candidates(e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     f(yaw) = K + P sin + Q cos + U cos 2yaw + V sin 2yaw to maximise; with u = tan(yaw/2) its
     stationary points are the roots of a quartic (plus yaw = pi, the quartic's root at infinity).
     """
-    e13, e21, e22, e23, e31, e32 = e
+    e13, e21, e22, e23, e31, e32 = e[0], e[1], e[2], e[3], e[4], e[5]
     P = e13 * e32 - e23 * e31
     Q = -(e23 * e32 + e13 * e31)
     U = e21**2 - e22**2  # E21 and E22 each stand twice in E, hence twice the weight
     V = -2.0 * e21 * e22
     quartic = np.array([2 * V - P, 8 * U - 2 * Q, -12 * V, -2 * Q - 8 * U, P + 2 * V])
-    roots = np.roots(quartic) if np.any(quartic != 0) else np.zeros(0)
-    u = roots.real[np.abs(roots.imag) <= 1e-8 * (1.0 + np.abs(roots))]
-    yaws = np.concatenate([2.0 * np.arctan(u), [np.pi]])
-    for _ in range(2):  # Newton on f'(yaw) = 0: the quartic's roots carry only ~1e-8 precision
-        d1 = P * np.cos(yaws) - Q * np.sin(yaws) - 2 * U * np.sin(2 * yaws) + 2 * V * np.cos(2 * yaws)
-        d2 = -P * np.sin(yaws) - Q * np.cos(yaws) - 4 * U * np.cos(2 * yaws) - 4 * V * np.sin(2 * yaws)
-        yaws = yaws - np.where(np.abs(d2) > 1e-12, d1 / np.where(np.abs(d2) > 1e-12, d2, 1.0), 0.0)
-    energy = P * np.sin(yaws) + Q * np.cos(yaws) + U * np.cos(2 * yaws) + V * np.sin(2 * yaws)
-    return yaws, energy
+    yaws = [math.pi]
+    if np.any(quartic != 0.0):
+        for root in np.roots(quartic.astype(np.complex128)):
+            if abs(root.imag) <= 1e-8 * (1.0 + abs(root)):
+                yaws.append(2.0 * math.atan(root.real))
+    out = np.array(yaws)
+    energy = np.empty(len(yaws))
+    for k in range(len(yaws)):
+        y = out[k]
+        for _ in range(2):  # Newton on f'(yaw) = 0: the quartic's roots carry only ~1e-8 precision
+            d1 = P * math.cos(y) - Q * math.sin(y) - 2 * U * math.sin(2 * y) + 2 * V * math.cos(2 * y)
+            d2 = -P * math.sin(y) - Q * math.cos(y) - 4 * U * math.cos(2 * y) - 4 * V * math.sin(2 * y)
+            if abs(d2) > 1e-12:
+                y -= d1 / d2
+        out[k] = y
+        energy[k] = P * math.sin(y) + Q * math.cos(y) + U * math.cos(2 * y) + V * math.sin(2 * y)
+    return out, energy
 
 
 def nearest_upright(e: np.ndarray) -> tuple[float, np.ndarray]:
     """Yaw and t of the upright essential matrix nearest to e (6,) in Frobenius norm."""
+    e = np.ascontiguousarray(e, dtype=np.float64)
     yaws, energy = _yaw_candidates(e)
     yaw = float(yaws[int(np.argmax(energy))])
     return yaw, _translation_for_yaw(e, yaw)
 
 
-def _count_in_front(R: np.ndarray, t: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> int:
-    """Points whose midpoint triangulation lies in front of both views."""
-    a = f1 @ R.T
-    aa = np.sum(a * a, axis=1)
-    bb = np.sum(f2 * f2, axis=1)
-    ab = np.sum(a * f2, axis=1)
-    at = a @ t
-    bt = f2 @ t
-    det = aa * bb - ab * ab
-    ok = det > 1e-12
-    lam1 = (-at * bb + ab * bt) / np.where(ok, det, 1.0)
-    lam2 = (aa * bt - ab * at) / np.where(ok, det, 1.0)
-    return int(np.sum(ok & (lam1 > 0) & (lam2 > 0)))
+@kernel
+def _count_in_front(yaw: float, t: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> int:
+    """Points whose midpoint triangulation lies in front of both views (R = Rz(yaw))."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    count = 0
+    for i in range(f1.shape[0]):
+        a0, a1, a2 = c * f1[i, 0] - s * f1[i, 1], s * f1[i, 0] + c * f1[i, 1], f1[i, 2]
+        b0, b1, b2 = f2[i, 0], f2[i, 1], f2[i, 2]
+        aa = a0 * a0 + a1 * a1 + a2 * a2
+        bb = b0 * b0 + b1 * b1 + b2 * b2
+        ab = a0 * b0 + a1 * b1 + a2 * b2
+        at = a0 * t[0] + a1 * t[1] + a2 * t[2]
+        bt = b0 * t[0] + b1 * t[1] + b2 * t[2]
+        det = aa * bb - ab * ab
+        if det > 1e-12 and (-at * bb + ab * bt) / det > 0.0 and (aa * bt - ab * at) / det > 0.0:
+            count += 1
+    return count
+
+
+@kernel
+def upright_pose_kernel(e: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> tuple[float, np.ndarray]:
+    """:func:`upright_pose_from_essential` on a unit upright vector e (6,) and unit bearings (N, 3):
+    (yaw, unit t)."""
+    yaws, energy = _yaw_candidates(e)
+    top = energy.max()
+    best_count, best_energy, best_yaw, best_t = -1, -np.inf, 0.0, np.zeros(3)
+    for k in range(len(yaws)):
+        if energy[k] < top - 1e-9 * (1.0 + abs(top)):
+            continue
+        t = _translation_for_yaw(e, yaws[k])
+        t = t / math.sqrt(t[0] ** 2 + t[1] ** 2 + t[2] ** 2)
+        for sign in (1.0, -1.0):
+            count = _count_in_front(yaws[k], sign * t, f1, f2)
+            if count > best_count or (count == best_count and energy[k] > best_energy):
+                best_count, best_energy, best_yaw, best_t = count, energy[k], yaws[k], sign * t
+    return best_yaw, best_t
 
 
 def upright_pose_from_essential(E: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -86,19 +123,5 @@ def upright_pose_from_essential(E: np.ndarray, f1: np.ndarray, f2: np.ndarray) -
     e = essential_to_vector(E)
     if np.linalg.norm(e) < 1e-300:
         raise ValueError("E: expected a non-zero essential matrix")
-    e = e / np.linalg.norm(e)
-    yaws, energy = _yaw_candidates(e)
-    keep = energy >= energy.max() - 1e-9 * (1.0 + abs(energy.max()))
-    best: tuple[int, float, np.ndarray, np.ndarray] | None = None
-    for yaw, en in zip(yaws[keep], energy[keep]):
-        t = _translation_for_yaw(e, float(yaw))
-        t = t / np.linalg.norm(t)
-        R = rot_z(float(yaw))
-        for sign in (1.0, -1.0):
-            score = (_count_in_front(R, sign * t, a, b), float(en))
-            if best is None or score > best[:2]:
-                best = (score[0], score[1], R, sign * t)
-    assert best is not None
-    return best[2], best[3]
-
-
+    yaw, t = upright_pose_kernel(e / np.linalg.norm(e), a, b)
+    return rot_z(yaw), t
