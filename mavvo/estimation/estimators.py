@@ -15,23 +15,24 @@ one noise sigma for model selection), and a refinement on inliers.
 
 from __future__ import annotations
 
+import cmath
 import math
 from typing import Literal
 
 import numpy as np
 
 from mavvo.geometry import (
-    alpha_beta_gamma,
     essential_to_vector,
     ground_homography_from_similarity,
-    solve_ground_2pt_batch,
     solve_upright_4pt,
     solve_upright_linear5pt,
 )
-from mavvo.geometry.frames import rot_z, skew
+from mavvo.geometry.frames import rot_z
+from mavvo.geometry.ground_2pt import solve_ground_2pt_samples
 from mavvo.geometry.upright_3pt import solve_samples as solve_upright_3pt_samples
 from mavvo.geometry.upright_pose import upright_pose_kernel
-from mavvo.geometry.refine import fit_ground_similarity, fit_rotation, refine_upright
+from mavvo.jit import kernel
+from mavvo.geometry.refine import fit_ground_similarity, fit_rotation, refine_upright, upright_vector
 from mavvo.geometry.residuals import ground_sq, rotation_sq, sampson_sq_upright
 
 __all__ = ["UprightEssential", "GroundHomography", "PureRotation", "upright_e", "decompose_upright", "yaw_of"]
@@ -48,7 +49,7 @@ def yaw_of(R: np.ndarray) -> float:
 
 def upright_e(yaw: float, t: np.ndarray) -> np.ndarray:
     """e vector (6,) of ``[t]x Rz(yaw)``."""
-    return essential_to_vector(skew(t) @ rot_z(yaw))
+    return upright_vector(float(yaw), np.asarray(t, dtype=np.float64))
 
 
 def decompose_upright(e: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> tuple[float, np.ndarray] | None:
@@ -60,6 +61,7 @@ def decompose_upright(e: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> tuple[fl
     return float(yaw), t
 
 
+@kernel
 def _near_yaw(e: np.ndarray, prior: float, tol: float) -> np.ndarray:
     """(M,) bool: the yaw of each upright hypothesis e (M, 6) is within ``tol`` of ``prior``.
 
@@ -67,13 +69,18 @@ def _near_yaw(e: np.ndarray, prior: float, tol: float) -> np.ndarray:
     whenever t has a horizontal part; for t along z only ``alpha^2 = -t_z^2 exp(2i yaw)`` is left,
     which fixes it up to pi.
     """
-    alpha, beta, gamma = alpha_beta_gamma(e)
-    # A solver's E has the upright form exactly, so even a small horizontal part fixes the yaw.
-    horizontal = np.abs(beta) ** 2 > 1e-9 * (np.abs(alpha) ** 2 + np.abs(beta) ** 2)
-    ref = np.exp(1j * prior)
-    d1 = np.abs(np.angle(-np.conj(gamma) * beta * np.conj(ref)))
-    d2 = 0.5 * np.abs(np.angle(-(alpha**2) * np.conj(ref**2)))
-    return np.where(horizontal, d1, d2) <= tol
+    out = np.empty(e.shape[0], dtype=np.bool_)
+    ref = complex(math.cos(prior), math.sin(prior))
+    for m in range(e.shape[0]):
+        alpha, beta, gamma = complex(e[m, 2], e[m, 1]), complex(e[m, 0], e[m, 3]), complex(e[m, 4], e[m, 5])
+        a2, b2 = abs(alpha) ** 2, abs(beta) ** 2
+        # A solver's E has the upright form exactly, so even a small horizontal part fixes the yaw.
+        if b2 > 1e-9 * (a2 + b2):
+            d = abs(cmath.phase(-gamma.conjugate() * beta * ref.conjugate()))
+        else:
+            d = 0.5 * abs(cmath.phase(-(alpha * alpha) * (ref * ref).conjugate()))
+        out[m] = d <= tol
+    return out
 
 
 class UprightEssential:
@@ -104,7 +111,7 @@ class UprightEssential:
             out = [essential_to_vector(solve(f1[row], f2[row])) for row in samples]
             e = np.concatenate(out) if out else np.zeros((0, 6))
         if self.yaw_prior_rad is not None and len(e):
-            e = e[_near_yaw(e, self.yaw_prior_rad, self.yaw_tolerance_rad)]
+            e = e[_near_yaw(e, float(self.yaw_prior_rad), float(self.yaw_tolerance_rad))]
         return e
 
     def residuals_sq(self, models: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
@@ -139,7 +146,7 @@ class GroundHomography:
         self.num_data = len(f1)
 
     def generate(self, samples: np.ndarray) -> np.ndarray:
-        H, valid = solve_ground_2pt_batch(self.f1[samples], self.f2[samples])
+        H, valid = solve_ground_2pt_samples(self.f1[samples], self.f2[samples])
         return H[valid]
 
     def residuals_sq(self, models: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:

@@ -39,8 +39,9 @@ from mavvo.estimation.general5pt import estimate_general_relpose, sampson_sq_gen
 from mavvo.estimation.ransac import RansacOptions, RansacResult, RansacStats, lo_ransac, required_iterations
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import as_rotation, rot_z
-from mavvo.geometry.refine import fit_rotation, refine_upright, tilt_rotation
-from mavvo.geometry.residuals import ground_sq, rotation_sq, sampson_sq_upright
+from mavvo.geometry.refine import fit_rotation, gauss_newton_upright, refine_upright, tilt_matrix, tilt_rotation, upright_vector
+from mavvo.geometry.residuals import ground_sq, rotation_sq, sampson_sq_kernel, sampson_sq_upright
+from mavvo.jit import kernel
 from mavvo.geometry import as_bearing_pair, ground_pose_from_homography
 
 __all__ = [
@@ -453,32 +454,56 @@ def _refine_with_attitude(
     prior, from the sampling's wide inlier set down to the tight one: each round refines on the current
     inliers (Cauchy loss at the round's threshold), re-selects them with the corrected bearings and
     halves the threshold, until it is ``max_err_rad`` and the inliers stop changing. Re-selecting with
-    the refined model is what removes the bias a first, outlier-tainted inlier set leaves."""
+    the refined model is what removes the bias a first, outlier-tainted inlier set leaves. Compiled."""
+    sigmas = np.array([max(s, 1e-6) for s in attitude_sigma_rad])  # a view given as exact: held by a stiff prior
+    x = np.array([float(yaw), *(np.asarray(t, dtype=float) / np.linalg.norm(t)), 0.0, 0.0, 0.0, 0.0])
+    _attitude_rounds(x, f1, f2, sigmas, sample_thr, max_err_rad, steps, _TILT_ROUNDS)
+    return float(np.arctan2(np.sin(x[0]), np.cos(x[0]))), x[1:4].copy(), x[4:6].copy(), x[6:8].copy()
+
+
+@kernel
+def _robust_sigma_kernel(err_sq_inliers: np.ndarray, max_err_rad: float) -> float:
+    """:func:`_robust_sigma`, compiled."""
+    if err_sq_inliers.size == 0:
+        return max_err_rad
+    return max(1.4826 * np.median(np.sqrt(err_sq_inliers)), 0.01 * max_err_rad)
+
+
+@kernel
+def _corrected_err_sq(x: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
+    """Sampson errors (N,) of the state x = (yaw, t, d1, d2) on the tilt-corrected bearings."""
+    g1 = f1 @ tilt_matrix(x[4], x[5]).T
+    g2 = f2 @ tilt_matrix(x[6], x[7]).T
+    return sampson_sq_kernel(upright_vector(x[0], x[1:4]).reshape(1, 6), g1, g2)[0]
+
+
+@kernel
+def _attitude_rounds(x: np.ndarray, f1: np.ndarray, f2: np.ndarray, sigmas: np.ndarray, sample_thr: float, max_err_rad: float, steps: int, rounds: int) -> None:
+    """The rounds of :func:`_refine_with_attitude` on x = (yaw, unit t, d1, d2), updated in place; x
+    is put back to its start when the corrections lost most of the start's tight inliers."""
+    start = x.copy()
+    max_sq = max_err_rad * max_err_rad
+    start_inliers = np.count_nonzero(_corrected_err_sq(x, f1, f2) < max_sq)
+    prior_w = np.array([1.0 / sigmas[0], 1.0 / sigmas[0], 1.0 / sigmas[1], 1.0 / sigmas[1]])
     thr = sample_thr
-    d1 = d2 = np.zeros(2)
-    previous: np.ndarray | None = None
-    start = (yaw, t, d1, d2)
-    start_inliers = int(np.count_nonzero(sampson_sq_upright(upright_e(yaw, t)[None], f1, f2)[0] < max_err_rad**2))
-    sigmas = tuple(max(s, 1e-6) for s in attitude_sigma_rad)  # a view given as exact: held by a stiff prior
-    for _ in range(_TILT_ROUNDS):
-        err = sampson_sq_upright(upright_e(yaw, t)[None], f1 @ tilt_rotation(d1).T, f2 @ tilt_rotation(d2).T)[0]
-        inl = err < thr**2
+    previous = np.zeros(f1.shape[0], dtype=np.bool_)
+    have_previous = False
+    for _ in range(rounds):
+        err = _corrected_err_sq(x, f1, f2)
+        inl = err < thr * thr
         if np.count_nonzero(inl) < 5 or steps == 0:
             break
-        if thr == max_err_rad and previous is not None and np.array_equal(inl, previous):
+        if thr == max_err_rad and have_previous and np.all(inl == previous):
             break
-        noise = _robust_sigma(err[inl], max_err_rad)
+        noise = _robust_sigma_kernel(err[inl], max_err_rad)
         # A few steps per round from the warm start: the rounds go on until the inliers settle.
-        fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=min(steps, 3), tilt_sigma_rad=sigmas, noise_sigma_rad=noise,  # type: ignore[arg-type]
-                             tilt1_rad=d1, tilt2_rad=d2, robust_scale_rad=thr)
-        yaw, t, d1, d2 = fit.yaw_rad, fit.t_2_1, fit.tilt1_rad, fit.tilt2_rad
-        previous, thr = inl, max(max_err_rad, 0.5 * thr)
-    final = sampson_sq_upright(upright_e(yaw, t)[None], f1 @ tilt_rotation(d1).T, f2 @ tilt_rotation(d2).T)[0]
-    if np.count_nonzero(final < max_err_rad**2) < 0.5 * start_inliers:
+        gauss_newton_upright(x, f1[inl], f2[inl], min(steps, 3), True, prior_w, 1.0 / noise, thr)
+        previous, have_previous = inl, True
+        thr = max(max_err_rad, 0.5 * thr)
+    if np.count_nonzero(_corrected_err_sq(x, f1, f2) < max_sq) < 0.5 * start_inliers:
         # The corrections lost most of what the hypothesis explained (a start among outliers): keep it. A
         # few fewer tight inliers is normal: the hypothesis may fit a subset closely and the rest badly.
-        return start
-    return yaw, t, d1, d2
+        x[:] = start
 
 
 def _general_if_attitude_is_worse(

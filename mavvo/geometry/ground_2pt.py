@@ -5,9 +5,12 @@ Conventions: see :mod:`mavvo.geometry.essential`.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from mavvo.geometry.frames import rot_z
+from mavvo.jit import kernel
 
 # --------------------------------------------------------------------------- ground plane, 2-point
 #
@@ -23,16 +26,27 @@ _MIN_GROUND_Z = 1e-3
 
 def ground_homography_from_similarity(m: np.ndarray, tau: np.ndarray) -> np.ndarray:
     """(..., 3, 3) ground homographies ``Rz(yaw) + (t/d1) e_z^T`` from complex similarity parameters (...)."""
-    w = 1.0 / np.abs(m)
+    m, tau = np.broadcast_arrays(np.asarray(m, dtype=np.complex128), np.asarray(tau, dtype=np.complex128))
+    H = _homographies(np.ascontiguousarray(m).ravel(), np.ascontiguousarray(tau).ravel())
+    return H.reshape(m.shape + (3, 3))
+
+
+@kernel
+def homography_from_similarity(m: complex, tau: complex, H: np.ndarray) -> None:
+    """H (3, 3) written for one similarity (m, tau)."""
+    w = 1.0 / abs(m)
     rot = m * w  # exp(i yaw)
     tt = tau * w
-    H = np.zeros(np.shape(m) + (3, 3))
-    H[..., 0, 0] = H[..., 1, 1] = rot.real
-    H[..., 0, 1] = -rot.imag
-    H[..., 1, 0] = rot.imag
-    H[..., 0, 2] = tt.real
-    H[..., 1, 2] = tt.imag
-    H[..., 2, 2] = w
+    H[0, 0], H[0, 1], H[0, 2] = rot.real, -rot.imag, tt.real
+    H[1, 0], H[1, 1], H[1, 2] = rot.imag, rot.real, tt.imag
+    H[2, 0], H[2, 1], H[2, 2] = 0.0, 0.0, w
+
+
+@kernel
+def _homographies(m: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    H = np.empty((m.shape[0], 3, 3))
+    for k in range(m.shape[0]):
+        homography_from_similarity(m[k], tau[k], H[k])
     return H
 
 
@@ -56,18 +70,35 @@ def solve_ground_2pt_batch(F1: np.ndarray, F2: np.ndarray) -> tuple[np.ndarray, 
             raise ValueError(f"{name}: bearings must be finite, got NaN or inf")
     if F1.shape != F2.shape:
         raise ValueError(f"F1 and F2: expected the same shape, got {F1.shape} and {F2.shape}")
-    n1 = np.linalg.norm(F1, axis=-1)
-    n2 = np.linalg.norm(F2, axis=-1)
-    valid = np.all((F1[..., 2] > _MIN_GROUND_Z * n1) & (F2[..., 2] > _MIN_GROUND_Z * n2), axis=1)
-    with np.errstate(all="ignore"):
-        u1 = (F1[..., 0] + 1j * F1[..., 1]) / F1[..., 2]
-        u2 = (F2[..., 0] + 1j * F2[..., 1]) / F2[..., 2]
-        du1 = u1[:, 0] - u1[:, 1]
-        m = (u2[:, 0] - u2[:, 1]) / du1
-        tau = u2[:, 0] - m * u1[:, 0]
-        valid &= (np.abs(du1) > 1e-12) & (np.abs(m) > 1e-12) & np.isfinite(m) & np.isfinite(tau)
-        H = ground_homography_from_similarity(np.where(valid, m, 1.0), np.where(valid, tau, 0.0))
-    H[~valid] = np.nan
+    return solve_ground_2pt_samples(np.ascontiguousarray(F1), np.ascontiguousarray(F2))
+
+
+@kernel
+def solve_ground_2pt_samples(F1: np.ndarray, F2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`solve_ground_2pt_batch` on finite (B, 2, 3) arrays, compiled."""
+    B = F1.shape[0]
+    H = np.full((B, 3, 3), np.nan)
+    valid = np.zeros(B, dtype=np.bool_)
+    for k in range(B):
+        ok = True
+        u = np.empty(4, dtype=np.complex128)  # u1 of both points, then u2 of both: (x + i y) / z
+        for v, F in enumerate((F1, F2)):
+            for j in range(2):
+                x, y, z = F[k, j, 0], F[k, j, 1], F[k, j, 2]
+                if not z > _MIN_GROUND_Z * math.sqrt(x * x + y * y + z * z):
+                    ok = False
+                else:
+                    u[2 * v + j] = complex(x / z, y / z)
+        if not ok:
+            continue
+        du1 = u[0] - u[1]
+        if not abs(du1) > 1e-12:
+            continue
+        m = (u[2] - u[3]) / du1
+        tau = u[2] - m * u[0]
+        if abs(m) > 1e-12 and math.isfinite(m.real) and math.isfinite(m.imag) and math.isfinite(tau.real) and math.isfinite(tau.imag):
+            homography_from_similarity(m, tau, H[k])
+            valid[k] = True
     return H, valid
 
 

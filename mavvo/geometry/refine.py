@@ -43,7 +43,7 @@ class UprightFit:
 
 def tilt_rotation(d: np.ndarray) -> np.ndarray:
     """(3,3) rotation ``exp([dx, dy, 0]x)`` (Rodrigues) for a tilt correction d (2,) in radians."""
-    return _tilt_matrix(float(d[0]), float(d[1]))
+    return tilt_matrix(float(d[0]), float(d[1]))
 
 
 def refine_upright(
@@ -92,7 +92,7 @@ def refine_upright(
         s1, s2 = (tilt_sigma_rad, tilt_sigma_rad) if np.isscalar(tilt_sigma_rad) else tilt_sigma_rad  # type: ignore[misc]
         prior_w[:] = (1.0 / s1, 1.0 / s1, 1.0 / s2, 1.0 / s2)  # type: ignore[operator]
     x = np.array([float(yaw_rad), *t, *d])  # (yaw, t, d1, d2): the kernel's state, updated in place
-    steps = _gauss_newton_upright(
+    steps = gauss_newton_upright(
         x, np.ascontiguousarray(f1, dtype=np.float64), np.ascontiguousarray(f2, dtype=np.float64), int(iterations), with_tilt, prior_w,
         1.0 / noise_sigma_rad if with_tilt else 1.0, robust_scale_rad or 0.0,  # type: ignore[operator]
     )
@@ -100,7 +100,14 @@ def refine_upright(
 
 
 @kernel
-def _tilt_matrix(dx: float, dy: float) -> np.ndarray:
+def upright_vector(yaw: float, t: np.ndarray) -> np.ndarray:
+    """e (6,) = (E13, E21, E22, E23, E31, E32) of ``E = [t]x Rz(yaw)``."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([t[1], t[2] * c, -t[2] * s, -t[0], -t[1] * c + t[0] * s, t[1] * s + t[0] * c])
+
+
+@kernel
+def tilt_matrix(dx: float, dy: float) -> np.ndarray:
     """(3, 3) ``exp([dx, dy, 0]x)`` (Rodrigues), as :func:`tilt_rotation`."""
     th = math.sqrt(dx * dx + dy * dy)
     K = np.array([[0.0, 0.0, dy], [0.0, 0.0, -dx], [-dy, dx, 0.0]])
@@ -140,7 +147,7 @@ def _solve_spd(A: np.ndarray, b: np.ndarray) -> bool:
 
 
 @kernel
-def _gauss_newton_upright(
+def gauss_newton_upright(
     x: np.ndarray, f1: np.ndarray, f2: np.ndarray, iterations: int, with_tilt: bool, prior_w: np.ndarray, noise_w: float, robust_c: float
 ) -> int:
     """The steps of :func:`refine_upright` on x = (yaw, t (3), d1 (2), d2 (2)), updated in place; the
@@ -151,8 +158,8 @@ def _gauss_newton_upright(
     for it in range(1, iterations + 1):
         steps = it
         yaw, t0, t1, t2 = x[0], x[1], x[2], x[3]
-        T1 = _tilt_matrix(x[4], x[5])
-        T2 = _tilt_matrix(x[6], x[7])
+        T1 = tilt_matrix(x[4], x[5])
+        T2 = tilt_matrix(x[6], x[7])
         cy, sy = math.cos(yaw), math.sin(yaw)
         # E = [t]x Rz: rows of Rz are (cy, -sy, 0), (sy, cy, 0), (0, 0, 1)
         E = np.array([[-t2 * sy, -t2 * cy, t1], [t2 * cy, -t2 * sy, -t0], [-t1 * cy + t0 * sy, t1 * sy + t0 * cy, 0.0]])
@@ -251,37 +258,67 @@ def fit_ground_similarity(f1: np.ndarray, f2: np.ndarray) -> tuple[complex, comp
     Fits ``u2 = m u1 + tau`` (complex, ``u = (x + i y) / z``) with weights ``z2^2`` so that the
     residuals approximate angles. Returns (m, tau) for
     :func:`mavvo.geometry.ground_2pt.ground_homography_from_similarity`, or None when fewer than two distinct
-    points lie below the horizon.
+    points lie below the horizon. Compiled.
     """
-    ok = (f1[:, 2] > 1e-3) & (f2[:, 2] > 1e-3)
-    if np.count_nonzero(ok) < 2:
-        return None
-    a, b = f1[ok], f2[ok]
-    u1 = (a[:, 0] + 1j * a[:, 1]) / a[:, 2]
-    u2 = (b[:, 0] + 1j * b[:, 1]) / b[:, 2]
-    w = b[:, 2] ** 2
-    w = w / w.sum()
-    m1, m2 = w @ u1, w @ u2
-    d1, d2 = u1 - m1, u2 - m2
-    var = float(w @ (d1.real**2 + d1.imag**2))
+    ok, m, tau = _ground_similarity(np.ascontiguousarray(f1, dtype=np.float64), np.ascontiguousarray(f2, dtype=np.float64))
+    return (complex(m), complex(tau)) if ok else None
+
+
+@kernel
+def _ground_similarity(f1: np.ndarray, f2: np.ndarray) -> tuple[bool, complex, complex]:
+    sw = 0.0
+    m1 = m2 = 0j
+    count = 0
+    for i in range(f1.shape[0]):
+        if f1[i, 2] > 1e-3 and f2[i, 2] > 1e-3:
+            w = f2[i, 2] ** 2
+            sw += w
+            m1 += w * complex(f1[i, 0] / f1[i, 2], f1[i, 1] / f1[i, 2])
+            m2 += w * complex(f2[i, 0] / f2[i, 2], f2[i, 1] / f2[i, 2])
+            count += 1
+    if count < 2:
+        return False, 0j, 0j
+    m1, m2 = m1 / sw, m2 / sw
+    var = 0.0
+    cov = 0j
+    for i in range(f1.shape[0]):
+        if f1[i, 2] > 1e-3 and f2[i, 2] > 1e-3:
+            w = f2[i, 2] ** 2 / sw
+            d1 = complex(f1[i, 0] / f1[i, 2], f1[i, 1] / f1[i, 2]) - m1
+            d2 = complex(f2[i, 0] / f2[i, 2], f2[i, 1] / f2[i, 2]) - m2
+            var += w * (d1.real**2 + d1.imag**2)
+            cov += w * d1.conjugate() * d2
     if var < 1e-24:
-        return None
-    m = complex(w @ (np.conj(d1) * d2)) / var
+        return False, 0j, 0j
+    m = cov / var
     if abs(m) < 1e-12:
-        return None
-    return m, complex(m2 - m * m1)
+        return False, 0j, 0j
+    return True, m, m2 - m * m1
 
 
 def fit_rotation(f1: np.ndarray, f2: np.ndarray) -> np.ndarray | None:
     """Least-squares rotation R (3,3) with ``f2 = R f1`` (Kabsch); None for fewer than 2 distinct rays.
 
     The full rotation rather than a yaw: when the roll/pitch of the two views carry errors, a camera
-    that only turns still shows a small tilt between the level frames.
+    that only turns still shows a small tilt between the level frames. Compiled.
     """
-    if len(f1) < 2:
-        return None
-    U, sv, Vt = np.linalg.svd(f2.T @ f1)
-    if sv[1] < 1e-9 * max(sv[0], 1e-300):
-        return None
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = _kabsch(np.ascontiguousarray(f1, dtype=np.float64), np.ascontiguousarray(f2, dtype=np.float64))
+    return None if np.isnan(R[0, 0]) else R
+
+
+@kernel
+def _kabsch(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
+    """:func:`fit_rotation`; NaN where it gives None."""
+    if f1.shape[0] < 2:
+        return np.full((3, 3), np.nan)
+    M = np.zeros((3, 3))  # f2^T f1
+    for i in range(f1.shape[0]):
+        for r in range(3):
+            for c in range(3):
+                M[r, c] += f2[i, r] * f1[i, c]
+    U, sv, Vt = np.linalg.svd(M)
+    if not sv[1] >= 1e-9 * max(sv[0], 1e-300):
+        return np.full((3, 3), np.nan)
+    D = np.eye(3)
+    D[2, 2] = 1.0 if np.linalg.det(U @ Vt) >= 0.0 else -1.0
     return U @ D @ Vt

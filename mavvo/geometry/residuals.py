@@ -25,12 +25,12 @@ def sampson_sq_upright(e: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndar
     the gradients E f1, E^T f2; on the sphere the gradient of r is projected onto the tangent planes of
     both bearings: ``err^2 = r^2 / (|E f1|^2 + |E^T f2|^2 - 2 r^2)``. Compiled (the scoring's kernel).
     """
-    return _sampson_sq_upright(np.ascontiguousarray(e, dtype=np.float64).reshape(-1, 6), np.ascontiguousarray(f1, dtype=np.float64),
+    return sampson_sq_kernel(np.ascontiguousarray(e, dtype=np.float64).reshape(-1, 6), np.ascontiguousarray(f1, dtype=np.float64),
                                np.ascontiguousarray(f2, dtype=np.float64))
 
 
 @kernel
-def _sampson_sq_upright(e: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
+def sampson_sq_kernel(e: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
     M, N = e.shape[0], f1.shape[0]
     out = np.empty((M, N))
     for m in range(M):
