@@ -42,8 +42,8 @@ def test_make_install_from_a_copied_checkout_runs(tmp_path):
     shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(".git", ".venv", "__pycache__", "*.egg-info", "mavvo-sim-out", ".hypothesis"))
     (src / ".venv" / "bin").mkdir(parents=True)
     (src / ".venv" / "bin" / "pip").write_text("#!/somewhere/else/.venv/bin/python\n")
-    prefix, etc, units = tmp_path / "opt" / "mavvo", tmp_path / "etc" / "mavvo", tmp_path / "units"
-    out = subprocess.run(["make", "install", f"PREFIX={prefix}", f"ETCDIR={etc}", f"UNITDIR={units}", "SYSTEM=0"],
+    prefix, etc, units, cache = tmp_path / "opt" / "mavvo", tmp_path / "etc" / "mavvo", tmp_path / "units", tmp_path / "cache"
+    out = subprocess.run(["make", "install", f"PREFIX={prefix}", f"ETCDIR={etc}", f"UNITDIR={units}", f"CACHEDIR={cache}", "SYSTEM=0"],
                          cwd=src, capture_output=True, text=True, timeout=1800)
     assert out.returncode == 0, out.stdout + out.stderr
     assert "installed: edit" in out.stdout and ": ok" in out.stdout
@@ -52,4 +52,5 @@ def test_make_install_from_a_copied_checkout_runs(tmp_path):
     unit = (units / "mavvo.service").read_text()
     assert f"ExecStart={prefix}/.venv/bin/mavvo run --config {etc}/mavvo.yaml" in unit
     assert "=/opt/mavvo" not in unit and " /opt/mavvo" not in unit  # every path of the unit moved to PREFIX
+    assert f"NUMBA_CACHE_DIR={cache}/numba" in unit and any((cache / "numba").rglob("*.nbi"))  # the kernels, compiled
     assert (etc / "mavvo.yaml").read_text() == (ROOT / "config" / "default.yaml").read_text()

@@ -34,6 +34,8 @@ def test_unit_hardening_and_supervision(unit):
     assert s["ProtectSystem"] == "strict" and s["LogsDirectory"] == "mavvo" and s["StateDirectory"] == "mavvo"
     assert s["UMask"] == "0077" and s["CapabilityBoundingSet"] == "" and s["LockPersonality"] == "yes"
     assert s["RestartPreventExitStatus"] == "2"  # a configuration error does not fix itself
+    # The compiled kernels' cache lives where the service may write: the cache directory systemd makes for it.
+    assert s["CacheDirectory"] == "mavvo" and "NUMBA_CACHE_DIR=/var/cache/mavvo/numba" in s["Environment"]
     assert unit["Install"]["WantedBy"] == "multi-user.target"
 
 

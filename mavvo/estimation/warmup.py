@@ -1,0 +1,55 @@
+"""Compile every kernel of the relative pose once, so the cache holds them before the service starts.
+
+    python -m mavvo.estimation.warmup
+
+``make setup`` runs it for the checkout and ``make install`` for the installed service's cache
+(``NUMBA_CACHE_DIR``, which the systemd unit sets): a cold start compiles for several seconds, a warm one
+loads the kernels in a fraction of a second (docs/benchmarks.md, "Start-up").
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+
+from mavvo.estimation.relpose import RelposeOptions, estimate_upright_relpose
+from mavvo.geometry import solve_upright_3pt
+
+__all__ = ["warm_kernels"]
+
+
+def _scene(rng: np.random.Generator, n: int, ground: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Level-frame bearings (N, 3) of points seen from two views 1 m apart, 0.1 rad of yaw."""
+    xy = rng.uniform(-6.0, 6.0, (n, 2))
+    z = np.full(n, 10.0) if ground else rng.uniform(6.0, 14.0, n)
+    p1 = np.column_stack([xy, z])
+    c, s = np.cos(0.1), np.sin(0.1)
+    p2 = p1 @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T + np.array([1.0, 0.2, 0.1])
+    return p1 / np.linalg.norm(p1, axis=1)[:, None], p2 / np.linalg.norm(p2, axis=1)[:, None]
+
+
+def warm_kernels() -> float:
+    """Run the relative pose on small synthetic scenes through every path (exact and uncertain
+    attitude, a 3-D scene, flat ground, a pure rotation, the yaw prior): each kernel is compiled, or
+    loaded from the cache. Returns the CPU seconds it took."""
+    t0 = time.process_time()
+    rng = np.random.default_rng(0)
+    for ground in (False, True):
+        f1, f2 = _scene(rng, 60, ground)
+        for sigma in (None, (0.003, 0.003)):
+            estimate_upright_relpose(f1, f2, max_err_rad=0.002, attitude_sigma_rad=sigma, yaw_prior_rad=0.1)
+        estimate_upright_relpose(f1, f1, max_err_rad=0.002, options=RelposeOptions())  # no baseline
+    solve_upright_3pt(f1[:3], f2[:3])
+    return time.process_time() - t0
+
+
+def main() -> int:
+    seconds = warm_kernels()
+    print(f"mavvo kernels ready ({seconds:.1f} s)", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
