@@ -1,4 +1,11 @@
-"""Helpers shared by the benchmarks: timing, the machine description, markdown sections."""
+"""Helpers shared by the benchmarks: timing, the machine description, markdown sections.
+
+Times are CPU time of the calling thread (``time.thread_time``), not wall-clock time: on a shared,
+loaded machine the wall clock counts other processes' turns too (a loaded run inflated mavvo 8x and
+short PoseLib calls 1.2x), the thread's CPU time does not. Run single-threaded (OpenCV, BLAS) so all
+the work is the calling thread's. Peers are timed interleaved with mavvo in one process, repeated,
+and reported as medians and ratios, with the load average beside them.
+"""
 
 from __future__ import annotations
 
@@ -17,33 +24,49 @@ import cv2
 import numpy as np
 
 
+# A Raspberry Pi 4 core against one core of the machines the benchmarks were run on: its figures are
+# estimated as this many times these.
+PI4_FACTOR = 3.5
+
+
 def per_call_us(fn: Callable[[], object], min_time_s: float = 0.2, repeats: int = 5) -> float:
-    """Median over ``repeats`` of the mean time per call, each repeat lasting about ``min_time_s``."""
-    fn()
-    n = 1
-    while True:
-        t0 = time.perf_counter()
-        for _ in range(n):
-            fn()
-        if time.perf_counter() - t0 > min_time_s / 5:
-            break
-        n *= 2
-    samples = []
+    """Median over ``repeats`` of the mean CPU time per call (µs), each repeat about ``min_time_s``."""
+    return interleaved_us({"fn": fn}, min_time_s, repeats)["fn"]
+
+
+def interleaved_us(fns: dict[str, Callable[[], object]], min_time_s: float = 0.2, repeats: int = 7) -> dict[str, float]:
+    """Median CPU time per call (µs) of each function, the functions timed in turn within every repeat
+    (so a change of load hits all of them alike), each turn about ``min_time_s / len(fns)``."""
+    counts = {}
+    for name, fn in fns.items():
+        fn()
+        n = 1
+        while True:
+            t0 = time.thread_time()
+            for _ in range(n):
+                fn()
+            if time.thread_time() - t0 > min_time_s / (5 * len(fns)):
+                break
+            n *= 2
+        counts[name] = n
+    samples: dict[str, list[float]] = {name: [] for name in fns}
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        for _ in range(n):
-            fn()
-        samples.append((time.perf_counter() - t0) / n * 1e6)
-    return statistics.median(samples)
+        for name, fn in fns.items():
+            n = counts[name]
+            t0 = time.thread_time()
+            for _ in range(n):
+                fn()
+            samples[name].append((time.thread_time() - t0) / n * 1e6)
+    return {name: statistics.median(v) for name, v in samples.items()}
 
 
-def raise_malloc_thresholds(nbytes: int = 4 << 20) -> None:
-    """Allocate and free one array of ``nbytes``. glibc's malloc then serves arrays up to that size
-    from its heap and keeps twice that much freed memory before returning it to the kernel (its
-    dynamic mmap and trim thresholds): the state of any process that has once freed such an array.
-    Not undoable; before it, a process whose arrays stay small gets freed memory returned at once and
-    faults it in again on the next call."""
-    np.ones(nbytes // 8).sum()
+def load_average() -> str:
+    """The 1, 5 and 15 minute load averages, as the benchmarks report them."""
+    try:
+        one, five, fifteen = os.getloadavg()
+    except OSError:
+        return "load average unknown"
+    return f"load average {one:.2f} / {five:.2f} / {fifteen:.2f} (1 / 5 / 15 min) on {os.cpu_count()} cores"
 
 
 def minor_page_faults() -> int:

@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import math
-import os
 import statistics
 import sys
 import time
@@ -41,7 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import cv2  # noqa: E402
 
-from benchmarks.common import machine, publish  # noqa: E402
+from benchmarks.common import load_average, machine, publish  # noqa: E402
 from mavvo.estimation.relpose import RelposeOptions, estimate_relpose_known_gravity  # noqa: E402
 from mavvo.geometry.camera_model import CameraModel  # noqa: E402
 from mavvo.geometry.frames import R_lvl_cam, angle_between_rad, rotation_angle_rad  # noqa: E402
@@ -205,7 +204,7 @@ def run(quick: bool, plots: Path | None) -> str:
         BEGIN,
         "## Relative pose on flight-like pairs (`benchmarks/relpose_flight.py`)",
         "",
-        f"Measured {dt.date.today().isoformat()} on {machine(poselib)}, load average {os.getloadavg()[0]:.2f} at the end; "
+        f"Measured {dt.date.today().isoformat()} on {machine(poselib)}; {load_average()} at the end; "
         "pairs 0.5 s apart from the simulated camera, tracked by mavvo's frontend; per-thread CPU time per call, medians; "
         "regenerate with `make bench`. "
         + "; ".join(f"{k}: {n} pairs, median {m} tracks" for k, (n, m) in n_pairs.items()) + ".",

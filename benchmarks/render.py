@@ -19,7 +19,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import machine, per_call_us, publish  # noqa: E402
+from benchmarks.common import load_average, machine, per_call_us, publish  # noqa: E402
 from mavvo.geometry.camera_model import CameraModel  # noqa: E402
 from mavvo.geometry.frames import R_BODY_CAM_FORWARD, R_BODY_CAM_NADIR, R_from_euler321, rot_y  # noqa: E402
 from sim.world.render import Renderer, apply_effects  # noqa: E402
@@ -61,8 +61,8 @@ def main(argv: list[str] | None = None) -> int:
             BEGIN,
             "## Simulator rendering",
             "",
-            f"Measured {dt.date.today().isoformat()} on {machine(None).replace(', PoseLib not installed', '')}; "
-            f"`python benchmarks/render.py`. One `cv2.warpPerspective` of a 1024x1024 tile into 640x480 "
+            f"Measured {dt.date.today().isoformat()} on {machine(None).replace(', PoseLib not installed', '')}; {load_average()}; "
+            f"`python benchmarks/render.py`; CPU time of the thread, medians. One `cv2.warpPerspective` of a 1024x1024 tile into 640x480 "
             f"(the reference) took {reference_us / 1000:.2f} ms in this run.",
             "",
             *rows,

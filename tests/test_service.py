@@ -243,7 +243,9 @@ def test_sigterm_during_work_stops_cleanly_with_systemd_notifications(tmp_path):
         states = []
         while "WATCHDOG=1" not in states:
             states.append(sock.recv(100).decode())
-        assert states[0] == "READY=1"
+        # Status lines may come first (loading the compiled kernels); READY=1 before any watchdog ping.
+        events = [x for x in states if not x.startswith("STATUS=")]
+        assert events[0] == "READY=1" and any(x.startswith("STATUS=") and "kernels" in x for x in states[: states.index("READY=1")])
         # Wait (generously) until the daemon is at work, tracking and sending: its log says so.
         reader = threading.Thread(target=lambda: lines.extend(iter(proc.stderr.readline, "")), daemon=True)
         reader.start()

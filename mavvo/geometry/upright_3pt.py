@@ -12,6 +12,7 @@ import numpy as np
 
 from mavvo.geometry.essential import as_bearing_pair, as_sample_batch, essential_from_vector
 from mavvo.geometry.polyroots import quartic_roots
+from mavvo.geometry.small_linalg import symmetric_eigen
 from mavvo.jit import kernel
 
 # A solution violating the det/trace constraints by more than this (unit Frobenius norm) is not an
@@ -158,12 +159,17 @@ def _null_space(A: np.ndarray, basis: np.ndarray) -> bool:
     """Orthonormal basis (3, 6) of the null space of the 3x6 system A, by Householder QR of its
     transpose: e = a N0 + b N1 + N2 with the rows N0, N1, N2 written into ``basis`` (the last three
     columns of Q). False when a row is (nearly) a combination of the others (rank below 3)."""
-    M = A.T.copy()  # (6, 3)
+    M = np.empty((6, 3))  # A^T
+    largest_row = 0.0
+    for j in range(3):
+        size = 0.0
+        for r in range(6):
+            M[r, j] = A[j, r]
+            size += A[j, r] * A[j, r]
+        largest_row = max(largest_row, math.sqrt(size))
     vs = np.zeros((3, 6))
     betas = np.zeros(3)
-    smallest, largest_row = np.inf, 0.0
-    for j in range(3):
-        largest_row = max(largest_row, math.sqrt(A[j, 0] ** 2 + A[j, 1] ** 2 + A[j, 2] ** 2 + A[j, 3] ** 2 + A[j, 4] ** 2 + A[j, 5] ** 2))
+    smallest = largest_row
     for k in range(3):
         size = 0.0
         for r in range(k, 6):
@@ -184,15 +190,14 @@ def _null_space(A: np.ndarray, basis: np.ndarray) -> bool:
             for r in range(k, 6):
                 M[r, c] -= betas[k] * dot * vs[k, r]
     for c in range(3):  # Q = H0 H1 H2 applied to e3, e4, e5
-        col = np.zeros(6)
-        col[3 + c] = 1.0
+        for r in range(6):
+            basis[c, r] = 1.0 if r == 3 + c else 0.0
         for k in range(2, -1, -1):
             dot = 0.0
             for r in range(k, 6):
-                dot += vs[k, r] * col[r]
+                dot += vs[k, r] * basis[c, r]
             for r in range(k, 6):
-                col[r] -= betas[k] * dot * vs[k, r]
-        basis[c] = col
+                basis[c, r] -= betas[k] * dot * vs[k, r]
     return smallest > _MIN_ROW_RANK_RATIO * largest_row
 
 
@@ -335,19 +340,31 @@ def _use_sheet_solutions(e: np.ndarray, valid: np.ndarray, basis: np.ndarray) ->
         _unit_frobenius(sheets[s])
         if not _constraint_violation(sheets[s]) < _MAX_CONSTRAINT_RESIDUAL:
             return
-    key = np.empty(4)
+    # Free slots first, then the candidates nearest to the sheets' solutions: the two largest keys.
+    first, second, key_first, key_second = -1, -1, -1.0, -1.0
     for k in range(4):
-        norm = math.sqrt(np.sum(e[k] * e[k]))
-        closest = max(abs(np.sum(e[k] * sheets[0])), abs(np.sum(e[k] * sheets[1]))) / norm if norm > 0.0 else 0.0
+        norm = 0.0
+        dots = np.zeros(2)
+        for m in range(6):
+            norm += e[k, m] * e[k, m]
+            dots[0] += e[k, m] * sheets[0, m]
+            dots[1] += e[k, m] * sheets[1, m]
+        norm = math.sqrt(norm)
+        closest = max(abs(dots[0]), abs(dots[1])) / norm if norm > 0.0 else 0.0
         valid[k] = valid[k] and closest < 1.0 - 0.5 * _SHEET_COPY_DISTANCE**2  # ill-conditioned copies of them go
-        key[k] = closest if valid[k] else 2.0  # free slots first, then the candidates nearest to them
-    order = np.argsort(-key, kind="mergesort")
-    sign = -1.0 if np.sum(sheets[0] * sheets[1]) < 0.0 else 1.0
-    gap = sheets[0] - sign * sheets[1]
-    e[order[0]] = sheets[0]
-    e[order[1]] = sheets[1]
-    valid[order[0]] = True
-    valid[order[1]] = not np.sum(gap * gap) < _SHEET_SAME_DISTANCE**2
+        key = closest if valid[k] else 2.0
+        if key > key_first:
+            first, second, key_first, key_second = k, first, key, key_first
+        elif key > key_second:
+            second, key_second = k, key
+    same = 0.0
+    sign = 1.0 if np.sum(sheets[0] * sheets[1]) >= 0.0 else -1.0
+    for m in range(6):
+        same += (sheets[0, m] - sign * sheets[1, m]) ** 2
+        e[first, m] = sheets[0, m]
+        e[second, m] = sheets[1, m]
+    valid[first] = True
+    valid[second] = not same < _SHEET_SAME_DISTANCE**2
 
 
 @kernel
@@ -370,34 +387,48 @@ def _near_vertical_solutions(basis: np.ndarray, sheets: np.ndarray) -> bool:
     """
     # Right singular vectors of the null space's E13, E23, E31, E32 part: the last, c, points to the
     # nearest vertical point; the other two span a local chart e = (c + x v1 + y v2) @ basis.
-    V = np.empty((4, 3))
+    # (Eigenvectors of its 3x3 Gram matrix, eigenvalues the squared singular values, ascending.)
+    G = np.zeros((3, 3))
     for r in range(3):
-        V[0, r], V[1, r], V[2, r], V[3, r] = basis[r, 0], basis[r, 3], basis[r, 4], basis[r, 5]
-    _, sv, vt = np.linalg.svd(V)
-    vt = np.ascontiguousarray(vt)
-    if not (sv[2] < _NEAR_VERTICAL and sv[1] > _NEAR_VERTICAL):
+        for c in range(3):
+            for m in (0, 3, 4, 5):
+                G[r, c] += basis[r, m] * basis[c, m]
+    w, vecs = symmetric_eigen(G)
+    if not (w[0] < _NEAR_VERTICAL**2 and w[1] > _NEAR_VERTICAL**2):
         return False
-    e0, e1, e2 = vt[2] @ basis, vt[0] @ basis, vt[1] @ basis
-    a0, b0, g0 = complex(e0[2], e0[1]), complex(e0[0], e0[3]), complex(e0[4], e0[5])
-    a1, b1, g1 = complex(e1[2], e1[1]), complex(e1[0], e1[3]), complex(e1[4], e1[5])
-    a2, b2, g2 = complex(e2[2], e2[1]), complex(e2[0], e2[3]), complex(e2[4], e2[5])
+    e0, e1, e2 = np.zeros(6), np.zeros(6), np.zeros(6)
+    for m in range(6):
+        for r in range(3):
+            e0[m] += vecs[r, 0] * basis[r, m]
+            e1[m] += vecs[r, 2] * basis[r, m]
+            e2[m] += vecs[r, 1] * basis[r, m]
+    # In real arithmetic (alpha = E22 + i E21, beta = E13 + i E23, gamma = E31 + i E32 of each e_k):
+    # c_k = s u gamma_k + i beta_k with u = alpha / |alpha|.
+    E = (e0, e1, e2)
     for s in range(2):
         sheet = 1.0 if s == 0 else -1.0
         x = y = 0.0
         det = scale = 0.0
+        c = np.zeros((3, 2))  # c_0, c_1, c_2 as (real, imaginary)
         for _ in range(_SHEET_STEPS):
-            alpha = a0 + x * a1 + y * a2
-            if abs(alpha) == 0.0:
+            ar = e0[2] + x * e1[2] + y * e2[2]
+            ai = e0[1] + x * e1[1] + y * e2[1]
+            size = math.sqrt(ar * ar + ai * ai)
+            if size == 0.0:
                 return False
-            su = sheet * alpha / abs(alpha)
+            ur, ui = sheet * ar / size, sheet * ai / size
+            for k in range(3):
+                gr, gi = E[k][4], E[k][5]
+                br, bi = E[k][0], E[k][3]
+                c[k, 0] = ur * gr - ui * gi - bi  # Re(u gamma + i beta)
+                c[k, 1] = ur * gi + ui * gr + br  # Im(u gamma + i beta)
             # c1 x + c2 y + c0 = 0 in complex numbers: two real equations in x, y.
-            c0, c1, c2 = su * g0 + 1j * b0, su * g1 + 1j * b1, su * g2 + 1j * b2
-            det = c1.real * c2.imag - c2.real * c1.imag
+            det = c[1, 0] * c[2, 1] - c[2, 0] * c[1, 1]
             if det == 0.0:
                 return False
-            x = (c2.real * c0.imag - c0.real * c2.imag) / det
-            y = (c0.real * c1.imag - c1.real * c0.imag) / det
-            scale = abs(c1) ** 2 + abs(c2) ** 2
+            x = (c[2, 0] * c[0, 1] - c[0, 0] * c[2, 1]) / det
+            y = (c[0, 0] * c[1, 1] - c[1, 0] * c[0, 1]) / det
+            scale = c[1, 0] ** 2 + c[1, 1] ** 2 + c[2, 0] ** 2 + c[2, 1] ** 2
         # Isolated roots only: a pure rotation makes one sheet's equations vanish on a whole region.
         if not (abs(det) > _MIN_ISOLATION * scale and x * x + y * y < _SHEET_RADIUS**2):
             return False
@@ -416,34 +447,23 @@ def solve_upright_3pt(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
     """
     a, b = np.asarray(f1, dtype=float), np.asarray(f2, dtype=float)
     if a.shape == (3, 3) and b.shape == (3, 3):
-        E = np.empty((4, 3, 3))
-        k = _solve_one(a, b, E)
-        if k >= 0:
-            return E[:k]
+        X = np.empty((2, 1, 3, 3))
+        if _unit_rows(a, b, X):
+            e, valid = solve_samples(X[0], X[1])
+            return essential_from_vector(e[0, valid[0]])
     as_bearing_pair(f1, f2, 3, exact_rows=3)  # raises, naming what is wrong
     raise AssertionError("unreachable: the input was valid")
 
 
 @kernel
-def _solve_one(f1: np.ndarray, f2: np.ndarray, E: np.ndarray) -> int:
-    """One sample of (3, 3) bearings of any non-zero length: its valid solutions as (3, 3) matrices
-    in the first slots of E (4, 3, 3), their count; -1 for non-finite or zero-length bearings."""
-    X1, X2 = np.empty((3, 3)), np.empty((3, 3))
-    for X, f in ((X1, f1), (X2, f2)):
+def _unit_rows(f1: np.ndarray, f2: np.ndarray, X: np.ndarray) -> bool:
+    """f1, f2 (3, 3) with unit rows into X (2, 1, 3, 3); False for a non-finite or zero-length row."""
+    for v in range(2):
+        f = f1 if v == 0 else f2
         for j in range(3):
             n = math.sqrt(f[j, 0] ** 2 + f[j, 1] ** 2 + f[j, 2] ** 2)
             if not (math.isfinite(n) and n >= 1e-12):
-                return -1
+                return False
             for c in range(3):
-                X[j, c] = f[j, c] / n
-    e, valid = np.empty((4, 6)), np.empty(4, dtype=np.bool_)
-    solve_sample(X1, X2, e, valid)
-    k = 0
-    for s in range(4):
-        if valid[s]:
-            e13, e21, e22, e23, e31, e32 = e[s, 0], e[s, 1], e[s, 2], e[s, 3], e[s, 4], e[s, 5]
-            E[k, 0, 0], E[k, 0, 1], E[k, 0, 2] = e22, -e21, e13
-            E[k, 1, 0], E[k, 1, 1], E[k, 1, 2] = e21, e22, e23
-            E[k, 2, 0], E[k, 2, 1], E[k, 2, 2] = e31, e32, 0.0
-            k += 1
-    return k
+                X[v, 0, j, c] = f[j, c] / n
+    return True

@@ -35,6 +35,7 @@ from typing import Callable
 
 import numpy as np
 
+from mavvo.estimation.warmup import warm_kernels
 from mavvo.service import messages, sdnotify
 from mavvo.service.camera import FrameQueue, FrameSource, SourceFactory, open_source
 from mavvo.errors import CameraEnded, CameraLost, FrameRefused
@@ -222,6 +223,18 @@ class Daemon:
         else:
             self.request_stop()
 
+    def _warm_kernels(self) -> None:
+        """Load (or, on a cold cache, compile) the relative pose's kernels before READY=1, so the first
+        frame is not held up by them and the watchdog is not asked to wait through a compilation."""
+        sdnotify.notify("STATUS=loading the compiled kernels")
+        t0 = self._wall.now_s()
+        warm_kernels()
+        took_s = self._wall.now_s() - t0
+        if took_s > 5.0:
+            log.warning("compiled the kernels in %.0f s (a cold cache: the first start after an install or update; NUMBA_CACHE_DIR keeps them)", took_s)
+        else:
+            log.info("kernels loaded in %.1f s", took_s)
+
     def run(self) -> DaemonSummary:
         """Run until stopped (signal, :meth:`request_stop`), until a finite source ends and its frames
         are processed, or until the service cannot go on (a thread died, the camera is lost: the
@@ -237,6 +250,7 @@ class Daemon:
             threading.Thread(target=self._guarded, args=("worker", self._worker_loop), name="mavvo-worker", daemon=True),
         ]
         try:
+            self._warm_kernels()
             for t in threads:
                 t.start()
             m = self.config.mounting

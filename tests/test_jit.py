@@ -1,0 +1,82 @@
+"""The compiled kernels: the same source runs as Python (NUMBA_DISABLE_JIT=1) with the same results,
+and a warm cache is used as it is (nothing compiled again), a cold one is filled."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# One estimate on each path of the relative pose, printed as JSON: run compiled and as Python.
+_SCRIPT = """
+import json, numpy as np
+from mavvo.estimation.relpose import estimate_upright_relpose
+from mavvo.geometry import solve_upright_3pt
+from sim.world.twoview import add_outliers, make_scene
+rng = np.random.default_rng(7)
+out = []
+for structure in ("volume", "ground"):
+    s = make_scene(rng, 120, structure=structure, pixel_noise_px=0.5, imu_noise_rad=0.003)
+    s, _ = add_outliers(s, 0.3, rng)
+    for sigma in (None, (0.003, 0.003)):
+        r = estimate_upright_relpose(s.f1_lvl, s.f2_lvl, max_err_rad=0.002, attitude_sigma_rad=sigma, seed=3)
+        out.append([r.model, r.yaw_rad, *r.t_2_1, *r.tilt1_rad, *r.tilt2_rad, int(r.num_inliers)])
+E = solve_upright_3pt(s.f1_lvl[:3], s.f2_lvl[:3])
+out.append(E.ravel().tolist())
+print(json.dumps(out))
+"""
+
+
+def _run(env: dict[str, str]) -> list:
+    proc = subprocess.run([sys.executable, "-c", _SCRIPT], cwd=ROOT, env={**os.environ, **env}, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout)
+
+
+def test_the_kernels_run_as_python_with_the_same_results():
+    compiled = _run({})
+    python = _run({"NUMBA_DISABLE_JIT": "1"})
+    assert len(compiled) == 5 and len(compiled[-1]) >= 9  # four estimates and at least one 3-point solution
+    for a, b in zip(compiled[:4], python[:4]):
+        assert a[0] == b[0] and a[-1] == b[-1]  # the same model and inlier count
+        assert a[1:-1] == pytest.approx(b[1:-1], abs=1e-7)
+    assert compiled[-1] == pytest.approx(python[-1], abs=1e-9)
+
+
+def _cache_files(folder: Path) -> dict[Path, int]:
+    return {p: p.stat().st_mtime_ns for p in folder.rglob("*.nb[ic]")}
+
+
+def _warm(cache: Path | None) -> subprocess.CompletedProcess:
+    env = dict(os.environ)
+    if cache is not None:
+        env["NUMBA_CACHE_DIR"] = str(cache)
+    proc = subprocess.run([sys.executable, "-m", "mavvo.estimation.warmup"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0 and "mavvo kernels ready" in proc.stderr, proc.stderr
+    return proc
+
+
+def test_a_warm_cache_is_loaded_without_compiling_anything_again():
+    """make test warms the cache first; a new process (a service starting) then writes nothing to it: every
+    kernel can be cached and is found."""
+    cache = Path(os.environ["NUMBA_CACHE_DIR"]) if os.environ.get("NUMBA_CACHE_DIR") else ROOT / "mavvo"
+    _warm(None)
+    before = _cache_files(cache)
+    assert len(before) >= 20, "the kernels' cache files"
+    _warm(None)
+    assert _cache_files(cache) == before
+
+
+@pytest.mark.slow  # compiles every kernel: about a minute
+def test_a_cold_cache_is_filled_and_then_used(tmp_path):
+    _warm(tmp_path)
+    filled = _cache_files(tmp_path)
+    assert len(filled) >= 20
+    _warm(tmp_path)
+    assert _cache_files(tmp_path) == filled
