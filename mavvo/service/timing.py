@@ -240,12 +240,19 @@ class FlightControllerState:
         # stream) takes the one nearest its exposure, not the newest.
         self._range: deque[tuple[float, float | None]] = deque(maxlen=_READINGS_KEPT)
         self._height: deque[tuple[float, float | None]] = deque(maxlen=_READINGS_KEPT)
-        self._local: tuple[float, tuple[float, float, float], tuple[float, float, float]] | None = None  # (t_fc_s, p, v)
+        # LOCAL_POSITION_NED samples (t_fc_s, p, v): a frame is anchored on the last one at or before its
+        # exposure, moved on by its velocity, whatever arrived since (the same on every run of a recording).
+        self._local: deque[tuple[float, tuple[float, float, float], tuple[float, float, float]]] = deque(maxlen=_READINGS_KEPT)
         self._yaw_drift: deque[tuple[float, float]] = deque()  # (t_fc_s, unwrapped yaw minus integrated yawspeed)
         self._yaw_prev: tuple[float, float, float] | None = None  # (t_fc_s, unwrapped yaw, yawspeed)
         self._yaw_samples = 0
-        self.yaw_settled = False
+        self._settled_at_fc_s: float | None = None  # the ATTITUDE time at which the yaw was judged settled
         self.version = 0
+
+    @property
+    def yaw_settled(self) -> bool:
+        """The flight controller's yaw has stopped converging (judged from the samples so far)."""
+        return self._settled_at_fc_s is not None
 
     def _arrival(self, t_arrival_host_s: float | None) -> float:
         return self.clock.now_s() if t_arrival_host_s is None else t_arrival_host_s
@@ -285,10 +292,10 @@ class FlightControllerState:
 
     def _watch_yaw(self, t: float, yaw: float, yawspeed: float) -> None:
         """Track ``yaw - integral(yawspeed)`` (unwrapped) and decide once whether the yaw has settled."""
-        if self.yaw_settled or not math.isfinite(yaw):
+        if self._settled_at_fc_s is not None or not math.isfinite(yaw):
             return
         if not math.isfinite(yawspeed):
-            self.yaw_settled = True  # nothing to judge it by: trust it, as the flight controller does
+            self._settled_at_fc_s = t  # nothing to judge it by: trust it, as the flight controller does
             return
         prev = self._yaw_prev
         if prev is None:
@@ -308,7 +315,8 @@ class FlightControllerState:
             ds = [b for _, b in self._yaw_drift]
             tm, dm = sum(ts) / len(ts), sum(ds) / len(ds)
             slope = sum((a - tm) * (b - dm) for a, b in zip(ts, ds)) / sum((a - tm) ** 2 for a in ts)  # least squares
-            self.yaw_settled = abs(slope) <= math.radians(self.options.yaw_settle_rate_deg_s)
+            if abs(slope) <= math.radians(self.options.yaw_settle_rate_deg_s):
+                self._settled_at_fc_s = t
 
     def on_local_position(
         self, t_fc_ms: int, p_ned_m: tuple[float, float, float], v_ned_m_s: tuple[float, float, float], t_arrival_host_s: float | None = None
@@ -317,7 +325,9 @@ class FlightControllerState:
         with self._lock:
             self.version += 1
             if all(math.isfinite(x) for x in (*p_ned_m, *v_ned_m_s)):
-                self._local = (t_fc_ms * 1e-3, tuple(p_ned_m), tuple(v_ned_m_s))  # type: ignore[assignment]
+                t = t_fc_ms * 1e-3
+                if not self._local or t > self._local[-1][0]:
+                    self._local.append((t, tuple(p_ned_m), tuple(v_ned_m_s)))  # type: ignore[arg-type]
 
     def on_range(self, t_fc_ms: int, range_m: float | None, t_arrival_host_s: float | None = None) -> None:
         """A downward rangefinder reading (None: out of range or no target)."""
@@ -350,10 +360,10 @@ class FlightControllerState:
             self._rpy.clear()
             self._range.clear()
             self._height.clear()
-            self._local = None
+            self._local.clear()
             self._yaw_drift.clear()
             self._yaw_prev = None
-            self.yaw_settled = False
+            self._settled_at_fc_s = None
 
     # ------------------------------------------------------------------ the worker's side
 
@@ -389,10 +399,14 @@ class FlightControllerState:
         range_m = _nearest(self._range, t, self.options.range_max_age_s)
         height_m = _nearest(self._height, t, self.options.height_max_age_s)
         fc_p = None
-        if self._local is not None and abs(t - self._local[0]) <= self.options.local_position_max_age_s:
-            t_l, p_l, v_l = self._local
+        before = [r for r in self._local if r[0] <= t]
+        local = before[-1] if before else (self._local[0] if self._local else None)  # none before it: the first after
+        if local is not None and abs(t - local[0]) <= self.options.local_position_max_age_s:
+            t_l, p_l, v_l = local
             fc_p = (p_l[0] + v_l[0] * (t - t_l), p_l[1] + v_l[1] * (t - t_l), p_l[2] + v_l[2] * (t - t_l))  # moved on to the exposure
-        return Pairing("paired", v, roll, pitch, yaw, range_m, height_m, fc_p, self.yaw_settled, gap_s, sigma_rad)
+        # Settled as of the exposure, not of whatever has arrived by now: the same on every run.
+        settled = self._settled_at_fc_s is not None and self._settled_at_fc_s <= t
+        return Pairing("paired", v, roll, pitch, yaw, range_m, height_m, fc_p, settled, gap_s, sigma_rad)
 
     def clock_offset_s(self) -> float | None:
         """The current estimate of ``t_fc_s - t_host_s`` (None before the flight controller is heard)."""
