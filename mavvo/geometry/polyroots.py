@@ -59,26 +59,22 @@ def _along_axis(coeffs: np.ndarray, axis: int, degree: int, rtol: float) -> tupl
     if k.shape[-1] != degree + 1:
         raise ValueError(f"coeffs: expected {degree + 1} coefficients along axis {axis}, got {k.shape[-1]}")
     rows = np.ascontiguousarray(k.reshape(-1, degree + 1))
-    roots, valid = (_quartic_rows if degree == 4 else _cubic_rows)(rows, float(rtol))
+    roots, valid = _rows(rows, float(rtol))
     shape = k.shape[:-1] + (degree,)
     return np.moveaxis(roots.reshape(shape), -1, axis), np.moveaxis(valid.reshape(shape), -1, axis)
 
 
 @kernel
-def _quartic_rows(rows: np.ndarray, rtol: float) -> tuple[np.ndarray, np.ndarray]:
-    roots = np.empty((rows.shape[0], 4))
-    valid = np.empty((rows.shape[0], 4), dtype=np.bool_)
+def _rows(rows: np.ndarray, rtol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Real roots of each row of coefficients (K, 5) or (K, 4): roots and valid (K, degree)."""
+    degree = rows.shape[1] - 1
+    roots = np.empty((rows.shape[0], degree))
+    valid = np.empty((rows.shape[0], degree), dtype=np.bool_)
     for n in range(rows.shape[0]):
-        quartic_roots(rows[n], rtol, roots[n], valid[n])
-    return roots, valid
-
-
-@kernel
-def _cubic_rows(rows: np.ndarray, rtol: float) -> tuple[np.ndarray, np.ndarray]:
-    roots = np.empty((rows.shape[0], 3))
-    valid = np.empty((rows.shape[0], 3), dtype=np.bool_)
-    for n in range(rows.shape[0]):
-        cubic_roots(rows[n], rtol, roots[n], valid[n])
+        if degree == 4:
+            quartic_roots(rows[n], rtol, roots[n], valid[n])
+        else:
+            cubic_roots(rows[n], rtol, roots[n], valid[n])
     return roots, valid
 
 

@@ -424,6 +424,9 @@ class Link:
             if msg is None:
                 break
             self._handle(msg)
+            # Requests (TIMESYNC, streams) go out on the message that made them due, not at the end of a
+            # batch of reads: on a lockstep clock their stamps are then the same on every run.
+            self._keep_alive(self.clock.now_s())
         now = self.clock.now_s()
         self._flush()
         self._keep_alive(now)

@@ -396,11 +396,16 @@ class FlightControllerState:
             gap_s = t1 - t0
             # Error of interpolating at constant rate when the rate changes at up to a: a/2 (t - t0)(t1 - t).
             sigma_rad = 0.5 * self.options.attitude_accel_rad_s2 * (t - t0) * (t1 - t)
-        range_m = _nearest(self._range, t, self.options.range_max_age_s)
-        height_m = _nearest(self._height, t, self.options.height_max_age_s)
+        # Only what was sent before the ATTITUDE that completed the pairing counts: the flight controller
+        # sends in time order, so all of it has been read by now, on every run alike (a reading sent
+        # after it may or may not have arrived yet).
+        t_limit = self._t_fc[i]
+        range_m = _nearest(self._range, t, self.options.range_max_age_s, t_limit)
+        height_m = _nearest(self._height, t, self.options.height_max_age_s, t_limit)
         fc_p = None
-        before = [r for r in self._local if r[0] <= t]
-        local = before[-1] if before else (self._local[0] if self._local else None)  # none before it: the first after
+        before = [r for r in self._local if r[0] < t_limit and r[0] <= t]
+        after = [r for r in self._local if r[0] < t_limit and r[0] > t]
+        local = before[-1] if before else (after[0] if after else None)  # none before it: the first after
         if local is not None and abs(t - local[0]) <= self.options.local_position_max_age_s:
             t_l, p_l, v_l = local
             fc_p = (p_l[0] + v_l[0] * (t - t_l), p_l[1] + v_l[1] * (t - t_l), p_l[2] + v_l[2] * (t - t_l))  # moved on to the exposure
@@ -426,9 +431,10 @@ class FlightControllerState:
             self._new_data.wait(timeout_s)
 
 
-def _nearest(readings: deque[tuple[float, float | None]], t: float, max_age_s: float) -> float | None:
-    """The reading nearest ``t`` (before or after), or None when none is within ``max_age_s``."""
-    best = min(readings, key=lambda r: abs(r[0] - t), default=None)
+def _nearest(readings: deque[tuple[float, float | None]], t: float, max_age_s: float, t_limit: float) -> float | None:
+    """The reading nearest ``t`` (before or after) among those stamped before ``t_limit``, or None when
+    none is within ``max_age_s``."""
+    best = min((r for r in readings if r[0] < t_limit), key=lambda r: abs(r[0] - t), default=None)
     return best[1] if best is not None and abs(best[0] - t) <= max_age_s else None
 
 

@@ -30,7 +30,7 @@ import socket
 import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -97,6 +97,9 @@ class SimFlightController:
             raise LinkError(f"{url}: cannot open: {getattr(e, 'strerror', None) or e}") from e
         self.received: list[Received] = []
         self.sent_counts: dict[str, int] = {}
+        # Lockstep: called with each send (a function of no arguments) so the driver can hold the clock
+        # until the service has read the message, which it then stamps with the time it was sent.
+        self.deliver: Callable[[Callable[[], None]], None] | None = None
         self.client_clock_s: list[float] = []  # per TIMESYNC request heard: simulation time at arrival minus the request's ts1
         self.params: dict[str, float] = {**VISION_READY_PARAMS[spec.autopilot], **{name: float(v) for name, v in spec.params}}
         # Like an autopilot's forwarding to its ground-station port: what others send it, re-sent there.
@@ -282,7 +285,10 @@ class SimFlightController:
         kind = msg.get_type()
         self.sent_counts[kind] = self.sent_counts.get(kind, 0) + 1
         if not self.faults.active("corrupt_bytes", t):
-            self._conn.mav.send(msg)
+            if self.deliver is None:
+                self._conn.mav.send(msg)
+            else:
+                self.deliver(lambda: self._conn.mav.send(msg))
             return
         buf = bytearray(msg.pack(self._conn.mav))
         self._conn.mav.seq = (self._conn.mav.seq + 1) % 256

@@ -102,6 +102,22 @@ class SimRun:
         }
 
 
+# Lockstep: how long (real time) the flight controller waits for the service to read a message it sent
+# before moving the clock on (a message the service never reads, before it is connected, costs this).
+_DELIVERY_WAIT_S = 0.02
+
+
+def _delivered(daemon: Daemon, send: Callable[[], None]) -> None:
+    """Send, then hold the simulation clock until the service has read the message (at most
+    ``_DELIVERY_WAIT_S`` of real time, on this driver's own clock: the daemon's may be a stopped test
+    clock): it stamps its arrival at the moment it was sent, the same on every run."""
+    before = daemon.progress().messages_received
+    send()
+    deadline = time.monotonic() + _DELIVERY_WAIT_S
+    while daemon.progress().messages_received <= before and time.monotonic() < deadline and not daemon.stop_event.is_set():
+        time.sleep(1e-4)
+
+
 def run_daemon_in_sim(
     scenario: Scenario,
     base: ServiceConfig | None = None,
@@ -141,6 +157,8 @@ def run_daemon_in_sim(
     wall0 = time.perf_counter()
     try:
         daemon = Daemon(config, clock=sim.clock, source=sim.camera, wall_clock=wall_clock)
+        if not realtime:
+            sim.fc.deliver = lambda send, d=daemon: _delivered(d, send)
         if during is not None:
             def attack(d: Daemon = daemon) -> None:  # the udpout socket exists once the link has connected
                 during(d, service_address if service_listens else daemon_address(d))
