@@ -463,7 +463,7 @@ def _refine_with_attitude(
 
 @kernel
 def _robust_sigma_kernel(err_sq_inliers: np.ndarray, max_err_rad: float) -> float:
-    """:func:`_robust_sigma`, compiled."""
+    """:func:`_robust_sigma`, compiled (the attitude rounds call it inside their kernel)."""
     if err_sq_inliers.size == 0:
         return max_err_rad
     return max(1.4826 * np.median(np.sqrt(err_sq_inliers)), 0.01 * max_err_rad)
@@ -539,9 +539,7 @@ def _general_if_attitude_is_worse(
 
 def _robust_sigma(err_sq_inliers: np.ndarray, max_err_rad: float) -> float:
     """Noise sigma from inlier residuals (MAD), floored at 1% of the threshold."""
-    if err_sq_inliers.size == 0:
-        return max_err_rad
-    return max(1.4826 * float(np.median(np.sqrt(err_sq_inliers))), 0.01 * max_err_rad)
+    return float(_robust_sigma_kernel(np.ascontiguousarray(err_sq_inliers, dtype=np.float64), float(max_err_rad)))
 
 
 def _result(fit: _Fit, thr_sq: float, iterations: int, stats: RelposeStats) -> UprightRelpose:

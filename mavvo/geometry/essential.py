@@ -77,19 +77,17 @@ def as_bearing_pair(
 
 
 def as_sample_batch(name: str, F: object) -> np.ndarray:
-    """Validate (B, 3, 3) sample bearings; return them unit length and component-major, (3, 3, B):
-    component, point, sample."""
+    """Validate (B, 3, 3) sample bearings (sample, point, component); return them unit length, C-contiguous."""
     arr = np.asarray(F, dtype=float)
     if arr.ndim != 3 or arr.shape[1:] != (3, 3):
         raise ValueError(f"{name}: expected a (B,3,3) array (B samples of 3 bearings), got shape {arr.shape}")
-    X = np.ascontiguousarray(arr.transpose(2, 1, 0))
-    if not np.isfinite(X).all():
+    if not np.isfinite(arr).all():
         raise ValueError(f"{name}: bearings must be finite, got NaN or inf")
-    norms = np.sqrt(X[0] * X[0] + X[1] * X[1] + X[2] * X[2])  # (3 points, B)
+    norms = np.sqrt(np.einsum("bij,bij->bi", arr, arr))  # (B, 3 points)
     if (norms < 1e-12).any():
-        i, b = np.unravel_index(int(np.argmin(norms)), norms.shape)
+        b, i = np.unravel_index(int(np.argmin(norms)), norms.shape)
         raise ValueError(f"{name}: bearings must have non-zero length, sample {b} row {i} is zero")
-    return X / norms
+    return np.ascontiguousarray(arr / norms[..., None])
 
 
 # --------------------------------------------------------------------------- the linear system

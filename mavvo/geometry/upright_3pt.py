@@ -78,7 +78,6 @@ def _template_map() -> np.ndarray:
 # a N0 + b N1 + N2, and mapping those values to the row-mixed template in one product.
 _PADUA = _padua_points()  # (10 points, 2): (a, b)
 _TEMPLATE_FROM_VALUES = _template_map()  # (60, 40)
-# Slots of e = (E13, E21, E22, E23, E31, E32) in alpha = E22 + i E21, beta = E13 + i E23, gamma = E31 + i E32.
 
 
 def solve_upright_3pt_batch(F1: np.ndarray, F2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -95,7 +94,7 @@ def solve_upright_3pt_batch(F1: np.ndarray, F2: np.ndarray) -> tuple[np.ndarray,
     X2 = as_sample_batch("F2", F2)
     if X1.shape != X2.shape:
         raise ValueError(f"F1 and F2: expected the same shape, got {np.shape(F1)} and {np.shape(F2)}")
-    e, valid = solve_samples(np.ascontiguousarray(X1.transpose(2, 1, 0)), np.ascontiguousarray(X2.transpose(2, 1, 0)))
+    e, valid = solve_samples(X1, X2)
     E = essential_from_vector(e)  # (B, 4, 3, 3)
     E[~valid] = np.nan
     return E, valid
