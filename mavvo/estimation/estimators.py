@@ -31,9 +31,9 @@ from mavvo.geometry.frames import rot_z
 from mavvo.geometry.ground_2pt import solve_ground_2pt_samples
 from mavvo.geometry.upright_3pt import solve_samples as solve_upright_3pt_samples
 from mavvo.geometry.upright_pose import upright_pose_kernel
-from mavvo.jit import kernel
 from mavvo.geometry.refine import fit_ground_similarity, fit_rotation, refine_upright, upright_vector
 from mavvo.geometry.residuals import ground_sq, rotation_sq, sampson_sq_upright
+from mavvo.jit import kernel
 
 __all__ = ["UprightEssential", "GroundHomography", "PureRotation", "upright_e", "decompose_upright", "yaw_of"]
 

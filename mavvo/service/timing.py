@@ -403,9 +403,11 @@ class FlightControllerState:
         range_m = _nearest(self._range, t, self.options.range_max_age_s, t_limit)
         height_m = _nearest(self._height, t, self.options.height_max_age_s, t_limit)
         fc_p = None
-        before = [r for r in self._local if r[0] < t_limit and r[0] <= t]
-        after = [r for r in self._local if r[0] < t_limit and r[0] > t]
-        local = before[-1] if before else (after[0] if after else None)  # none before it: the first after
+        local = None  # the last sample at or before the exposure; none before it: the first after
+        for r in self._local:
+            if r[0] >= t_limit or (local is not None and r[0] > t):
+                break
+            local = r
         if local is not None and abs(t - local[0]) <= self.options.local_position_max_age_s:
             t_l, p_l, v_l = local
             fc_p = (p_l[0] + v_l[0] * (t - t_l), p_l[1] + v_l[1] * (t - t_l), p_l[2] + v_l[2] * (t - t_l))  # moved on to the exposure
