@@ -150,7 +150,9 @@ def test_bad_frames_are_counted_not_fatal():
 
 def test_lockstep_hook_reports_progress_a_driver_can_wait_for():
     """The documented hook a simulation or replay drives the daemon with: hand over a frame, wait until
-    the worker has finished it; the counts only grow."""
+    the daemon can do nothing more with it (finished, or waiting for an ATTITUDE), move the clock on;
+    the counts only grow. A frame with its ATTITUDE pairs at once; one without waits, on a stopped
+    clock, until the driver moves the clock past the exposure plus timing.attitude_wait_s."""
     from mavvo.service.daemon import Daemon
 
     source = InjectedSource()
@@ -163,10 +165,18 @@ def test_lockstep_hook_reports_progress_a_driver_can_wait_for():
     runner = threading.Thread(target=d.run, daemon=True)
     runner.start()
     try:
-        for k in range(3):
-            source.push(np.zeros((480, 640), np.uint8), 0.01 * k)
+        source.push(np.zeros((480, 640), np.uint8), 0.0)  # exposed at the ATTITUDE's time: paired at once
+        assert d.wait_progress(lambda p: p.idle_after(1), timeout_s=60.0)
+        assert d.progress().frames_done == 1
+        for k in (1, 2):
+            source.push(np.zeros((480, 640), np.uint8), 0.01 * k)  # no ATTITUDE after it yet
+            assert d.wait_progress(lambda p, k=k: p.idle_after(k + 1), timeout_s=60.0)
+            p = d.progress()
+            assert p.frames_done == k and p.waiting_for_attitude
+            clock.t = 0.01 * k + cfg.timing.attitude_wait_s + 1e-3  # the driver moves the clock on
             assert d.wait_progress(lambda p, k=k: p.frames_done >= k + 1, timeout_s=60.0)
-        assert d.progress().frames_done == 3
+        p = d.progress()
+        assert p.frames_done == 3 and not p.waiting_for_attitude and d.counters["skipped_attitude_stale"] == 2
         assert not d.wait_progress(lambda p: p.frames_done >= 4, timeout_s=0.2)  # nothing more was handed over
     finally:
         source.end()

@@ -163,20 +163,55 @@ def test_range_and_height_are_given_only_when_fresh():
     assert state.pair(1.5).range_m is None
 
 
-def test_lockstep_wait_is_bounded_by_the_data_and_real_time_by_the_clock():
+def test_lockstep_wait_ends_with_the_data_the_clock_or_the_end_of_input():
+    """On a lockstep clock the wait is decided by simulated time alone: the sample arriving ends it with
+    a pairing, the clock moved past the exposure plus attitude_wait_s ends it as stale, and so does the
+    end of input; meanwhile the state says the worker waits for data (what a lockstep driver looks at
+    before moving the clock)."""
     clock = FakeClock(realtime=False)
-    state = FlightControllerState(clock)
+    state = FlightControllerState(clock, TimingOptions(attitude_wait_s=0.1))
     feed(state, clock, [0.0, 0.01])
-    assert wait_for_pairing(state, 0.05, lockstep_wait_s=0.05).status == "stale"
-    # The sample arriving from another thread ends the wait with a pairing.
-    threading.Timer(0.01, lambda: feed(state, clock, [0.04, 0.055])).start()
-    assert wait_for_pairing(state, 0.05, lockstep_wait_s=1.0).status == "paired"
+    assert not state.waiting_for_data()
+    result: list = []
+
+    def pair() -> None:
+        result.append(wait_for_pairing(state, 0.05))
+
+    worker = threading.Thread(target=pair)
+    worker.start()
+    assert _eventually(state.waiting_for_data)
+    feed(state, clock, [0.04, 0.055])  # the sample after the exposure
+    worker.join(10.0)
+    assert [p.status for p in result] == ["paired"] and not state.waiting_for_data()
+
+    result.clear()
+    worker = threading.Thread(target=lambda: result.append(wait_for_pairing(state, 0.2)))
+    worker.start()
+    assert _eventually(state.waiting_for_data)
+    assert worker.is_alive()  # a stopped clock and no data: it waits, however long that takes
+    clock.t = 0.31  # the driver moved the clock past the exposure plus the wait
+    worker.join(10.0)
+    assert [p.status for p in result] == ["stale"]
+
+    assert wait_for_pairing(state, 0.2, lambda: True).status == "stale"  # no more input will come
 
     rt = FakeClock(realtime=True)
     state_rt = FlightControllerState(rt, TimingOptions(attitude_wait_s=0.1))
     feed(state_rt, rt, [0.0, 0.01])
     rt.t = 0.3  # the host clock is past the exposure plus the wait: give up at once
     assert wait_for_pairing(state_rt, 0.05).status == "stale"
+
+
+def _eventually(condition, timeout_s: float = 10.0) -> bool:
+    """Whether ``condition()`` holds within ``timeout_s`` of real time (a generous bound, never a measurement)."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(1e-3)
+    return True
 
 
 def test_one_forged_attitude_stamped_ahead_is_refused_and_genuine_ones_go_on_pairing():

@@ -93,11 +93,28 @@ class LockstepProgress:
         fc_state_version: updates the flight controller's state has absorbed; each frame's pairing
             records the version it saw (:attr:`mavvo.service.timing.Pairing.fc_version`).
         frames_done: frames the worker has finished, whatever came of them (estimate, skipped, error).
+        frames_queued: frames the camera thread has handed to the worker.
+        sends_pending: messages the worker queued for the link and the link has not yet written or
+            dropped (this one goes up and down).
+        messages_sent: MAVLink messages the link has written (its first tells a listening flight
+            controller where the service is).
+        waiting_for_attitude: the worker's frame waits for an ATTITUDE that has not been sent yet, and
+            nothing has arrived since it looked (it goes on when more comes or the clock moves on).
     """
 
     messages_received: int
     fc_state_version: int
     frames_done: int
+    frames_queued: int = 0
+    sends_pending: int = 0
+    messages_sent: int = 0
+    waiting_for_attitude: bool = False
+
+    def idle_after(self, frames: int) -> bool:
+        """The daemon can do nothing more with the first ``frames`` frames until it gets more input:
+        each is finished, or the worker waits for an ATTITUDE (the frames behind it wait in the queue),
+        and everything they sent is written."""
+        return (self.frames_done >= frames or self.waiting_for_attitude) and self.sends_pending == 0
 
 
 @dataclass(frozen=True)
@@ -191,7 +208,10 @@ class Daemon:
 
     def progress(self) -> LockstepProgress:
         """The counts a lockstep driver waits on (thread-safe: each is read in one step)."""
-        return LockstepProgress(self.link.counters["rx"], self.fc.version, self.counters["frames_done"])
+        return LockstepProgress(
+            self.link.counters["rx"], self.fc.version, self.counters["frames_done"], self.counters["frames_queued"], self.link.sends_pending(),
+            self.link.counters["sent"], self.fc.waiting_for_data(),
+        )
 
     def wait_progress(self, done: Callable[[LockstepProgress], bool], timeout_s: float) -> bool:
         """Wait until ``done(self.progress())`` holds, at most ``timeout_s`` seconds of real time, or
@@ -394,8 +414,13 @@ class Daemon:
                     self._arrival_s.clear()
                 self._arrival_s[frame.seq] = self.clock.now_s()
                 self.frames.put(frame, self.stop_event)
+                self.counters["frames_queued"] += 1
         finally:
             self._camera_done.set()
+
+    def _no_more_input(self) -> bool:
+        """The service stops, or (lockstep) the frames ended: nothing will move the clock again."""
+        return self.stop_event.is_set() or (not self.clock.realtime and self._camera_done.is_set())
 
     def _worker_loop(self) -> None:
         try:
@@ -421,7 +446,7 @@ class Daemon:
     def _process(self, frame: Frame) -> None:
         self.counters["frames"] += 1
         self._frame_in = (self._arrival_s.pop(frame.seq, self.clock.now_s()), self._wall.now_s())
-        p = wait_for_pairing(self.fc, frame.t_exposure_s)
+        p = wait_for_pairing(self.fc, frame.t_exposure_s, self._no_more_input)
         if self.recorder is not None:
             self.recorder.frame(frame, p, self.clock.now_s())
         if p.status != "paired":

@@ -282,6 +282,7 @@ class Link:
             except queue.Full:
                 try:
                     self._queue.get_nowait()
+                    self._queue.task_done()
                     self.counters["send_dropped"] += 1
                 except queue.Empty:
                     pass
@@ -292,6 +293,10 @@ class Link:
                 os.write(self._wake_w, b"x")
             except BlockingIOError:
                 pass  # the pipe is full: the link thread is already awake
+
+    def sends_pending(self) -> int:
+        """Messages queued by :meth:`send` and not yet written or dropped (thread-safe)."""
+        return self._queue.unfinished_tasks
 
     def local_address(self) -> tuple[str, int] | None:
         """The local (host, port) of a UDP or TCP connection; None for serial or while disconnected."""
@@ -423,10 +428,12 @@ class Link:
             msg = self._conn.recv_msg()
             if msg is None:
                 break
-            self._handle(msg)
+            counted = self._handle(msg)
             # Requests (TIMESYNC, streams) go out on the message that made them due, not at the end of a
             # batch of reads: on a lockstep clock their stamps are then the same on every run.
             self._keep_alive(self.clock.now_s())
+            if counted:  # after what it made due is written: a lockstep driver waiting on it finds that too
+                self.counters["rx"] += 1
         now = self.clock.now_s()
         self._flush()
         self._keep_alive(now)
@@ -440,10 +447,13 @@ class Link:
                 name, fields, send_by_s = self._queue.get_nowait()
             except queue.Empty:
                 return
-            if now > send_by_s:
-                self.counters["stale_dropped"] += 1
-                continue
-            self._write(name, fields)
+            try:
+                if now > send_by_s:
+                    self.counters["stale_dropped"] += 1
+                    continue
+                self._write(name, fields)
+            finally:
+                self._queue.task_done()
 
     def _write(self, name: str, fields: dict[str, Any]) -> None:
         msg = getattr(self._conn.mav, f"{name.lower()}_encode")(**fields)
@@ -490,11 +500,12 @@ class Link:
 
     # ------------------------------------------------------------------ what arrives
 
-    def _handle(self, msg: Any) -> None:
+    def _handle(self, msg: Any) -> bool:
+        """Stamp and dispatch one message read; False for bytes that were no message (BAD_DATA)."""
         kind = msg.get_type()
         if kind == "BAD_DATA":
             self.counters["bad_data"] += 1
-            return
+            return False
         t_us = stamp_us(self.clock)
         if self.tap is not None:
             self.tap(t_us, bytes(msg.get_msgbuf()))
@@ -504,8 +515,7 @@ class Link:
             self.counters["handler_errors"] += 1
             if self.counters["handler_errors"] <= 3:
                 log.warning("link %s: %s message skipped: %s", self.options.url, kind, e)
-        finally:
-            self.counters["rx"] += 1
+        return True
 
     def _dispatch(self, msg: Any, kind: str, now: float) -> None:
         self._last_rx_s = now

@@ -35,6 +35,7 @@ import math
 import threading
 import time
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
@@ -95,6 +96,8 @@ def _euler_yaw_rate(roll_rad: float, pitch_rad: float, body_rates_rad_s: tuple[f
 _MAX_LATENCY_S = 0.1  # the fastest message in a sync window took at most this long to arrive
 _READINGS_KEPT = 64  # rangefinder and height readings kept: seconds of them at usual rates
 _GAP_SLACK_S = 1e-6  # time_boot_ms / 1000 is not exact in binary: 1.05 - 1.0 > 0.05
+_WAIT_STEP_S = 0.02  # real time: the longest single wait for an ATTITUDE before looking again
+_LOCKSTEP_LOOK_S = 0.002  # lockstep: how often (real time) a waiting worker looks whether the clock moved
 
 
 class _WindowMax:
@@ -248,6 +251,7 @@ class FlightControllerState:
         self._yaw_samples = 0
         self._settled_at_fc_s: float | None = None  # the ATTITUDE time at which the yaw was judged settled
         self.version = 0
+        self._waiting_at: int | None = None  # the version a worker found nothing new at and waits on
 
     @property
     def yaw_settled(self) -> bool:
@@ -274,7 +278,7 @@ class FlightControllerState:
         now = self._arrival(t_arrival_host_s)
         t = t_fc_ms * 1e-3
         with self._new_data:
-            self.version += 1
+            self._updated()
             if not self._sync.add_arrival(t, now):
                 self.counters["attitude_implausible"] += 1
                 return
@@ -288,7 +292,6 @@ class FlightControllerState:
             cut = bisect.bisect_left(self._t_fc, t - self.options.history_s)
             if cut > 64:  # trim in batches: list.pop(0) per sample would be quadratic
                 del self._t_fc[:cut], self._rpy[:cut]
-            self._new_data.notify_all()
 
     def _watch_yaw(self, t: float, yaw: float, yawspeed: float) -> None:
         """Track ``yaw - integral(yawspeed)`` (unwrapped) and decide once whether the yaw has settled."""
@@ -323,7 +326,7 @@ class FlightControllerState:
     ) -> None:
         """LOCAL_POSITION_NED: the flight controller's own estimate of its position and velocity."""
         with self._lock:
-            self.version += 1
+            self._updated()
             if all(math.isfinite(x) for x in (*p_ned_m, *v_ned_m_s)):
                 t = t_fc_ms * 1e-3
                 if not self._local or t > self._local[-1][0]:
@@ -332,13 +335,13 @@ class FlightControllerState:
     def on_range(self, t_fc_ms: int, range_m: float | None, t_arrival_host_s: float | None = None) -> None:
         """A downward rangefinder reading (None: out of range or no target)."""
         with self._lock:
-            self.version += 1
+            self._updated()
             self._range.append((t_fc_ms * 1e-3, range_m if range_m is not None and math.isfinite(range_m) else None))
 
     def on_height(self, t_fc_ms: int, height_m: float, t_arrival_host_s: float | None = None) -> None:
         """The vehicle's height above home (take-off), metres, positive up."""
         with self._lock:
-            self.version += 1
+            self._updated()
             if math.isfinite(height_m):
                 self._height.append((t_fc_ms * 1e-3, height_m))
 
@@ -346,14 +349,14 @@ class FlightControllerState:
         """The answer to a TIMESYNC request that was sent at ``t_sent_host_s``."""
         now = self._arrival(t_arrival_host_s)
         with self._lock:
-            self.version += 1
+            self._updated()
             if not self._sync.add_timesync(t_sent_host_s, t_fc_s, now):
                 self.counters["timesync_implausible"] += 1
 
     def on_reboot(self) -> None:
         """The boot clock went back: the flight controller restarted; forget its old clock and samples."""
         with self._lock:
-            self.version += 1
+            self._updated()
             self.counters["reboots"] += 1
             self._sync.reset()
             self._t_fc.clear()
@@ -427,10 +430,28 @@ class FlightControllerState:
                 return None
             return (len(self._t_fc) - 1) / (self._t_fc[-1] - self._t_fc[0])
 
-    def wait_for_new_data(self, timeout_s: float) -> None:
-        """Block until the next ATTITUDE arrives or ``timeout_s`` of real time passes."""
+    def _updated(self) -> None:
+        """Under the lock: one more update absorbed (``version``); a worker waiting for data looks again."""
+        self.version += 1
+        self._new_data.notify_all()
+
+    def wait_for_new_data(self, timeout_s: float, seen_version: int) -> None:
+        """Block until the state has changed since ``seen_version`` or ``timeout_s`` of real time
+        passes; returns at once when it already has. Meanwhile :meth:`waiting_for_data` is true."""
         with self._new_data:
-            self._new_data.wait(timeout_s)
+            if self.version != seen_version:
+                return
+            self._waiting_at = seen_version
+            try:
+                self._new_data.wait(timeout_s)
+            finally:
+                self._waiting_at = None
+
+    def waiting_for_data(self) -> bool:
+        """Whether a worker is blocked in :meth:`wait_for_new_data` and nothing has changed since it
+        looked: it can go on only when the flight controller sends more, or the clock moves on."""
+        with self._lock:
+            return self._waiting_at is not None and self._waiting_at == self.version
 
 
 def _nearest(readings: deque[tuple[float, float | None]], t: float, max_age_s: float, t_limit: float) -> float | None:
@@ -440,29 +461,25 @@ def _nearest(readings: deque[tuple[float, float | None]], t: float, max_age_s: f
     return best[1] if best is not None and abs(best[0] - t) <= max_age_s else None
 
 
-def wait_for_pairing(state: FlightControllerState, t_exposure_host_s: float, *, lockstep_wait_s: float = 0.05) -> Pairing:
-    """Pair an exposure, waiting for the ATTITUDE that follows it.
+def wait_for_pairing(state: FlightControllerState, t_exposure_host_s: float, ended: Callable[[], bool] = lambda: False) -> Pairing:
+    """Pair an exposure, waiting for the ATTITUDE that follows it until ``attitude_wait_s`` after the
+    exposure on the host clock, or until ``ended()`` says no more input will come (the service stops;
+    on a lockstep clock, the frames ended); a frame still waiting then is ``stale``.
 
-    In real time the wait ends ``attitude_wait_s`` after the exposure on the host clock. On a lockstep
-    clock the host clock stands still while the worker waits, so the wait ends when the sample arrives
-    or after ``lockstep_wait_s`` of real time (the flight controller has sent everything up to the
-    frame's arrival by then; a longer silence is a fault). A frame still waiting at the end is
-    ``stale``.
+    The same rule on a lockstep clock: it stands still while the worker waits, and the driver moves it
+    on once :meth:`FlightControllerState.waiting_for_data` says the worker cannot go on without more
+    input; the worker looks at the clock again every few milliseconds of real time. What comes of a
+    frame then depends on the simulated times alone, not on how fast a thread got to it.
     """
     deadline = t_exposure_host_s + state.options.attitude_wait_s
-    waited = 0.0
-    step = 0.005
     while True:
+        final = ended()  # asked first: whatever came before the end is then in the pairing below
         p = state.pair(t_exposure_host_s)
         if p.status != "wait":
             return p
-        if state.clock.realtime:
-            left = deadline - state.clock.now_s()
-            if left <= 0:
-                return Pairing("stale", p.fc_version)
-            state.wait_for_new_data(min(left, step * 4))
-        else:
-            if waited >= lockstep_wait_s:
-                return Pairing("stale", p.fc_version)
-            state.wait_for_new_data(step)
-            waited += step
+        if final:
+            return Pairing("stale", p.fc_version)
+        left = deadline - state.clock.now_s()
+        if left <= 0:
+            return Pairing("stale", p.fc_version)
+        state.wait_for_new_data(min(left, _WAIT_STEP_S) if state.clock.realtime else _LOCKSTEP_LOOK_S, p.fc_version)

@@ -130,6 +130,16 @@ class SimFlightController:
         if not spec.rangefinder:
             del self._senders[self._mav.MAVLINK_MSG_ID_DISTANCE_SENSOR]
 
+    def sends_to(self, address: tuple[str, int]) -> bool:
+        """Whether a message sent now goes to ``address`` (host, port): a listening flight controller
+        knows a peer only after hearing from it, and a peer that reconnected has a new port."""
+        conn = self._conn
+        if not hasattr(conn, "udp_server"):  # a stream: whoever is connected reads it
+            return True
+        if conn.udp_server:
+            return tuple(address) in conn.clients
+        return tuple(conn.destination_addr) == tuple(address)
+
     @property
     def address(self) -> tuple[str, int]:
         """(host, port) of the local socket: the port the system chose for ``udpin:127.0.0.1:0``."""

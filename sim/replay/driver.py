@@ -216,7 +216,7 @@ class _Driver:
                 return
             self.source.push(fr.load(), fr.t_exposure_s, fr.seq)
             self.frames += 1
-            if not self.daemon.wait_progress(lambda p: p.frames_done >= self.frames, _FRAME_S):
+            if not self.daemon.wait_progress(lambda p: p.idle_after(self.frames), _FRAME_S):
                 if stop.is_set():
                     return
                 raise MavvoError(f"replay: the daemon did not finish frame {fr.seq} within {_FRAME_S:.0f} s")

@@ -12,6 +12,7 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -53,6 +54,7 @@ class Simulation:
             mavlink_url, self.trajectory, self.clock, scenario.flight_controller, self.faults, seed=int(seeds[0].generate_state(1)[0]),
             forward_url=forward_url,
         )
+        self.hold: Callable[[], None] | None = None
         self.world = World.build(scenario.world)
         self.camera = SimCamera(
             scenario.camera, self.world, self.trajectory, self.clock, faults=self.faults,
@@ -60,7 +62,10 @@ class Simulation:
         )
 
     def advance_to(self, t_s: float) -> None:
-        """Lockstep: run the flight controller up to ``t_s`` and move the clock there."""
+        """Lockstep: run the flight controller up to ``t_s`` and move the clock there (after ``hold``,
+        when set: a driver's wait for the service to finish what it was given)."""
+        if self.hold is not None:
+            self.hold()
         self.fc.advance_to(t_s)
         self.clock.advance_to(t_s)
 

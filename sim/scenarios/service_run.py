@@ -24,7 +24,7 @@ import numpy as np
 
 from mavvo.geometry.camera_model import CameraIntrinsics
 from mavvo.service.camera import CameraOptions
-from mavvo.service.daemon import Daemon, DaemonSummary
+from mavvo.service.daemon import Daemon, DaemonSummary, LockstepProgress
 from mavvo.service.timing import Clock
 from mavvo.service.settings import MountingOptions, ServiceConfig, as_matrix3
 from sim.world.camera import CameraSpec
@@ -75,6 +75,7 @@ class SimRun:
     heartbeat_status: list[tuple[float, int]]  # (simulation time received, system_status) of the vision component
     safety: FlightSafety  # what the vehicle would feel: no alignment, resets included
     recording: Path | None = None  # with record.dir: the recording (with ground_truth.tum beside it)
+    lockstep_waits_expired: int = 0  # lockstep: times the service did not catch up (the run may not repeat exactly)
 
     def summary(self) -> dict[str, Any]:
         """A flat JSON-ready summary (what ``mavvo sim --json`` prints)."""
@@ -99,23 +100,53 @@ class SimRun:
             "received": self.received,
             "counters": self.daemon.counters,
             "recording": None if self.recording is None else str(self.recording),
+            "lockstep_waits_expired": self.lockstep_waits_expired,
         }
 
 
-# Lockstep: how long (real time) the flight controller waits for the service to read a message it sent
-# before moving the clock on (a message the service never reads, before it is connected, costs this).
-_DELIVERY_WAIT_S = 0.02
+# Lockstep: how long (real time) a driver waits for the service to read a message or finish a frame
+# before giving up on exact lockstep (counted in SimRun.lockstep_waits_expired). Generous: it is only
+# ever reached when the service is stuck, never on a busy machine.
+_LOCKSTEP_WAIT_S = 10.0
 
 
-def _delivered(daemon: Daemon, send: Callable[[], None]) -> None:
-    """Send, then hold the simulation clock until the service has read the message (at most
-    ``_DELIVERY_WAIT_S`` of real time, on this driver's own clock: the daemon's may be a stopped test
-    clock): it stamps its arrival at the moment it was sent, the same on every run."""
-    before = daemon.progress().messages_received
-    send()
-    deadline = time.monotonic() + _DELIVERY_WAIT_S
-    while daemon.progress().messages_received <= before and time.monotonic() < deadline and not daemon.stop_event.is_set():
-        time.sleep(1e-4)
+class _Lockstep:
+    """Holds the simulation clock while the service works, so that it sees every input at the simulated
+    moment it was meant for and two runs send the same bytes, however loaded the machine."""
+
+    def __init__(self, daemon: Daemon, sim: Simulation) -> None:
+        self.daemon = daemon
+        self.sim = sim
+        self.waits_expired = 0
+        self._started = False
+
+    def deliver(self, send: Callable[[], None]) -> None:
+        """Send one flight-controller message, then wait until the service has read it (and written
+        what it made due): it stamps its arrival at the moment it was sent. A message to no one (the
+        service has not connected yet, or is reconnecting) is not waited for."""
+        before = self.daemon.progress().messages_received
+        send()
+        address = self.daemon.link.local_address()
+        if address is None or not self.sim.fc.sends_to(address):
+            return
+        self._wait(lambda p: p.messages_received > before)
+
+    def hold(self) -> None:
+        """Before the clock moves on to the next frame: the service has done all it can with the frames
+        it was given and written what it sent, so the flight controller hears it at the same moment on
+        every run.
+        Before the first frame: the service's link is up and has said something (a listening flight
+        controller knows it from then on), however long the service took to start."""
+        if self._started:
+            self._wait(lambda p: p.idle_after(p.frames_queued))
+        else:
+            self._started = True
+            self._wait(lambda p: p.idle_after(p.frames_queued) and p.messages_sent > 0)
+
+    def _wait(self, done: Callable[[LockstepProgress], bool]) -> None:
+        if not self.daemon.wait_progress(done, _LOCKSTEP_WAIT_S) and not self.daemon.stop_event.is_set():
+            self.waits_expired += 1
+            log.warning("lockstep: the service did not catch up within %.0f s; this run may not repeat exactly (at %.3f s: %s)", _LOCKSTEP_WAIT_S, self.sim.clock.now_s(), self.daemon.progress())
 
 
 def run_daemon_in_sim(
@@ -157,8 +188,9 @@ def run_daemon_in_sim(
     wall0 = time.perf_counter()
     try:
         daemon = Daemon(config, clock=sim.clock, source=sim.camera, wall_clock=wall_clock)
-        if not realtime:
-            sim.fc.deliver = lambda send, d=daemon: _delivered(d, send)
+        lockstep = None if realtime else _Lockstep(daemon, sim)
+        if lockstep is not None:
+            sim.fc.deliver, sim.hold = lockstep.deliver, lockstep.hold
         if during is not None:
             def attack(d: Daemon = daemon) -> None:  # the udpout socket exists once the link has connected
                 during(d, service_address if service_listens else daemon_address(d))
@@ -202,6 +234,7 @@ def run_daemon_in_sim(
         int(np.count_nonzero(np.diff(counters))) if len(counters) else 0, [r.msg for r in vpe],
         [(r.t_s, r.msg.text) for r in sim.fc.received if r.type == "STATUSTEXT"],
         [(r.t_s, r.msg.system_status) for r in sim.fc.received if r.type == "HEARTBEAT"], safety, recording,
+        0 if lockstep is None else lockstep.waits_expired,
     )
 
 

@@ -111,6 +111,8 @@ class SimCamera:
             if t_exp > self._duration_s:
                 raise CameraEnded(f"simulated camera: the scenario ended at {self._duration_s:.1f} s")
             t_ready = t_exp + self._latency_s
+            missing = self.faults.active("frames_missing", t_exp)
+            image = None
             if self.clock.realtime:
                 now = self.clock.now_s()
                 behind = int((now - t_ready) // self._period_s)
@@ -122,12 +124,14 @@ class SimCamera:
                     self.clock.sleep_until(now + timeout_s)
                     return None
             elif self._advance is not None:
+                if not missing:  # rendered before the advance, which may wait for the service's previous frame
+                    image = self.render_at(t_exp)
                 self._advance(t_ready)
             self.clock.sleep_until(t_ready)
             self._next += 1
-            if self.faults.active("frames_missing", t_exp):
+            if missing:
                 continue
-            return Frame(self.render_at(t_exp), t_exp, k)
+            return Frame(self.render_at(t_exp) if image is None else image, t_exp, k)
 
     def render_at(self, t_exp_s: float) -> np.ndarray:
         """The (H,W) uint8 image exposed at ``t_exp_s``, with the configured effects and faults."""
