@@ -98,6 +98,9 @@ class LockstepProgress:
             dropped (this one goes up and down).
         messages_sent: MAVLink messages the link has written (its first tells a listening flight
             controller where the service is).
+        datagrams_done: UDP datagrams the link has read and finished with, whatever they held (a
+            message, a spoiled one, garbage); what a driver sending over UDP waits on.
+        link_tick_s: the host clock at the last :meth:`Daemon.tick` the link has finished.
         waiting_for_attitude: the worker's frame waits for an ATTITUDE that has not been sent yet, and
             nothing has arrived since it looked (it goes on when more comes or the clock moves on).
     """
@@ -108,6 +111,8 @@ class LockstepProgress:
     frames_queued: int = 0
     sends_pending: int = 0
     messages_sent: int = 0
+    datagrams_done: int = 0
+    link_tick_s: float = -math.inf
     waiting_for_attitude: bool = False
 
     def idle_after(self, frames: int) -> bool:
@@ -210,8 +215,13 @@ class Daemon:
         """The counts a lockstep driver waits on (thread-safe: each is read in one step)."""
         return LockstepProgress(
             self.link.counters["rx"], self.fc.version, self.counters["frames_done"], self.counters["frames_queued"], self.link.sends_pending(),
-            self.link.counters["sent"], self.fc.waiting_for_data(),
+            self.link.counters["sent"], self.link.datagrams_done, self.link.tick_clock_s, self.fc.waiting_for_data(),
         )
+
+    def tick(self) -> None:
+        """Lockstep: the driver has moved the host clock; the link does what time has made due (see
+        :meth:`Link.tick`) and then reports the clock in ``progress().link_tick_s``."""
+        self.link.tick()
 
     def wait_progress(self, done: Callable[[LockstepProgress], bool], timeout_s: float) -> bool:
         """Wait until ``done(self.progress())`` holds, at most ``timeout_s`` seconds of real time, or

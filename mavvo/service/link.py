@@ -239,6 +239,10 @@ class Link:
         self._candidates: dict[tuple[int, int], _Candidate] = {}
         self._others_told: set[tuple[int, int]] = set()
         self._datagram_from: Any = None  # the source address of the last UDP datagram read
+        self._datagrams_read = 0
+        # UDP datagrams read and done with (every message parsed from them handled, what they made due
+        # written), whatever they held: a lockstep driver waits on it.
+        self.datagrams_done = 0
         self._fc_address: Any = None  # the flight controller's UDP address, once chosen
         self.autopilot: int | None = None  # the flight controller's HEARTBEAT autopilot (MAV_AUTOPILOT)
         self.connected = threading.Event()
@@ -247,6 +251,8 @@ class Link:
         self._conn: Any = None
         self._queue: queue.Queue[tuple[str, dict[str, Any], float]] = queue.Queue(_SEND_QUEUE)
         self.turns = 0
+        self._tick = threading.Event()
+        self.tick_clock_s = -math.inf  # lockstep: the host clock at the last tick the link has finished
         self._wake_r, self._wake_w = os.pipe()
         self._closed = False  # the link has stopped: send() is a no-op (its pipe's descriptors may be reused)
         self._close_lock = threading.Lock()
@@ -286,6 +292,18 @@ class Link:
                     self.counters["send_dropped"] += 1
                 except queue.Empty:
                     pass
+        self._wake()
+
+    def tick(self) -> None:
+        """Lockstep: the driver has moved the host clock. The link takes a turn at once and does what
+        time has made due (heartbeat, TIMESYNC and stream requests, the silence check, the end of a
+        reconnect back-off), then reports the clock it did it at in :attr:`tick_clock_s`. On a lockstep
+        clock these happen only at ticks (and on the messages that make them due), so at the same
+        simulated moments on every run; in real time the link keeps time itself and this only wakes it."""
+        self._tick.set()
+        self._wake()
+
+    def _wake(self) -> None:
         with self._close_lock:  # never write to a descriptor the stop has closed (it may be another file's now)
             if self._closed:
                 return
@@ -340,11 +358,33 @@ class Link:
                         pass
 
     def _pause(self, stop: threading.Event, seconds: float) -> None:
-        """Wait ``seconds`` (real time) or until ``stop``, in slices that each count as a turn."""
+        """Wait ``seconds`` or until ``stop``, in slices that each count as a turn. Real time: on the
+        monotonic clock. Lockstep: on the host clock, looked at on each tick; the tick that ends the
+        pause is left to the turn after it (the reconnect's first)."""
+        if not self.clock.realtime:
+            end_s = self.clock.now_s() + seconds
+            while not stop.is_set():
+                if self._tick.is_set():
+                    now = self.clock.now_s()
+                    if now >= end_s:
+                        return
+                    self._tick.clear()
+                    self.tick_clock_s = now
+                select.select([self._wake_r], [], [], _WAIT_SLICE_S)
+                self._drain_wake()
+                self.turns += 1
+            return
         end = time.monotonic() + seconds
         while not stop.is_set() and (left := end - time.monotonic()) > 0:
             stop.wait(min(left, _WAIT_SLICE_S))
             self.turns += 1
+
+    def _drain_wake(self) -> None:
+        try:
+            while os.read(self._wake_r, 4096):
+                pass
+        except BlockingIOError:
+            pass
 
     def _connect(self) -> bool:
         try:
@@ -356,7 +396,7 @@ class Link:
                 # Connected: the kernel sends from the route's address (127.0.0.1 for a local flight
                 # controller) and drops datagrams from any other sender.
                 conn.port.connect((socket.gethostbyname(conn.destination_addr[0]), conn.destination_addr[1]))
-            elif self.options.url.startswith("udpin:"):
+            if self.options.url.startswith(("udpin:", "udpout:")):
                 conn.recv = self._udp_reader(conn)
         except Exception as e:  # pyserial, socket and pymavlink raise many kinds; all mean "not now"
             self.counters["connect_failures"] += 1
@@ -379,14 +419,16 @@ class Link:
         return True
 
     def _udp_reader(self, conn: Any) -> Callable[[int | None], bytes]:
-        """pymavlink's UDP read, keeping each datagram's sender, so the flight controller's address can
-        be pinned once it is chosen (:meth:`_pin_udp`)."""
+        """pymavlink's UDP read, counting datagrams (:attr:`datagrams_done`) and keeping each one's
+        sender, so that a ``udpin`` flight controller's address can be pinned once it is chosen
+        (:meth:`_pin_udp`)."""
 
         def recv(n: int | None = None) -> bytes:
             try:
                 data, addr = conn.port.recvfrom(65535)
             except (BlockingIOError, ConnectionRefusedError):
                 return b""
+            self._datagrams_read += 1
             self._datagram_from = addr
             if not self._fc_address:
                 conn.clients.add(addr)  # pymavlink answers every sender until the flight controller is known
@@ -419,11 +461,21 @@ class Link:
         fd = getattr(self._conn, "fd", None)
         fds = [self._wake_r] + ([fd] if fd is not None else [])
         select.select(fds, [], [], 0.02)
+        self._drain_wake()
+        ticked = self._tick.is_set()
+        if ticked:
+            self._tick.clear()
         try:
-            while os.read(self._wake_r, 4096):
-                pass
-        except BlockingIOError:
-            pass
+            now = self._turn(timed=ticked or self.clock.realtime)
+        except (OSError, LinkError):
+            if ticked:
+                self._tick.set()  # answered by the reconnect's back-off, once the port is closed
+            raise
+        if ticked:
+            self.tick_clock_s = now
+
+    def _turn(self, *, timed: bool) -> float:
+        """Read, write, and with ``timed`` do what time has made due; returns the host clock it used."""
         for _ in range(_READ_BUDGET):
             msg = self._conn.recv_msg()
             if msg is None:
@@ -432,13 +484,17 @@ class Link:
             # Requests (TIMESYNC, streams) go out on the message that made them due, not at the end of a
             # batch of reads: on a lockstep clock their stamps are then the same on every run.
             self._keep_alive(self.clock.now_s())
-            if counted:  # after what it made due is written: a lockstep driver waiting on it finds that too
+            if counted:
                 self.counters["rx"] += 1
+            self.datagrams_done = self._datagrams_read  # after what it made due is written
+        self.datagrams_done = self._datagrams_read  # those that held no whole message too
         now = self.clock.now_s()
         self._flush()
-        self._keep_alive(now)
-        if now - self._last_rx_s > self.options.silence_timeout_s:
-            raise LinkError(f"nothing heard for {now - self._last_rx_s:.1f} s")
+        if timed:
+            self._keep_alive(now)
+            if now - self._last_rx_s > self.options.silence_timeout_s:
+                raise LinkError(f"nothing heard for {now - self._last_rx_s:.1f} s")
+        return now
 
     def _flush(self) -> None:
         now = self.clock.now_s()

@@ -97,8 +97,8 @@ class SimFlightController:
             raise LinkError(f"{url}: cannot open: {getattr(e, 'strerror', None) or e}") from e
         self.received: list[Received] = []
         self.sent_counts: dict[str, int] = {}
-        # Lockstep: called with each send (a function of no arguments) so the driver can hold the clock
-        # until the service has read the message, which it then stamps with the time it was sent.
+        # Lockstep: called with each send (a function of no arguments, one datagram) so the driver can
+        # hold the clock until the service has read it, and stamps it with the time it was sent.
         self.deliver: Callable[[Callable[[], None]], None] | None = None
         self.client_clock_s: list[float] = []  # per TIMESYNC request heard: simulation time at arrival minus the request's ts1
         self.params: dict[str, float] = {**VISION_READY_PARAMS[spec.autopilot], **{name: float(v) for name, v in spec.params}}
@@ -305,7 +305,10 @@ class SimFlightController:
         i = int(self._rng.integers(10, len(buf)))
         buf[i] ^= 0xFF
         junk = self._rng.integers(0, 256, int(self._rng.integers(1, 8)), dtype=np.uint8).tobytes()
-        self._conn.write(junk + bytes(buf))
+        if self.deliver is None:
+            self._conn.write(junk + bytes(buf))
+        else:
+            self.deliver(lambda: self._conn.write(junk + bytes(buf)))
 
     # ------------------------------------------------------------------ messages
 

@@ -121,27 +121,28 @@ class _Lockstep:
         self._started = False
 
     def deliver(self, send: Callable[[], None]) -> None:
-        """Send one flight-controller message, then wait until the service has read it (and written
-        what it made due): it stamps its arrival at the moment it was sent. A message to no one (the
-        service has not connected yet, or is reconnecting) is not waited for."""
-        before = self.daemon.progress().messages_received
+        """Send one flight-controller datagram (a message, or spoiled bytes), then wait until the
+        service has read it and written what it made due: it stamps its arrival at the moment it was
+        sent. A datagram to no one (the service has not connected yet, or is reconnecting) is not waited for."""
+        before = self.daemon.progress().datagrams_done
         send()
         address = self.daemon.link.local_address()
         if address is None or not self.sim.fc.sends_to(address):
             return
-        self._wait(lambda p: p.messages_received > before)
+        self._wait(lambda p: p.datagrams_done > before)
 
     def hold(self) -> None:
         """Before the clock moves on to the next frame: the service has done all it can with the frames
-        it was given and written what it sent, so the flight controller hears it at the same moment on
-        every run.
-        Before the first frame: the service's link is up and has said something (a listening flight
+        it was given and written what it sent, and its link has done what the clock made due (a tick),
+        so the flight controller hears it all at the same moment on every run. Before the first frame: the service's link is up and has said something (a listening flight
         controller knows it from then on), however long the service took to start."""
+        now = self.sim.clock.now_s()
+        self.daemon.tick()
         if self._started:
-            self._wait(lambda p: p.idle_after(p.frames_queued))
+            self._wait(lambda p: p.idle_after(p.frames_queued) and p.link_tick_s >= now)
         else:
             self._started = True
-            self._wait(lambda p: p.idle_after(p.frames_queued) and p.messages_sent > 0)
+            self._wait(lambda p: p.idle_after(p.frames_queued) and p.link_tick_s >= now and p.messages_sent > 0)
 
     def _wait(self, done: Callable[[LockstepProgress], bool]) -> None:
         if not self.daemon.wait_progress(done, _LOCKSTEP_WAIT_S) and not self.daemon.stop_event.is_set():
