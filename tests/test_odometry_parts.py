@@ -66,6 +66,33 @@ def test_carried_scale_and_the_fallback_order() -> None:
     assert scale_from_scene_depth(pts[:5], 30.0, "held", 12) is None
 
 
+def test_a_ground_fit_that_is_no_plane_gives_no_scale_and_the_carried_depths_take_over() -> None:
+    """A forward camera's few ground points, badly triangulated: their depths spread tens of times the
+    median (the forward scenario saw spreads of 8-53 where a good fit has 0.03-0.09) and the
+    rangefinder scale from them was 10-80x off; the keyframe placed with it moved 350 m. Such a fit is
+    refused and the next source in the order answers (here: flat ground seen obliquely, its depths spoiled)."""
+    rng = np.random.default_rng(4)
+    scene = make_scene(rng, 200, motion="forward", mount="oblique", structure="ground", distance_m=15.0)
+    lam1, _, par, valid, c2 = _unit_geometry(scene)
+    pts = lam1[valid, None] * scene.f1_lvl[valid]
+    below = pts[:, 2] > 0
+    assert np.count_nonzero(below) >= 12
+    spoiled = pts.copy()
+    spoiled[below, 2] *= np.exp(rng.normal(0.0, 3.0, np.count_nonzero(below)))  # depths all over the place
+    _, spread = ground_depth(spoiled, par[valid] ** 2, 12)
+    assert spread > 0.5
+    common = dict(
+        parallax_rad=par[valid], c2_lvl1=c2, down_lvl2=np.array([0.0, 0.0, 1.0]), range_m=3.0, height_m=None,
+        carried_depth_m=lam1[valid] * scene.baseline_m, depth_unit=lam1[valid], first_interval=False,
+    )
+    good = estimate_scale(ScaleOptions(source="rangefinder"), points_lvl=pts, **common)
+    assert good is not None and good.source == "rangefinder"  # a plane: the rangefinder answers
+    s = estimate_scale(ScaleOptions(source="rangefinder"), points_lvl=spoiled, **common)
+    assert s is not None and s.source == "carried" and s.baseline_m == pytest.approx(scene.baseline_m, rel=1e-9)
+    loose = estimate_scale(ScaleOptions(source="rangefinder", max_ground_spread=100.0), points_lvl=spoiled, **common)
+    assert loose is not None and loose.source == "rangefinder"  # the bound is what refused it
+
+
 def test_ground_depth_outvotes_raised_objects() -> None:
     rng = np.random.default_rng(3)
     pts = np.column_stack([rng.uniform(-5, 5, (300, 2)), np.full(300, 10.0)])

@@ -52,6 +52,9 @@ class ScaleOptions:
     min_parallax_deg: float = bounded(0.05, "points with less parallax than this are not triangulated", gt=0, le=90)
     carry_min_parallax_deg: float = bounded(1.0, "carried: only points triangulated with at least this parallax carry or compare depths", gt=0, le=90)
     max_depth_ratio: float = bounded(3.0, "carried: depth ratios further than this factor from their median are outliers", gt=1, le=1000)
+    max_ground_spread: float = bounded(
+        0.5, "rangefinder/altitude: a ground fit whose depths spread more than this (median absolute deviation over the median) gives no scale", gt=0, le=100,
+    )
 
 
 @dataclass(frozen=True)
@@ -159,7 +162,9 @@ def estimate_scale(
             ground = ground_depth(points_lvl, parallax_rad**2, options.min_points) or (float("nan"), 0.0)
         d1, spread = ground
         h2_unit = d1 - c2_lvl1[2]
-        if not (np.isfinite(h2_unit) and h2_unit > 0 and h2_m > 0):
+        # A spread of tens of times the depth is no plane (a forward camera's few ground points, badly
+        # triangulated): its scale was 10-80x off and moved the keyframe hundreds of metres.
+        if not (np.isfinite(h2_unit) and h2_unit > 0 and h2_m > 0) or spread > options.max_ground_spread:
             return None
         return ScaleEstimate(h2_m / h2_unit, source, int(np.count_nonzero(points_lvl[:, 2] > 0)), spread)
 
