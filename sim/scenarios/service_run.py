@@ -108,6 +108,7 @@ class SimRun:
 # before giving up on exact lockstep (counted in SimRun.lockstep_waits_expired). Generous: it is only
 # ever reached when the service is stuck, never on a busy machine.
 _LOCKSTEP_WAIT_S = 10.0
+_LOCKSTEP_POLL_S = 1e-4
 
 
 class _Lockstep:
@@ -134,20 +135,29 @@ class _Lockstep:
     def hold(self) -> None:
         """Before the clock moves on to the next frame: the service has done all it can with the frames
         it was given and written what it sent, and its link has done what the clock made due (a tick),
-        so the flight controller hears it all at the same moment on every run. Before the first frame: the service's link is up and has said something (a listening flight
-        controller knows it from then on), however long the service took to start."""
+        so the flight controller hears it all at the same moment on every run. Before the first frame
+        also: the link has said something (a listening flight controller knows the service from then
+        on), however long the service took to start."""
         now = self.sim.clock.now_s()
+        first, self._started = not self._started, True
         self.daemon.tick()
-        if self._started:
-            self._wait(lambda p: p.idle_after(p.frames_queued) and p.link_tick_s >= now)
-        else:
-            self._started = True
-            self._wait(lambda p: p.idle_after(p.frames_queued) and p.link_tick_s >= now and p.messages_sent > 0)
+        self._wait(lambda p: p.idle_after(p.frames_queued) and p.link_tick_s >= now and (p.messages_sent > 0 or not first))
 
     def _wait(self, done: Callable[[LockstepProgress], bool]) -> None:
-        if not self.daemon.wait_progress(done, _LOCKSTEP_WAIT_S) and not self.daemon.stop_event.is_set():
-            self.waits_expired += 1
-            log.warning("lockstep: the service did not catch up within %.0f s; this run may not repeat exactly (at %.3f s: %s)", _LOCKSTEP_WAIT_S, self.sim.clock.now_s(), self.daemon.progress())
+        """Until ``done(progress)`` holds or the daemon stops; bounded on this driver's own clock (the
+        daemon's wall clock may be a stopped test clock)."""
+        deadline = time.monotonic() + _LOCKSTEP_WAIT_S
+        while not done(self.daemon.progress()):
+            if self.daemon.stop_event.is_set():
+                return
+            if time.monotonic() > deadline:
+                self.waits_expired += 1
+                log.warning(
+                    "lockstep: the service did not catch up within %.0f s; this run may not repeat exactly (at %.3f s: %s)",
+                    _LOCKSTEP_WAIT_S, self.sim.clock.now_s(), self.daemon.progress(),
+                )
+                return
+            time.sleep(_LOCKSTEP_POLL_S)
 
 
 def run_daemon_in_sim(
