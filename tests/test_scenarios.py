@@ -164,22 +164,29 @@ def test_a_scenario_run_evaluates_what_the_flight_controller_received(mavutil, t
 
 
 def test_the_service_flown_twice_in_lockstep_sends_the_same_estimates_bit_for_bit(monkeypatch):
-    """Arrivals are stamped at the moment the simulated flight controller sent them (it holds the clock
-    until the service has read each message and written what it made due), pairing uses only what was
-    sent before the attitude that completed it, the clock moves to the next frame only when the service
-    has finished the last one and written its estimate: two runs send the same bytes, even when the
-    second is a slow, jittery service on a loaded machine (its link and worker stall at seeded random
-    moments for up to 40 ms, longer than a frame period).
-    (Before: yaw about 1 deg and positions up to 0.33 m apart from the first estimate on; then a run
-    on a loaded CI machine still differed from its twice at the 13th estimate.)"""
+    """The faults scenario's first 8 s, twice: a 1 s link silence, the link's silence check, its
+    reconnect back-off and new socket, the re-initialisation anchored at the simulated EKF's estimate.
+    The second run is a slow, jittery service on a loaded machine: its link and worker stall at seeded
+    random moments for up to 40 ms, longer than a frame period. Both send the same bytes: arrivals are
+    stamped when the simulated flight controller sent them (it holds the clock until the service has
+    read each datagram and written what it made due), the clock moves to the next frame only when the
+    service can do nothing more with the last, and the link does what time makes due at the driver's
+    ticks. (Before: yaw about 1 deg and positions up to 0.33 m apart from the first estimate on; then a
+    figure_eight run on a loaded CI machine differed from its twin at the 13th estimate, and faults runs
+    from the first estimate after the silence.)"""
+    import dataclasses
     import time
 
     from mavvo.service.daemon import Daemon
     from mavvo.service.link import Link
+    from mavvo.service.settings import ServiceConfig
     from sim.scenarios.service_run import run_daemon_in_sim
 
-    sc = load_scenario("figure_eight")
-    runs = [run_daemon_in_sim(sc, duration_s=5.0)]
+    sc = load_scenario("faults")
+    assert any(f.kind == "link_silence" and f.end_s < 7.0 for f in sc.faults)
+    base = ServiceConfig()
+    cfg = dataclasses.replace(base, link=dataclasses.replace(base.link, silence_timeout_s=0.5))  # the 1 s silence reconnects
+    runs = [run_daemon_in_sim(sc, cfg, duration_s=8.0)]
     rng = np.random.default_rng(7)
     handle, process = Link._handle, Daemon._process
 
@@ -195,31 +202,9 @@ def test_the_service_flown_twice_in_lockstep_sends_the_same_estimates_bit_for_bi
 
     monkeypatch.setattr(Link, "_handle", slow_handle)
     monkeypatch.setattr(Daemon, "_process", slow_process)
-    runs.append(run_daemon_in_sim(sc, duration_s=5.0))
-    assert [r.lockstep_waits_expired for r in runs] == [0, 0]
-    sent = [[(m.usec, m.x, m.y, m.z, m.roll, m.pitch, m.yaw, tuple(m.covariance), m.reset_counter) for m in r.vision_messages] for r in runs]
-    assert len(sent[0]) > 20
-    assert sent[0] == sent[1]
-
-
-def test_a_flight_with_a_link_silence_and_a_reconnect_repeats_bit_for_bit():
-    """The faults scenario's first 8 s: a 1 s link silence, the link's silence check, its reconnect
-    back-off and new socket, the re-initialisation anchored at the simulated EKF's estimate. The link
-    does what time makes due at the ticks the lockstep driver gives it, so two runs send the same bytes.
-    (Before: the reconnect came at whatever simulated time the link thread got to it, and the estimates
-    differed from the first one after the silence.)"""
-    import dataclasses
-
-    from mavvo.service.settings import ServiceConfig
-    from sim.scenarios.service_run import run_daemon_in_sim
-
-    sc = load_scenario("faults")
-    assert any(f.kind == "link_silence" and f.end_s < 7.0 for f in sc.faults)
-    base = ServiceConfig()
-    cfg = dataclasses.replace(base, link=dataclasses.replace(base.link, silence_timeout_s=0.5))  # the 1 s silence reconnects
-    runs = [run_daemon_in_sim(sc, cfg, duration_s=8.0) for _ in range(2)]
+    runs.append(run_daemon_in_sim(sc, cfg, duration_s=8.0))
     assert [r.lockstep_waits_expired for r in runs] == [0, 0]
     assert all(r.daemon.counters["link_reconnects"] >= 1 for r in runs)
-    sent = [[(m.usec, m.x, m.y, m.z, m.yaw, tuple(m.covariance), m.reset_counter) for m in r.vision_messages] for r in runs]
+    sent = [[(m.usec, m.x, m.y, m.z, m.roll, m.pitch, m.yaw, tuple(m.covariance), m.reset_counter) for m in r.vision_messages] for r in runs]
     assert len(sent[0]) > 50 and any(m[0] > 6_500_000 for m in sent[0])  # estimates after the silence
     assert sent[0] == sent[1]
