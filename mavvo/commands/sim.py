@@ -30,8 +30,8 @@ def add_parser(sub: Any) -> None:
         description=(
             "Fly a simulated drone: the mavvo service talks MAVLink 2 over UDP on 127.0.0.1 to a simulated flight "
             "controller and reads frames rendered by a simulated camera, then the estimates the flight controller "
-            "received are compared with the truth. Lockstep (as fast as the computer allows; the same estimates on every run, bit for bit, but for flights "
-            "that re-initialise, docs/service.md) "
+            "received are compared with the truth. Lockstep (as fast as the computer allows; the same estimates on every run, bit for bit, "
+            "however loaded the computer, docs/service.md) "
             "unless --realtime. With --fc-only, only the simulated flight controller runs, in real time, on --mavlink, "
             "for any MAVLink client (a ground station, a script, or mavvo run with camera.source sim:SCENARIO)."
         ),
