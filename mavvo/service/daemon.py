@@ -225,10 +225,11 @@ class Daemon:
 
     def wait_progress(self, done: Callable[[LockstepProgress], bool], timeout_s: float) -> bool:
         """Wait until ``done(self.progress())`` holds, at most ``timeout_s`` seconds of real time, or
-        until the daemon stops. Returns whether it holds. For lockstep drivers, on their own thread."""
-        deadline = self._wall.now_s() + timeout_s
+        until the daemon stops. Returns whether it holds. For lockstep drivers, on their own thread; the
+        bound is the driver's own monotonic clock, not the daemon's (which a test may have stopped)."""
+        deadline = time.monotonic() + timeout_s
         while not done(self.progress()):
-            if self.stop_event.is_set() or self._wall.now_s() > deadline:
+            if self.stop_event.is_set() or time.monotonic() > deadline:
                 return done(self.progress())
             time.sleep(_LOCKSTEP_POLL_S)
         return True

@@ -108,7 +108,6 @@ class SimRun:
 # before giving up on exact lockstep (counted in SimRun.lockstep_waits_expired). Generous: it is only
 # ever reached when the service is stuck, never on a busy machine.
 _LOCKSTEP_WAIT_S = 10.0
-_LOCKSTEP_POLL_S = 1e-4
 
 
 class _Lockstep:
@@ -144,20 +143,12 @@ class _Lockstep:
         self._wait(lambda p: p.idle_after(p.frames_queued) and p.link_tick_s >= now and (p.messages_sent > 0 or not first))
 
     def _wait(self, done: Callable[[LockstepProgress], bool]) -> None:
-        """Until ``done(progress)`` holds or the daemon stops; bounded on this driver's own clock (the
-        daemon's wall clock may be a stopped test clock)."""
-        deadline = time.monotonic() + _LOCKSTEP_WAIT_S
-        while not done(self.daemon.progress()):
-            if self.daemon.stop_event.is_set():
-                return
-            if time.monotonic() > deadline:
-                self.waits_expired += 1
-                log.warning(
-                    "lockstep: the service did not catch up within %.0f s; this run may not repeat exactly (at %.3f s: %s)",
-                    _LOCKSTEP_WAIT_S, self.sim.clock.now_s(), self.daemon.progress(),
-                )
-                return
-            time.sleep(_LOCKSTEP_POLL_S)
+        if not self.daemon.wait_progress(done, _LOCKSTEP_WAIT_S) and not self.daemon.stop_event.is_set():
+            self.waits_expired += 1
+            log.warning(
+                "lockstep: the service did not catch up within %.0f s; this run may not repeat exactly (at %.3f s: %s)",
+                _LOCKSTEP_WAIT_S, self.sim.clock.now_s(), self.daemon.progress(),
+            )
 
 
 def run_daemon_in_sim(
