@@ -307,6 +307,23 @@ def test_roll_pitch_errors_of_the_views_are_corrected_under_their_prior() -> Non
     assert closer >= 0.7 * trials, closer  # 24 of 30 when written
 
 
+def test_the_result_says_whether_roll_pitch_were_corrected() -> None:
+    """With parallax of a few attitude sigmas the views' roll/pitch are corrected; with a baseline
+    whose parallax is below their relative error they are kept as given and the result says so (the
+    odometry then widens the position noise by depth times that error); without a sigma, never."""
+    sigma = math.radians(0.2)
+    flags = {}
+    for baseline in (0.1, 0.005):  # of the scene distance: the small one still gives a translation, not a pure rotation
+        rng = np.random.default_rng(7)
+        scene = make_scene(rng, 300, motion="sideways", baseline_fraction=baseline, pixel_noise_px=0.3, imu_noise_rad=sigma / 4, focal_px=FOCAL_PX)
+        r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD, seed=1, attitude_sigma_rad=(sigma, sigma))
+        assert r.success
+        flags[baseline] = r.attitude_corrected
+        if baseline == 0.1:
+            assert not estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD, seed=1).attitude_corrected
+    assert flags == {0.1: True, 0.005: False}
+
+
 def test_an_attitude_far_worse_than_its_sigma_falls_back_to_the_general_five_point() -> None:
     """Roll/pitch 3 deg off per view while 0.2 deg is configured: where the upright model explains
     clearly fewer points, the general 5-point takes over and says so (model ``general``), and every

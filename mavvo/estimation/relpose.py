@@ -189,6 +189,9 @@ class UprightRelpose:
         residual_rms_rad: RMS error of the inliers (Sampson for essential, transfer for the others).
         iterations: samples drawn.
         tilt1_rad, tilt2_rad: (2,) roll/pitch corrections of each view's level frame (``tilt_sigma_deg``).
+        attitude_corrected: vision corrected roll/pitch; False when they were kept as given (too little
+            parallax to tell a tilt from a translation, or no attitude sigma): then their error moves
+            the translation by the scene's depth times it.
         stats: :class:`RelposeStats`.
     """
 
@@ -208,6 +211,7 @@ class UprightRelpose:
     tilt1_rad: np.ndarray
     tilt2_rad: np.ndarray
     stats: RelposeStats
+    attitude_corrected: bool = False
 
 
 @dataclass(frozen=True)
@@ -275,6 +279,7 @@ class _Fit:
     t_per_height: np.ndarray | None = None
     tilt1: np.ndarray = field(default_factory=lambda: np.zeros(2))
     tilt2: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    attitude_corrected: bool = False
 
 
 def _rotation_fit(R: np.ndarray, err_sq: np.ndarray) -> _Fit:
@@ -408,7 +413,8 @@ def _select(
             yaw, t = fit.yaw_rad, fit.t_2_1
             err_e = sampson_sq_upright(upright_e(yaw, t)[None], f1, f2)[0]
     sigma = _robust_sigma(err_e[err_e < thr_sq], max_err_rad)
-    essential = _Fit("essential", yaw, t, err_e, None, tilt1, tilt2)
+    corrected = attitude_sigma_rad is not None
+    essential = _Fit("essential", yaw, t, err_e, None, tilt1, tilt2, corrected)
 
     # GRIC runs on the essential inliers only: its outlier cap differs between models (2 for E, 4
     # for the others), so gross outliers, which fit none of them, would otherwise decide the choice.
@@ -416,7 +422,7 @@ def _select(
     inl_idx = np.nonzero(err_e < thr_sq)[0]
     gric = {"essential": _gric(err_e[inl_idx], sigma_sq, "essential")}
     R_rot = _refit_rotation(fit_rotation(f1[inl_idx], f2[inl_idx]), f1, f2, thr_sq)
-    rotation = None if R_rot is None else _Fit("rotation", yaw_of(R_rot), np.zeros(3), rotation_sq(R_rot, f1, f2), None, tilt1, tilt2)
+    rotation = None if R_rot is None else _Fit("rotation", yaw_of(R_rot), np.zeros(3), rotation_sq(R_rot, f1, f2), None, tilt1, tilt2, corrected)
     if rotation is not None:
         gric["rotation"] = _gric(rotation.err_sq[inl_idx], sigma_sq, "rotation")
         # Below about a pixel of parallax a translation direction is noise, and a near-vertical one
@@ -435,7 +441,7 @@ def _select(
             R, t_per_h = ground_pose_from_homography(H)
             nt = float(np.linalg.norm(t_per_h))
             if nt > 0:
-                ground = _Fit("ground", yaw_of(R), t_per_h / nt, ground_sq(H, f1, f2), t_per_h, tilt1, tilt2)
+                ground = _Fit("ground", yaw_of(R), t_per_h / nt, ground_sq(H, f1, f2), t_per_h, tilt1, tilt2, corrected)
     if opt.model == "auto":
         allowed: tuple[str, ...] = ("essential", "ground", "rotation")
     elif opt.model == "ground" and "ground" in gric:
@@ -534,7 +540,7 @@ def _general_if_attitude_is_worse(
         yaw -= float(w[2])
     T2 = rot_z(yaw) @ R.T
     tilt2 = cv2.Rodrigues(T2)[0][:2, 0]
-    return _Fit("general", yaw, T2 @ t, err, None, np.zeros(2), tilt2)
+    return _Fit("general", yaw, T2 @ t, err, None, np.zeros(2), tilt2, True)
 
 
 def _robust_sigma(err_sq_inliers: np.ndarray, max_err_rad: float) -> float:
@@ -565,6 +571,7 @@ def _result(fit: _Fit, thr_sq: float, iterations: int, stats: RelposeStats) -> U
         tilt1_rad=_frozen(fit.tilt1),
         tilt2_rad=_frozen(fit.tilt2),
         stats=stats,
+        attitude_corrected=fit.attitude_corrected,
     )
 
 
