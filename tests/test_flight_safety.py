@@ -139,7 +139,7 @@ def test_heading_is_taken_from_the_fc_once_its_yaw_has_settled():
     blind = dataclasses.replace(
         base, service=dataclasses.replace(base.service, heading_wait_max_s=0.0), odometry=dataclasses.replace(base.odometry, heading_correction_time_s=0.0)
     )
-    off = run_daemon_in_sim(dataclasses.replace(sc, duration_s=10.0), blind)  # the error is there from the start
+    off = run_daemon_in_sim(dataclasses.replace(sc, duration_s=7.0), blind)  # the error is there from the start
     assert off.safety.heading_end_error_deg > 5.0
 
 
