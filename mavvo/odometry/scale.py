@@ -52,6 +52,8 @@ class ScaleOptions:
     min_parallax_deg: float = bounded(0.05, "points with less parallax than this are not triangulated", gt=0, le=90)
     carry_min_parallax_deg: float = bounded(1.0, "carried: only points triangulated with at least this parallax carry or compare depths", gt=0, le=90)
     max_depth_ratio: float = bounded(3.0, "carried: depth ratios further than this factor from their median are outliers", gt=1, le=1000)
+    rangefinder_sigma_m: float = bounded(0.02, "rangefinder noise (1 sigma): its share of the scale's uncertainty is this over the range", ge=0, le=100)
+    altitude_sigma_m: float = bounded(0.1, "noise of the flight controller's height (1 sigma), the same for the altitude source", ge=0, le=1000)
     max_ground_spread: float = bounded(
         0.5, "rangefinder/altitude: a ground fit whose depths spread more than this (median absolute deviation over the median) gives no scale", gt=0, le=100,
     )
@@ -65,8 +67,9 @@ class ScaleEstimate:
         baseline_m: the metric length of the unit translation (the baseline), metres.
         source: :class:`~mavvo.types.ScaleSource` (never ``none``).
         points: how many triangulated points voted.
-        spread: relative spread of the votes (median absolute deviation over the median), for the
-            measurement covariance.
+        spread: relative uncertainty of the scale for the measurement covariance: the spread of the
+            votes (median absolute deviation over the median), with a height source's noise over the
+            height.
     """
 
     baseline_m: float
@@ -156,7 +159,7 @@ def estimate_scale(
     """
     ground = None
 
-    def from_height(h2_m: float, source: ScaleSource) -> ScaleEstimate | None:
+    def from_height(h2_m: float, source: ScaleSource, sigma_m: float) -> ScaleEstimate | None:
         nonlocal ground
         if ground is None:
             ground = ground_depth(points_lvl, parallax_rad**2, options.min_points) or (float("nan"), 0.0)
@@ -166,17 +169,19 @@ def estimate_scale(
         # triangulated): its scale was 10-80x off and moved the keyframe hundreds of metres.
         if not (np.isfinite(h2_unit) and h2_unit > 0 and h2_m > 0) or spread > options.max_ground_spread:
             return None
-        return ScaleEstimate(h2_m / h2_unit, source, int(np.count_nonzero(points_lvl[:, 2] > 0)), spread)
+        # A new reading every frame: its noise over the height is the scale's frame-to-frame error
+        # (2 cm at 0.5 m is 4%, what moved the landing's positions by centimetres).
+        return ScaleEstimate(h2_m / h2_unit, source, int(np.count_nonzero(points_lvl[:, 2] > 0)), float(np.hypot(spread, sigma_m / h2_m)))
 
     def rangefinder() -> ScaleEstimate | None:
         if range_m is None or not (np.isfinite(range_m) and range_m > 0) or down_lvl2[2] < 0.5:
             return None
-        return from_height(range_m * down_lvl2[2], ScaleSource.RANGEFINDER)
+        return from_height(range_m * down_lvl2[2], ScaleSource.RANGEFINDER, options.rangefinder_sigma_m)
 
     def altitude() -> ScaleEstimate | None:
         if height_m is None or not np.isfinite(height_m):
             return None
-        return from_height(height_m, ScaleSource.ALTITUDE)
+        return from_height(height_m, ScaleSource.ALTITUDE, options.altitude_sigma_m)
 
     def carried() -> ScaleEstimate | None:
         if len(depth_unit) < options.min_points:
@@ -190,7 +195,7 @@ def estimate_scale(
         return ScaleEstimate(float(np.exp(med)), ScaleSource.CARRIED, int(np.count_nonzero(ok)), float(np.median(np.abs(r[ok] - med))))
 
     def fixed() -> ScaleEstimate | None:
-        return from_height(options.fixed_height_m, ScaleSource.FIXED)
+        return from_height(options.fixed_height_m, ScaleSource.FIXED, 0.0)
 
     order = {
         "rangefinder": (rangefinder, carried),
