@@ -48,8 +48,14 @@ def _run(scenario: Scenario, options: dict | None = None, duration_s: float | No
 
 
 @functools.lru_cache(maxsize=None)
-def _shipped(name: str, scale_source: str = "rangefinder") -> Run:
-    return _run(load_scenario(name), {"scale": {"source": scale_source}})
+def _shipped(name: str, scale_source: str = "rangefinder", duration_s: float | None = None) -> Run:
+    return _run(load_scenario(name), {"scale": {"source": scale_source}}, duration_s)
+
+
+def _forward() -> Run:
+    """The forward camera's first 20 s (half the circle): the rangefinder's first interval, then
+    carried scale. (The whole circle flies in ``mavvo sim --scenario forward``.)"""
+    return _shipped("forward", "carried", 20.0)
 
 
 @pytest.mark.slow  # a 270 m survey, about a minute: make soak (make test keeps the square, forward and hover flights)
@@ -65,9 +71,7 @@ def test_survey_with_rangefinder_meets_the_accuracy_goal() -> None:
 
 
 def test_forward_camera_with_scale_carried_between_keyframes() -> None:
-    # The first 20 s (half the circle): the rangefinder's first interval, then carried. (The whole
-    # circle flies in mavvo sim --scenario forward.)
-    run = _run(load_scenario("forward"), {"scale": {"source": "carried"}}, duration_s=20.0)
+    run = _forward()
     ev = run.evaluation()
     assert run.resets == 0
     sources = {e.diagnostics.scale_source for e in run.good()}
@@ -146,7 +150,7 @@ def test_textureless_stretch_fails_then_recovers_with_one_reset() -> None:
 def test_no_frozen_pose_is_emitted() -> None:
     """While the drone moves, consecutive sendable estimates never repeat a position (starting from
     rest, the first frames carry no measurable translation and the filter has no velocity yet)."""
-    for run in (_textureless(), _shipped("forward", "carried")):
+    for run in (_textureless(), _forward()):
         good = [e for e in run.estimates if e.quality >= 0 and e.diagnostics.state != "initialising"]
         p = np.array([e.p_ned_m for e in good])
         truth = run.sequence.camera_truth(np.array([e.t_exposure_s for e in good])).positions_xyz_m
@@ -173,7 +177,7 @@ def test_same_frames_same_estimates() -> None:
 
 def test_north_comes_from_the_flight_controller_heading() -> None:
     """The world frame's x is north: the first estimate's yaw is the flight controller's yaw."""
-    run = _shipped("forward", "carried")
+    run = _forward()
     first = run.estimates[0]
     true_yaw = run.sequence.trajectory.state(first.t_exposure_s).yaw_rad
     assert abs(first.rpy_rad[2] - true_yaw) < np.radians(3 * run.sequence.scenario.flight_controller.yaw_noise_deg)
