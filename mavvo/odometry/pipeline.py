@@ -83,7 +83,7 @@ class OdometryOptions:
     min_inliers: int = bounded(20, "fewer inliers: no pose from this frame", ge=5, le=5000)
     good_inliers: int = bounded(120, "inliers for full quality", ge=5, le=5000)
     max_failed_frames: int = bounded(5, "frames in a row without a pose before the keyframe is given up", ge=1, le=1000)
-    position_sigma_m: float = bounded(0.002, "vision position noise at full quality with the scene 10 m away (it scales with the depth, down to a fifth of it), plus the scale spread times the baseline", gt=0, le=100)
+    position_sigma_m: float = bounded(0.002, "vision position noise from the image at full quality with the scene 10 m away (it scales with the depth, down to a fifth of it); the other terms: docs/odometry.md", gt=0, le=100)
     position_sigma_per_speed_s: float = bounded(0.0015, "vision position noise per m/s of speed (the translation's direction and length errors grow with the motion), seconds", ge=0, le=10)
     yaw_sigma_deg: float = bounded(0.3, "vision yaw noise at full quality", gt=0, le=180)
     attitude_sigma_deg: float = bounded(0.2, "roll/pitch uncertainty reported in the covariance", gt=0, le=90)
