@@ -312,16 +312,15 @@ def test_the_result_says_whether_roll_pitch_were_corrected() -> None:
     whose parallax is below their relative error they are kept as given and the result says so (the
     odometry then widens the position noise by depth times that error); without a sigma, never."""
     sigma = math.radians(0.2)
-    flags = {}
+    scenes = {}
     for baseline in (0.1, 0.005):  # of the scene distance: the small one still gives a translation, not a pure rotation
-        rng = np.random.default_rng(7)
-        scene = make_scene(rng, 300, motion="sideways", baseline_fraction=baseline, pixel_noise_px=0.3, imu_noise_rad=sigma / 4, focal_px=FOCAL_PX)
-        r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD, seed=1, attitude_sigma_rad=(sigma, sigma))
-        assert r.success
-        flags[baseline] = r.attitude_corrected
-        if baseline == 0.1:
-            assert not estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=THRESHOLD_RAD, seed=1).attitude_corrected
-    assert flags == {0.1: True, 0.005: False}
+        scenes[baseline] = make_scene(np.random.default_rng(7), 300, motion="sideways", baseline_fraction=baseline, pixel_noise_px=0.3,
+                                      imu_noise_rad=sigma / 4, focal_px=FOCAL_PX)
+    with_sigma = {b: estimate_upright_relpose(sc.f1_lvl, sc.f2_lvl, max_err_rad=THRESHOLD_RAD, seed=1, attitude_sigma_rad=(sigma, sigma)) for b, sc in scenes.items()}
+    assert all(r.success for r in with_sigma.values())
+    assert {b: r.attitude_corrected for b, r in with_sigma.items()} == {0.1: True, 0.005: False}
+    without = estimate_upright_relpose(scenes[0.1].f1_lvl, scenes[0.1].f2_lvl, max_err_rad=THRESHOLD_RAD, seed=1)
+    assert without.success and not without.attitude_corrected
 
 
 def test_an_attitude_far_worse_than_its_sigma_falls_back_to_the_general_five_point() -> None:

@@ -270,7 +270,7 @@ class Odometry:
             prior = self._last_yaw_2_1
         # With attitude correction on, the relative pose corrects both views' roll/pitch under the
         # flight controller's uncertainty, and what follows works in the corrected level frames.
-        sigmas = (kf.attitude_sigma_rad or self._att_sigma_rad, self._attitude_sigma_rad(frame)) if opt.ransac.attitude_correction else None
+        sigmas = self._view_attitude_sigmas_rad(kf, frame) if opt.ransac.attitude_correction else None
         rp = estimate_upright_relpose(
             f1, f2, max_err_rad=self._max_err_rad, seed=frame.seq, options=opt.ransac, yaw_prior_rad=prior, attitude_sigma_rad=sigmas,
         )
@@ -343,7 +343,7 @@ class Odometry:
             # Roll/pitch the relative pose kept as given (too little parallax to tell a tilt from a
             # translation) turn every bearing by their error: the translation moves by depth times it.
             # Corrected ones leave what the pairing's interpolation may add.
-            tilt_rad = frame.interpolation_sigma_rad if rp.attitude_corrected else math.hypot(kf.attitude_sigma_rad or self._att_sigma_rad, self._attitude_sigma_rad(frame))
+            tilt_rad = frame.interpolation_sigma_rad if rp.attitude_corrected else math.hypot(*self._view_attitude_sigmas_rad(kf, frame))
             unresolved += depth * tilt_rad
         elif rp.reason == RelposeFailure.PURE_ROTATION or m.parallax_px < _STILL_PARALLAX_PX:
             # No parallax the images resolve (the relative pose says pure rotation, or under a pixel
@@ -423,6 +423,10 @@ class Odometry:
     def _attitude_sigma_rad(self, frame: PairedFrame) -> float:
         """The frame's roll/pitch uncertainty: the flight controller's and the pairing's interpolation."""
         return math.hypot(self._att_sigma_rad, frame.interpolation_sigma_rad)
+
+    def _view_attitude_sigmas_rad(self, kf: Keyframe, frame: PairedFrame) -> tuple[float, float]:
+        """Roll/pitch uncertainty of the keyframe's view and of the frame's (1 sigma each)."""
+        return kf.attitude_sigma_rad or self._att_sigma_rad, self._attitude_sigma_rad(frame)
 
     def _estimate(self, frame: PairedFrame, diag: VoDiagnostics, quality: int, roll_pitch_rad: tuple[float, float] | None = None) -> PoseEstimate:
         f = self.filter
