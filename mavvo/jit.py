@@ -5,19 +5,60 @@ code on its first call and cached on disk, so later processes load it in millise
 ``NUMBA_CACHE_DIR`` when set (the systemd unit sets it; ``make setup`` warms it), else in
 ``__pycache__`` beside the source. ``NUMBA_DISABLE_JIT=1`` runs the same source as Python, for a
 debugger: kernels therefore guard their divisions themselves rather than rely on numba's error model.
+
+numba keys a cached kernel on its own file's contents only, yet compiles the kernels it calls into it:
+after a change to a callee in another file, the caller would load from the cache with the old callee.
+:func:`refresh_cache` therefore stamps each cache directory with a digest of every kernel's source and
+empties mavvo's entries there when the digest differs (``warm_kernels`` calls it first).
 """
 
 from __future__ import annotations
 
-from typing import Callable, TypeVar
+import hashlib
+import inspect
+from pathlib import Path
+from typing import Any, Callable, TypeVar
 
 import numba
 
-__all__ = ["kernel"]
+__all__ = ["kernel", "refresh_cache"]
 
 F = TypeVar("F", bound=Callable)
+
+_KERNELS: list[Any] = []  # every kernel made, for refresh_cache
+_STAMP_FILE = "mavvo-kernels.sha256"
 
 
 def kernel(fn: F) -> F:
     """``fn`` compiled in nopython mode, cached, releasing the GIL while it runs."""
-    return numba.njit(cache=True, nogil=True)(fn)  # type: ignore[return-value]
+    compiled = numba.njit(cache=True, nogil=True)(fn)
+    _KERNELS.append(compiled)
+    return compiled  # type: ignore[no-any-return]
+
+
+def refresh_cache() -> list[Path]:
+    """Empty mavvo's entries in every kernel cache directory whose stamp is not the digest of the
+    kernel sources loaded now, and stamp it; the cache files removed. Call it before the first kernel
+    runs. Nothing to do with ``NUMBA_DISABLE_JIT=1``; a directory that cannot be written is left as
+    numba found it (numba then looks elsewhere for a writable one)."""
+    caches = [k._cache for k in _KERNELS if hasattr(k, "_cache")]
+    if not caches:
+        return []
+    sources = sorted({Path(inspect.getsourcefile(k.py_func) or "") for k in _KERNELS})
+    digest = hashlib.sha256(b"".join(p.read_bytes() for p in sources)).hexdigest()
+    stems = {p.stem for p in sources}
+    removed: list[Path] = []
+    for cache_dir in sorted({Path(c.cache_path) for c in caches}):
+        stamp = cache_dir / _STAMP_FILE
+        try:
+            if stamp.is_file() and stamp.read_text().strip() == digest:
+                continue
+            for f in sorted(cache_dir.glob("*.nb[ic]")):
+                if f.name.split(".", 1)[0] in stems:  # <module>.<function>-<line>.py<version>...
+                    f.unlink()
+                    removed.append(f)
+            cache_dir.mkdir(parents=True, exist_ok=True)
+            stamp.write_text(digest + "\n")
+        except OSError:
+            continue
+    return removed

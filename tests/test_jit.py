@@ -80,3 +80,32 @@ def test_a_cold_cache_is_filled_and_then_used(tmp_path):
     assert len(filled) >= 20
     _warm(tmp_path)
     assert _cache_files(tmp_path) == filled
+
+
+# Two modules of kernels, the second calling the first (numba compiles the callee into the caller).
+_CALLEE = "from mavvo.jit import kernel\n\n@kernel\ndef value():\n    return {}\n"
+_CALLER = "from mavvo.jit import kernel\nfrom callee import value\n\n@kernel\ndef twice():\n    return 2 * value()\n"
+_MAIN = "import sys\nfrom mavvo.jit import refresh_cache\nimport caller\nif sys.argv[1] == 'refresh':\n    refresh_cache()\nprint(caller.twice())\n"
+
+
+def _twice(folder: Path, refresh: bool) -> int:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(folder), str(ROOT)]), "NUMBA_CACHE_DIR": str(folder / "cache")}
+    env.pop("NUMBA_DISABLE_JIT", None)
+    proc = subprocess.run(
+        [sys.executable, str(folder / "main.py"), "refresh" if refresh else "plain"], cwd=folder, env=env, capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    return int(proc.stdout)
+
+
+def test_a_kernel_is_compiled_again_when_a_kernel_it_calls_changed_in_another_file(tmp_path):
+    (tmp_path / "caller.py").write_text(_CALLER)
+    (tmp_path / "main.py").write_text(_MAIN)
+    (tmp_path / "callee.py").write_text(_CALLEE.format(1))
+    assert _twice(tmp_path, refresh=True) == 2  # compiled and cached
+    (tmp_path / "callee.py").write_text(_CALLEE.format(50))  # another size: no stale .pyc within the same second
+    # numba alone would load the caller with the old callee compiled in...
+    assert _twice(tmp_path, refresh=False) == 2
+    # ... the stamp of the sources sees the change and empties the cache first.
+    assert _twice(tmp_path, refresh=True) == 100
+    assert _twice(tmp_path, refresh=True) == 100  # and the new one is cached in turn
