@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mavvo.geometry.residuals import sampson_sq_kernel
 from mavvo.jit import kernel
 
 __all__ = ["UprightFit", "tilt_rotation", "refine_upright", "fit_ground_similarity", "fit_rotation"]
@@ -151,12 +152,20 @@ def gauss_newton_upright(
     x: np.ndarray, f1: np.ndarray, f2: np.ndarray, iterations: int, with_tilt: bool, prior_w: np.ndarray, noise_w: float, robust_c: float
 ) -> int:
     """The steps of :func:`refine_upright` on x = (yaw, t (3), d1 (2), d2 (2)), updated in place; the
-    number of steps taken. Per point the Jacobian row is accumulated straight into J^T J and J^T r."""
+    number of steps taken. Per point the Jacobian row is accumulated straight into J^T J and J^T r.
+
+    A step is taken only where it lowers the cost (:func:`_upright_cost`), halved up to
+    ``_MAX_HALVINGS`` times: with the roll/pitch free, a lateral translation over flat ground and a
+    tilt explain the same flow to first order, and a full Gauss-Newton step along that valley
+    overshot to the other pose a plane allows (the translation swapped with the ground's normal, a
+    tilt of several sigmas), which the cost itself does not prefer: 10-25 cm sideways in a hover
+    or a climb over flat ground."""
     n_params = 7 if with_tilt else 3
     steps = 0
     row = np.zeros(7)
+    x0 = x.copy()
+    cost = _upright_cost(x, f1, f2, with_tilt, prior_w, noise_w, robust_c)
     for it in range(1, iterations + 1):
-        steps = it
         yaw, t0, t1, t2 = x[0], x[1], x[2], x[3]
         T1 = tilt_matrix(x[4], x[5])
         T2 = tilt_matrix(x[6], x[7])
@@ -234,22 +243,61 @@ def gauss_newton_upright(
             JtJ[a, a] += 1e-12 * trace
         if not _solve_spd(JtJ, Jtr):
             break
-        # delta = -Jtr
-        x[0] -= Jtr[0]
-        t0 -= Jtr[1] * b10 + Jtr[2] * b20
-        t1 -= Jtr[1] * b11 + Jtr[2] * b21
-        t2 -= Jtr[1] * b12 + Jtr[2] * b22
-        nt = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
-        x[1], x[2], x[3] = t0 / nt, t1 / nt, t2 / nt
+        # delta = -Jtr, scaled by alpha until the cost goes down
+        x0[:] = x
+        alpha = 1.0
+        lowered = False
+        for _ in range(_MAX_HALVINGS + 1):
+            x[0] = x0[0] - alpha * Jtr[0]
+            u0 = t0 - alpha * (Jtr[1] * b10 + Jtr[2] * b20)
+            u1 = t1 - alpha * (Jtr[1] * b11 + Jtr[2] * b21)
+            u2 = t2 - alpha * (Jtr[1] * b12 + Jtr[2] * b22)
+            nt = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+            x[1], x[2], x[3] = u0 / nt, u1 / nt, u2 / nt
+            if with_tilt:
+                for a in range(4):
+                    x[4 + a] = x0[4 + a] - alpha * Jtr[3 + a]
+            new_cost = _upright_cost(x, f1, f2, with_tilt, prior_w, noise_w, robust_c)
+            if new_cost <= cost * (1.0 + 1e-9):  # equal to rounding: a converged step, taken
+                lowered = True
+                break
+            alpha *= 0.5
+        if not lowered:
+            x[:] = x0  # no step lowers the cost: at the minimum (to rounding)
+            break
+        cost = new_cost
+        steps = it
         biggest = 0.0
         for a in range(n_params):
-            biggest = max(biggest, abs(Jtr[a]))
-        if with_tilt:
-            for a in range(4):
-                x[4 + a] -= Jtr[3 + a]
+            biggest = max(biggest, abs(alpha * Jtr[a]))
         if biggest < 1e-8:
             break
     return steps
+
+
+_MAX_HALVINGS = 6
+
+
+@kernel
+def _upright_cost(x: np.ndarray, f1: np.ndarray, f2: np.ndarray, with_tilt: bool, prior_w: np.ndarray, noise_w: float, robust_c: float) -> float:
+    """The cost :func:`gauss_newton_upright` lowers at x: sum over points of the Cauchy loss
+    c^2 log(1 + r^2/c^2) of the Sampson residual r (r^2 without ``robust_c``), times ``noise_w``^2
+    with the tilts free, plus the prior's sum (prior_w d)^2."""
+    T1 = tilt_matrix(x[4], x[5])
+    T2 = tilt_matrix(x[6], x[7])
+    e = upright_vector(x[0], x[1:4])
+    g1 = f1 @ T1.T
+    g2 = f2 @ T2.T
+    err_sq = sampson_sq_kernel(e.reshape(1, 6), g1, g2)[0]
+    total = 0.0
+    c_sq = robust_c * robust_c
+    for i in range(err_sq.shape[0]):
+        total += c_sq * math.log1p(err_sq[i] / c_sq) if robust_c > 0.0 else err_sq[i]
+    if with_tilt:
+        total *= noise_w * noise_w
+        for a in range(4):
+            total += (prior_w[a] * x[4 + a]) ** 2
+    return total
 
 
 def fit_ground_similarity(f1: np.ndarray, f2: np.ndarray) -> tuple[complex, complex] | None:
