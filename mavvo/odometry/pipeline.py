@@ -83,8 +83,8 @@ class OdometryOptions:
     min_inliers: int = bounded(20, "fewer inliers: no pose from this frame", ge=5, le=5000)
     good_inliers: int = bounded(120, "inliers for full quality", ge=5, le=5000)
     max_failed_frames: int = bounded(5, "frames in a row without a pose before the keyframe is given up", ge=1, le=1000)
-    position_sigma_m: float = bounded(0.002, "vision position noise from the image at full quality with the scene 10 m away (it scales with the depth, down to a fifth of it); the other terms: docs/odometry.md", gt=0, le=100)
-    position_sigma_per_speed_s: float = bounded(0.0015, "vision position noise per m/s of speed (the translation's direction and length errors grow with the motion), seconds", ge=0, le=10)
+    position_sigma_m: float = bounded(0.0012, "vision position noise from the image at full quality with the scene 10 m away (it scales with the depth, down to a fifth of it); the other terms: docs/odometry.md", gt=0, le=100)
+    position_sigma_per_speed_s: float = bounded(0.003, "vision position noise per m/s of speed (the translation's direction and length errors grow with the motion), seconds", ge=0, le=10)
     yaw_sigma_deg: float = bounded(0.3, "vision yaw noise at full quality", gt=0, le=180)
     attitude_sigma_deg: float = bounded(0.2, "roll/pitch uncertainty reported in the covariance", gt=0, le=90)
     heading_correction_time_s: float = bounded(10.0, "pull the vision heading toward the flight controller's yaw with this time constant (0: vision's heading alone)", ge=0, le=3600)
@@ -339,12 +339,16 @@ class Odometry:
         depth = self._scene_depth_m or opt.scale.initial_depth_m
         p_meas: np.ndarray | None = m.p_ned_m
         if m.scale is not None:
-            unresolved = m.scale.spread * float(np.linalg.norm(m.c2_m)) + opt.position_sigma_per_speed_s * float(np.linalg.norm(self.filter.velocity_ned_m_s))
             # Roll/pitch the relative pose kept as given (too little parallax to tell a tilt from a
             # translation) turn every bearing by their error: the translation moves by depth times it.
-            # Corrected ones leave what the pairing's interpolation may add.
+            # Corrected ones leave what the pairing's interpolation may add. Independent sources: they
+            # add in quadrature.
             tilt_rad = frame.interpolation_sigma_rad if rp.attitude_corrected else math.hypot(*self._view_attitude_sigmas_rad(kf, frame))
-            unresolved += depth * tilt_rad
+            unresolved = math.hypot(
+                m.scale.spread * float(np.linalg.norm(m.c2_m)),
+                opt.position_sigma_per_speed_s * float(np.linalg.norm(self.filter.velocity_ned_m_s)),
+                depth * tilt_rad,
+            )
         elif rp.reason == RelposeFailure.PURE_ROTATION or m.parallax_px < _STILL_PARALLAX_PX:
             # No parallax the images resolve (the relative pose says pure rotation, or under a pixel
             # with nothing triangulated): the frame is where its keyframe is, within the baseline the
@@ -353,7 +357,7 @@ class Odometry:
         else:
             # Parallax, but too few points to triangulate: the translation is not measured.
             p_meas, unresolved = None, 0.0
-        pos_sigma = (opt.position_sigma_m * max(depth / _REFERENCE_DEPTH_M, 0.2) + unresolved) * 100.0 / quality
+        pos_sigma = math.hypot(opt.position_sigma_m * max(depth / _REFERENCE_DEPTH_M, 0.2), unresolved) * 100.0 / quality
         yaw_sigma = self._yaw_sigma_rad * 100.0 / quality
         self.filter.predict(frame.t_exposure_s)
         outcome = self.filter.update(p_meas, m.yaw_rad, pos_sigma_m=pos_sigma, yaw_sigma_rad=yaw_sigma)
