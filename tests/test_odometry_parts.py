@@ -169,6 +169,48 @@ def test_filter_follows_constant_velocity_and_rejects_a_jump() -> None:
     assert np.all(np.linalg.eigvalsh(f.position_covariance) > 0)
 
 
+def test_filter_steps_match_filterpys_kalman_filter() -> None:
+    """The predict/update steps written out in the filter give what filterpy's KalmanFilter gives for
+    the same F, Q, H, R (filterpy: the reference, in the test dependencies only), position-and-yaw and
+    yaw-only updates mixed, irregular times."""
+    from filterpy.kalman import KalmanFilter
+
+    from mavvo.odometry.filter import _H
+
+    rng = np.random.default_rng(12)
+    opt = FilterOptions(max_rejections=1000, gate_probability=0.999999)
+    f = PoseFilter(opt)
+    f.reset(0.0, np.array([1.0, -2.0, 0.5]), 0.3, pos_sigma_m=0.05, yaw_sigma_rad=0.02)
+    ref = KalmanFilter(dim_x=8, dim_z=4)
+    ref.x = f._x.copy()
+    ref.P = f._P.copy()
+    t = 0.0
+    for k in range(60):
+        dt = float(rng.uniform(0.02, 0.2))
+        t += dt
+        f.predict(t)
+        F = np.eye(8)
+        F[0, 3] = F[1, 4] = F[2, 5] = F[6, 7] = dt
+        q = np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
+        Q = np.zeros((8, 8))
+        for i in range(3):
+            Q[np.ix_([i, i + 3], [i, i + 3])] = q * opt.accel_sigma_m_s2**2
+        Q[6:8, 6:8] = q * opt.yaw_accel_sigma_rad_s2**2
+        ref.predict(F=F, Q=Q)
+        yaw = float(ref.x[6, 0] + rng.normal(0, 0.02))
+        sp, sy = float(rng.uniform(0.01, 0.1)), float(rng.uniform(0.005, 0.05))
+        if k % 4 == 3:
+            assert f.update(None, yaw, pos_sigma_m=sp, yaw_sigma_rad=sy) == Update.FUSED
+            ref.update(np.array([[yaw]]), R=np.array([[sy**2]]), H=_H[3:4])
+        else:
+            p = ref.x[0:3, 0] + rng.normal(0, 0.05, 3)
+            assert f.update(p, yaw, pos_sigma_m=sp, yaw_sigma_rad=sy) == Update.FUSED
+            ref.update(np.array([[*p, yaw]]).T, R=np.diag([sp**2] * 3 + [sy**2]), H=_H)
+        np.testing.assert_allclose(f._x, ref.x, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(f._P, ref.P, rtol=1e-8, atol=1e-14)
+    assert np.linalg.norm(f.velocity_ned_m_s) > 0  # the velocity was estimated, not left at its start
+
+
 @pytest.mark.parametrize(
     "probability, dof, table",  # chi-square quantiles as printed in statistics tables
     [(0.999, 4, 18.467), (0.999, 1, 10.828), (0.95, 3, 7.815), (0.99, 2, 9.210), (0.95, 1, 3.841)],

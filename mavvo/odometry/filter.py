@@ -1,4 +1,4 @@
-"""A small constant-velocity Kalman filter on NED position and yaw (the only filterpy importer).
+"""A small constant-velocity Kalman filter on NED position and yaw.
 
 State (8): position x, y, z (m), velocity (m/s), yaw (rad, kept continuous, not wrapped) and yaw rate
 (rad/s). Process noise is white acceleration (``accel_sigma_m_s2``) and white yaw acceleration.
@@ -8,6 +8,11 @@ update, the innovation's squared Mahalanobis distance is compared with the chi-s
 1 for yaw alone): a jump beyond it is rejected. After ``max_rejections`` rejections in a row the
 filter believes the measurements again and restarts at the latest one (keeping its velocity), so a
 real change is followed instead of coasted past.
+
+The predict and update steps are written out here (a dozen lines of numpy, the equations beside them)
+rather than taken from filterpy: importing filterpy's KalmanFilter loads its whole package and
+scipy.stats with it, 0.8 s of the service's 1.3 s of imports before its first estimate.
+``tests/test_odometry_parts.py`` checks the steps against filterpy's.
 """
 
 from __future__ import annotations
@@ -18,7 +23,6 @@ import enum
 import math
 
 import numpy as np
-from filterpy.kalman import KalmanFilter
 
 from mavvo.options import bounded
 
@@ -82,8 +86,8 @@ class PoseFilter:
 
     def __init__(self, options: FilterOptions | None = None) -> None:
         self.options = options or FilterOptions()
-        self._kf = KalmanFilter(dim_x=_DIM_X, dim_z=_DIM_Z)
-        self._kf.H = _H
+        self._x = np.zeros((_DIM_X, 1))  # state (column)
+        self._P = np.eye(_DIM_X)  # its covariance
         self._t_s: float | None = None
         self.rejections = 0
         # Gate per measurement size: position and yaw (4), yaw alone (1).
@@ -103,8 +107,8 @@ class PoseFilter:
         sw = opt.initial_yaw_rate_sigma_rad_s
         if yaw_rate_rad_s is not None:
             x[7, 0], sw = yaw_rate_rad_s, 0.1
-        self._kf.x = x
-        self._kf.P = np.diag([pos_sigma_m**2] * 3 + [opt.initial_velocity_sigma_m_s**2] * 3 + [yaw_sigma_rad**2, sw**2])
+        self._x = x
+        self._P = np.diag([pos_sigma_m**2] * 3 + [opt.initial_velocity_sigma_m_s**2] * 3 + [yaw_sigma_rad**2, sw**2])
         self._t_s = float(t_s)
         self.rejections = 0
 
@@ -122,7 +126,8 @@ class PoseFilter:
         for i in range(3):
             Q[np.ix_([i, i + 3], [i, i + 3])] = q * self.options.accel_sigma_m_s2**2
         Q[6:8, 6:8] = q * self.options.yaw_accel_sigma_rad_s2**2
-        self._kf.predict(F=F, Q=Q)
+        self._x = F @ self._x  # x = F x
+        self._P = F @ self._P @ F.T + Q  # P = F P F' + Q
         self._t_s = float(t_s)
 
     def update(self, p_ned_m: np.ndarray | None, yaw_rad: float, *, pos_sigma_m: float, yaw_sigma_rad: float) -> Update:
@@ -130,56 +135,59 @@ class PoseFilter:
 
         ``p_ned_m`` None measures the yaw only (vision saw a rotation but no translation).
         """
-        kf = self._kf
+        x, P = self._x, self._P
         rows = slice(0, 4) if p_ned_m is not None else slice(3, 4)
         H = _H[rows]
         z = np.empty((_DIM_Z, 1))
         if p_ned_m is not None:
             z[0:3, 0] = p_ned_m
-        z[3, 0] = kf.x[6, 0] + wrap_angle(yaw_rad - kf.x[6, 0])
+        z[3, 0] = x[6, 0] + wrap_angle(yaw_rad - x[6, 0])
         z = z[rows]
         R = np.diag([pos_sigma_m**2] * 3 + [yaw_sigma_rad**2])[rows, rows]
-        y = z - H @ kf.x  # innovation y = z - H x
-        S = H @ kf.P @ H.T + R  # its covariance S = H P H' + R
+        y = z - H @ x  # innovation y = z - H x
+        S = H @ P @ H.T + R  # its covariance S = H P H' + R
         d2 = float((y.T @ np.linalg.solve(S, y))[0, 0])  # squared Mahalanobis distance y' S^-1 y
         if d2 > self._gate[len(z)]:
             self.rejections += 1
             if self.rejections < self.options.max_rejections:
                 return Update.REJECTED
-            p = kf.x[0:3, 0] if p_ned_m is None else p_ned_m
-            self.reset(self._t_s, p, z[-1, 0], v_ned_m_s=kf.x[3:6, 0], yaw_rate_rad_s=float(kf.x[7, 0]), pos_sigma_m=pos_sigma_m, yaw_sigma_rad=yaw_sigma_rad)
+            p = x[0:3, 0] if p_ned_m is None else p_ned_m
+            self.reset(self._t_s, p, z[-1, 0], v_ned_m_s=x[3:6, 0], yaw_rate_rad_s=float(x[7, 0]), pos_sigma_m=pos_sigma_m, yaw_sigma_rad=yaw_sigma_rad)
             return Update.RESTARTED
         self.rejections = 0
-        kf.update(z, R=R, H=H)  # x += K y, P = (I - K H) P
+        K = np.linalg.solve(S, H @ P).T  # gain K = P H' S^-1 (S and P symmetric)
+        self._x = x + K @ y  # x = x + K y
+        I_KH = np.eye(_DIM_X) - K @ H
+        self._P = I_KH @ P @ I_KH.T + K @ R @ K.T  # P = (I - K H) P (I - K H)' + K R K' (Joseph: stays symmetric, positive)
         return Update.FUSED
 
     def shift_yaw(self, delta_rad: float) -> None:
         """Turn the yaw state by ``delta_rad`` (the world heading was corrected; nothing measured)."""
-        self._kf.x[6, 0] += delta_rad
+        self._x[6, 0] += delta_rad
 
     @property
     def position_ned_m(self) -> np.ndarray:
-        return self._kf.x[0:3, 0].copy()
+        return self._x[0:3, 0].copy()
 
     @property
     def velocity_ned_m_s(self) -> np.ndarray:
-        return self._kf.x[3:6, 0].copy()
+        return self._x[3:6, 0].copy()
 
     @property
     def yaw_rad(self) -> float:
-        return wrap_angle(float(self._kf.x[6, 0]))
+        return wrap_angle(float(self._x[6, 0]))
 
     @property
     def position_covariance(self) -> np.ndarray:
         """(3,3) m^2."""
-        return self._kf.P[0:3, 0:3].copy()
+        return self._P[0:3, 0:3].copy()
 
     @property
     def velocity_covariance(self) -> np.ndarray:
         """(3,3) (m/s)^2."""
-        return self._kf.P[3:6, 3:6].copy()
+        return self._P[3:6, 3:6].copy()
 
     @property
     def yaw_variance(self) -> float:
         """rad^2."""
-        return float(self._kf.P[6, 6])
+        return float(self._P[6, 6])
