@@ -44,7 +44,7 @@ def refresh_cache() -> list[Path]:
     caches = [k._cache for k in _KERNELS if hasattr(k, "_cache")]
     if not caches:
         return []
-    sources = sorted({Path(inspect.getsourcefile(k.py_func) or "") for k in _KERNELS})
+    sources = sorted({Path(f) for k in _KERNELS if (f := inspect.getsourcefile(k.py_func))})
     digest = hashlib.sha256(b"".join(p.read_bytes() for p in sources)).hexdigest()
     stems = {p.stem for p in sources}
     removed: list[Path] = []

@@ -9,7 +9,9 @@ import pytest
 
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import angle_between_rad, rotation_angle_rad
+from mavvo.estimation.estimators import yaw_of
 from mavvo.estimation.relpose import RelposeOptions, estimate_relpose_known_gravity, estimate_upright_relpose, required_iterations
+from mavvo.geometry.refine import refine_upright
 from sim.world.twoview import add_outliers, make_scene
 
 FOCAL_PX = 500.0
@@ -172,9 +174,6 @@ def test_the_refinement_with_free_roll_pitch_stays_with_the_pose_over_flat_groun
     """Over flat ground a lateral translation and a tilt explain the same flow to first order: full
     Gauss-Newton steps from the true pose crossed to the plane's other pose (a translation far from
     the truth) in 14 of 200 small-baseline scenes; steps that must lower the cost leave 3."""
-    from mavvo.geometry.refine import refine_upright
-    from mavvo.estimation.estimators import yaw_of
-
     rng = np.random.default_rng(5)
     sigma, noise = np.radians(0.2), 0.1 / FOCAL_PX
     away = 0
