@@ -9,7 +9,7 @@ import pytest
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import R_BODY_CAM_FORWARD, R_BODY_CAM_NADIR, R_from_euler321, rot_y
 from sim.world.render import Renderer, apply_effects
-from sim.world.scene import BoxSpec, World, WorldSpec
+from sim.world.scene import BoxSpec, TextureLayer, World, WorldSpec
 
 PINHOLE = CameraModel(640, 480, 500.0, 500.0, 319.5, 239.5)
 RADTAN = CameraModel(640, 480, 420.0, 420.0, 322.0, 236.0, "pinhole", (-0.28, 0.07, 0.0005, -0.0003))
@@ -127,3 +127,17 @@ def test_effects_gain_noise_and_blur():
     assert np.array_equal(vertical[10:90], img[10:90])  # blur along the edge changes nothing
     with pytest.raises(ValueError, match="rng"):
         apply_effects(img, noise_sigma=1.0, rng=None)
+
+
+@pytest.mark.parametrize("pitch_rad, height_m", [(-0.25, 2.0), (-0.6, 1.0), (0.0, 40.0)])
+def test_every_layer_is_drawn_wherever_it_has_weight(pitch_rad, height_m):
+    """Each layer is warped only inside the box where its weights are not zero: with layers of constant
+    grey 101..105 and sky at 200, a pixel darker than 101 would be a layer cut off where it still counts.
+    Forward views with the horizon in the picture put the layers in bands of rows."""
+    layers = tuple(TextureLayer(np.full((64, 64), 101 + k, np.uint8), 0.004 * 8**k) for k in range(5))
+    world = World(layers, (), WorldSpec())
+    mount = R_BODY_CAM_FORWARD if height_m < 10 else R_BODY_CAM_NADIR
+    R_ned_cam = R_from_euler321(0.03, pitch_rad, 0.4) @ mount
+    img = Renderer(world, PINHOLE).render(R_ned_cam, np.array([3.7, -1.2, -height_m]))
+    assert img.min() >= 101, f"{np.count_nonzero(img < 101)} pixels darker than every layer"
+    assert img.max() >= 102 if height_m < 10 else img.max() <= 105  # the forward views blend several layers
