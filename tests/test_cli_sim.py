@@ -3,6 +3,7 @@ command, which stops cleanly on SIGINT and writes what it received."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import signal
@@ -14,6 +15,7 @@ import pytest
 
 from conftest import free_port
 from mavvo.cli import main
+from sim.scenarios.loader import load_scenario
 
 
 def test_fc_only_serves_a_plain_pymavlink_client(mavutil, tmp_path):
@@ -62,11 +64,31 @@ def test_sim_arguments_are_checked(capsys):
     assert "--mavlink udpin:127.0.0.1:99999: cannot open" in capsys.readouterr().err
     assert main(["sim", "--fc-only", "--mavlink", "/dev/ttyUSB0"]) == 2
     assert "expected a socket connection string starting with udpin:" in capsys.readouterr().err
+    assert main(["sim", "--seed", "-1"]) == 2
+    assert "--seed: expected an integer >= 0, got -1" in capsys.readouterr().err
     assert main(["sim", "--list"]) == 0
     assert "survey" in capsys.readouterr().out
     with pytest.raises(SystemExit) as e:
         main(["sim", "--help"])
     assert e.value.code == 0
+
+
+def test_sim_seed_replaces_the_scenarios_own(monkeypatch):
+    """``--seed`` flies the scenario with another noise draw (what the run does with a seed is the
+    simulator's, tested there): the scenario handed to the run carries it, and only with --seed."""
+    flown = []
+
+    def capture(scenario, *args, **kwargs):
+        flown.append(scenario)
+        raise RuntimeError("stopped before flying")  # the command reports it and exits 1
+
+    monkeypatch.setattr("sim.scenarios.service_run.run_daemon_in_sim", capture)
+    own = load_scenario("hover")
+    assert own.seed != 7
+    assert main(["sim", "--scenario", "hover", "--seed", "7"]) == 1
+    assert main(["sim", "--scenario", "hover"]) == 1
+    assert [s.seed for s in flown] == [7, own.seed]
+    assert flown[0] == dataclasses.replace(own, seed=7)  # nothing else changed
 
 
 def test_sim_realtime_json_summary(tmp_path):
