@@ -373,6 +373,30 @@ def test_an_attitude_far_worse_than_its_sigma_falls_back_to_the_general_five_poi
         assert r.success and r.model == "essential"
 
 
+def test_the_attitude_is_judged_by_the_upright_essential_not_by_the_model_gric_chose() -> None:
+    """A ground homography that GRIC preferred explains only the points on the ground: judged by it, the
+    attitude looked bad and the general 5-point took over (over flat ground it then found the plane's
+    other pose, a 10 deg tilt and a vertical translation, in the faults flight). The attitude is judged
+    by the upright essential fit, which explains the scene with the roll/pitch as given."""
+    from mavvo.estimation.relpose import _Fit, _general_if_attitude_is_worse
+    from mavvo.geometry.residuals import sampson_sq_upright
+    from mavvo.estimation.estimators import upright_e
+
+    scene, outlier = _scene(31, n=300, outliers=0.1, motion="sideways", depth_fraction=1.0)
+    f1, f2 = scene.f1_lvl, scene.f2_lvl
+    err_e = sampson_sq_upright(upright_e(yaw_of(scene.R_2_1), scene.t_2_1)[None], f1, f2)[0]
+    essential = _Fit("essential", yaw_of(scene.R_2_1), scene.t_2_1, err_e)
+    err_g = err_e.copy()
+    err_g[::2] = 1.0  # half of the points off the ground plane
+    ground = _Fit("ground", yaw_of(scene.R_2_1), scene.t_2_1, err_g)
+    candidates = err_e < (3 * THRESHOLD_RAD) ** 2
+    sigmas = (math.radians(0.2), math.radians(0.2))
+    assert np.count_nonzero(err_e < THRESHOLD_RAD**2) >= 0.6 * np.count_nonzero(candidates) > np.count_nonzero(err_g < THRESHOLD_RAD**2)
+    judged_by_ground = _general_if_attitude_is_worse(f1, f2, ground, ground, sigmas, THRESHOLD_RAD, 0, candidates)
+    assert judged_by_ground.model == "general"  # what happened before: the fit was the judge
+    assert _general_if_attitude_is_worse(f1, f2, ground, essential, sigmas, THRESHOLD_RAD, 0, candidates) is ground
+
+
 def test_the_attitude_path_never_raises_on_hopeless_input() -> None:
     """Correspondences that are mostly or all noise, with an attitude sigma: a result or a failure with a
     reason, never an exception (the flight benchmark once found a refinement that lost every inlier and

@@ -374,9 +374,9 @@ def estimate_upright_relpose(
             return _failure(RelposeFailure.NO_MODEL, n, rs.iterations, RelposeStats(rs))
         fit = _rotation_fit(rot.model[0], rotation_sq(rot.model[0], f1, f2))
     else:
-        fit, sigma, gric = _select(f1, f2, run, opt, max_err_rad, rng, attitude_sigma_rad, sample_thr)
+        fit, essential, sigma, gric = _select(f1, f2, run, opt, max_err_rad, rng, attitude_sigma_rad, sample_thr)
         if attitude_sigma_rad is not None and fit.model != "rotation":
-            fit = _general_if_attitude_is_worse(f1, f2, fit, attitude_sigma_rad, max_err_rad, seed, run.inliers)
+            fit = _general_if_attitude_is_worse(f1, f2, fit, essential, attitude_sigma_rad, max_err_rad, seed, run.inliers)
     final = RelposeStats(rs, sigma, gric, time.thread_time() - t_refine)
     return _result(fit, thr_sq, rs.iterations, final)
 
@@ -384,10 +384,10 @@ def estimate_upright_relpose(
 def _select(
     f1: np.ndarray, f2: np.ndarray, run: RansacResult, opt: RelposeOptions, max_err_rad: float, rng: np.random.Generator,
     attitude_sigma_rad: tuple[float, float] | None, sample_thr: float,
-) -> tuple[_Fit, float, dict[str, float]]:
+) -> tuple[_Fit, _Fit, float, dict[str, float]]:
     """Refine the essential model found, then choose between it, the ground homography and a pure
     rotation (GRIC) on the bearings with the roll/pitch corrections the refinement found: the chosen
-    fit, the noise sigma and the GRIC scores."""
+    fit, the refined essential fit (what the attitude is judged by), the noise sigma and the GRIC scores."""
     thr_sq = max_err_rad**2
     assert run.model is not None
     pose = decompose_upright(run.model[0], f1[run.inliers], f2[run.inliers])
@@ -432,7 +432,7 @@ def _select(
         err_yaw = rotation_sq(rot_z(rotation.yaw), f1[inl_idx], f2[inl_idx])
         parallax = float(np.median(np.sqrt(2.0 * err_yaw))) if len(inl_idx) else 0.0
         if parallax < opt.min_parallax_ratio * max_err_rad:
-            return rotation, sigma, gric
+            return rotation, essential, sigma, gric
     ground = None
     if opt.model in ("auto", "ground"):
         H = _ground_model(f1, f2, inl_idx, opt, max_err_rad, rng)
@@ -450,7 +450,7 @@ def _select(
         allowed = ("essential", "rotation")
     choice = min((m for m in gric if m in allowed), key=gric.__getitem__, default="essential")
     fits = {"essential": essential, "rotation": rotation, "ground": ground}
-    return fits[choice] or essential, sigma, gric
+    return fits[choice] or essential, essential, sigma, gric
 
 
 def _refine_with_attitude(
@@ -513,16 +513,22 @@ def _attitude_rounds(x: np.ndarray, f1: np.ndarray, f2: np.ndarray, sigmas: np.n
 
 
 def _general_if_attitude_is_worse(
-    f1: np.ndarray, f2: np.ndarray, fit: _Fit, attitude_sigma_rad: tuple[float, float], max_err_rad: float, seed: int, candidates: np.ndarray,
+    f1: np.ndarray, f2: np.ndarray, fit: _Fit, essential: _Fit, attitude_sigma_rad: tuple[float, float], max_err_rad: float, seed: int,
+    candidates: np.ndarray,
 ) -> _Fit:
-    """The general 5-point pose instead of ``fit`` when the attitude looks worse than its sigma says (the
-    corrections beyond 3 sigma, or under 60% of the points the sampling admitted explained) and the general model explains
-    clearly more points (25%). It is searched among the points the sampling's widened threshold
-    admitted (``candidates``: the true inliers and few others, so it is quick), and counted on all.
-    Its rotation is given as a yaw and a tilt correction of view 2."""
+    """The general 5-point pose instead of ``fit`` (the model chosen) when the attitude looks worse than
+    its sigma says and the general model explains clearly more points (25%) than the upright essential.
+    The attitude is judged by the upright ``essential`` fit, the model that holds for any scene given
+    the roll/pitch: its corrections beyond 3 sigma, or under 60% of the points the sampling admitted
+    explained. (Judged by a ground homography that GRIC preferred, the points off the ground plane
+    would pass for a bad attitude, and over flat ground the general model then finds the plane's
+    other pose: a 10 deg tilt and a vertical translation in the ``faults`` flight.) The general model
+    is searched among the points the sampling's widened threshold admitted (``candidates``: the true
+    inliers and few others, so it is quick), and counted on all. Its rotation is given as a yaw and a
+    tilt correction of view 2."""
     thr_sq = max_err_rad**2
-    upright = int(np.count_nonzero(fit.err_sq < thr_sq))
-    beyond = np.linalg.norm(fit.tilt1) > 3 * attitude_sigma_rad[0] or np.linalg.norm(fit.tilt2) > 3 * attitude_sigma_rad[1]
+    upright = int(np.count_nonzero(essential.err_sq < thr_sq))
+    beyond = np.linalg.norm(essential.tilt1) > 3 * attitude_sigma_rad[0] or np.linalg.norm(essential.tilt2) > 3 * attitude_sigma_rad[1]
     if not beyond and upright >= _FALLBACK_BELOW_RATIO * np.count_nonzero(candidates):
         return fit
     general = estimate_general_relpose(f1[candidates], f2[candidates], max_err_rad, seed=seed)
