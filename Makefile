@@ -6,7 +6,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup sim test soak faults bench install clean
+.PHONY: setup sim test soak faults draws bench install clean
 
 setup: $(STAMP)
 
@@ -47,6 +47,11 @@ test: $(STAMP)
 # the fault suite's real-time cases, 1200 fuzzed settings files, make install into a staging folder.
 soak: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
+
+# Every shipped scenario over five draws of its noise (about 12 minutes on 2 cores): what the vehicle
+# would feel, median and range; writes the tables into docs/service.md.
+draws: $(STAMP)
+	$(BIN)/python -m sim.evaluation.draws --markdown docs/service.md
 
 # Hostile and broken input against the real service on 127.0.0.1 (about 5 minutes): prints the table
 # and writes it into docs/reliability.md. The quick cases also run in `make test`.
