@@ -51,7 +51,7 @@ soak: $(STAMP)
 # Every shipped scenario over five draws of its noise (about 12 minutes on 2 cores): what the vehicle
 # would feel, median and range; writes the tables into docs/service.md.
 draws: $(STAMP)
-	$(BIN)/python -m sim.evaluation.draws --markdown docs/service.md
+	$(BIN)/python -m sim.scenarios.draws --markdown docs/service.md
 
 # Hostile and broken input against the real service on 127.0.0.1 (about 5 minutes): prints the table
 # and writes it into docs/reliability.md. The quick cases also run in `make test`.

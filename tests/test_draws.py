@@ -1,11 +1,11 @@
-"""The report over draws of the scenarios' noise (sim/evaluation/draws.py): tables from summaries as
+"""The report over draws of the scenarios' noise (sim/scenarios/draws.py): tables from summaries as
 ``mavvo sim --json`` prints them, and the markdown section it rewrites."""
 
 from __future__ import annotations
 
 import pytest
 
-from sim.evaluation.draws import BEGIN, END, main, report, write_section
+from sim.scenarios.draws import BEGIN, END, main, report, write_section
 
 
 def _summary(nees: float, inside: float, end_m: float, step_m: float | None, path_m: float = 80.0) -> dict:

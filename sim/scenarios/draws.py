@@ -1,6 +1,6 @@
 """Every shipped scenario over several draws of its noise: what the vehicle would feel, median and range.
 
-    python -m sim.evaluation.draws [--scenarios hover,faults] [--seeds own,101,102,103,104] [--jobs 2]
+    python -m sim.scenarios.draws [--scenarios hover,faults] [--seeds own,101,102,103,104] [--jobs 2]
                                    [--markdown docs/service.md]
 
 One flight of a scenario is one draw of its noise (camera pixels, the flight controller's attitude and
@@ -103,7 +103,7 @@ def report(draws: Mapping[str, Mapping[str, Summary]], date: str) -> str:
         ]
     lines += [
         f"The same over {len(seeds)} draws of the noise (seeds: {', '.join(seeds)}; `own` is the scenario's), median and range "
-        "(`python -m sim.evaluation.draws`, `make draws`):", "", *draws_table({n: list(f.values()) for n, f in draws.items()}), "", END,
+        "(`python -m sim.scenarios.draws`, `make draws`):", "", *draws_table({n: list(f.values()) for n, f in draws.items()}), "", END,
     ]
     return "\n".join(lines)
 
