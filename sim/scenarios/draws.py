@@ -141,7 +141,13 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="mavvo-draws-") as tmp, ThreadPoolExecutor(args.jobs) as pool:
         futures = {task: pool.submit(fly, task[0], task[1], Path(tmp) / f"{task[0]}-{task[1]}") for task in tasks}
         for k, ((name, seed), future) in enumerate(futures.items(), 1):
-            draws[name][seed] = future.result()
+            try:
+                draws[name][seed] = future.result()
+            except RuntimeError as e:  # a flight that failed: say which, and stop
+                for f in futures.values():
+                    f.cancel()
+                print(f"draws: {e}", file=sys.stderr)
+                return 1
             print(f"[{k}/{len(tasks)}] {name} seed {seed} done", file=sys.stderr)
     section = report(draws, dt.date.today().isoformat())
     print(section)
