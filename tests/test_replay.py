@@ -188,7 +188,7 @@ def test_telemetry_log_with_2_hz_attitude_pairs_every_frame_and_reports_it_degra
     quality = (tmp_path / "out" / "quality.csv").read_text().splitlines()
     assert "attitude_interpolated" in "".join(quality) and "attitude_sigma_deg" in quality[0]
     # Degraded, not lost: the figure eight is still followed (the truth's own roll/pitch, sampled at 2 Hz).
-    assert s["evaluation"]["ate_se3_m"]["rmse"] < 0.3  # 0.10 m when written
+    assert s["evaluation"]["ate_se3_m"]["rmse"] < 0.3  # 0.10 m when written; 0.35 m with degraded keyframes placed at the filter's estimate (docs/odometry.md)
 
 
 def test_bad_logs_say_what_is_wrong(tmp_path, capsys):

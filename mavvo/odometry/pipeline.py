@@ -369,7 +369,7 @@ class Odometry:
         survival = len(i_kf) / len(kf.ids)
         why_kf = keyframe_reason(opt.keyframes, parallax_px=m.parallax_px, survival=survival, inliers=rp.num_inliers) if accepted else ""
         if why_kf:
-            self._new_keyframe(frame, tracks, f_lvl, kf, i_kf, i_cur, m)
+            self._new_keyframe(frame, tracks, f_lvl, kf, i_kf, i_cur, m, filtered=not degraded)
         if accepted:
             self._good = _Good(frame.t_exposure_s, self.filter.position_ned_m, self.filter.velocity_ned_m_s, self.filter.yaw_rad, frame.yaw_rad)
             d = self._drift
@@ -384,7 +384,9 @@ class Odometry:
         )
         return self._estimate(frame, diag, quality=quality, roll_pitch_rad=m.roll_pitch_rad)
 
-    def _new_keyframe(self, frame: PairedFrame, tracks: Tracks, f_lvl: np.ndarray, kf: Keyframe, i_kf: np.ndarray, i_cur: np.ndarray, m: _Measurement) -> None:
+    def _new_keyframe(
+        self, frame: PairedFrame, tracks: Tracks, f_lvl: np.ndarray, kf: Keyframe, i_kf: np.ndarray, i_cur: np.ndarray, m: _Measurement, filtered: bool,
+    ) -> None:
         rp = m.relpose
         t_m = -rp.R_2_1 @ m.c2_m  # metric t_2_1
         depth = carry_depths(kf, i_kf, i_cur, len(tracks.ids), rp.R_2_1, t_m, m.depth2_m, m.parallax_rad, self._carry_min_parallax_rad)
@@ -394,11 +396,16 @@ class Odometry:
             nudge = min(1.0, (frame.t_exposure_s - kf.t_s) / tau) * wrap_angle(frame.yaw_rad - yaw)
             yaw = wrap_angle(yaw + nudge)
             self.filter.shift_yaw(nudge)  # a correction of the frame's heading, not a measurement to gate
-        # Without a measured translation (mostly a turn on the spot) the keyframe stays where the old
-        # one was: taking the filter's coasted position instead let its velocity noise into the chain.
+        # With a measured translation the keyframe goes where the filter puts the frame (``filtered``):
+        # the raw measurement at the end of the old keyframe's reach carries that interval's largest
+        # error, and would step every later position by it. Not for a degraded frame: its sigma is
+        # inflated by the quality cap, so the filter's estimate lags (docs/odometry.md). Without a
+        # translation (mostly a turn on the spot) it stays where the old one was: the filter's
+        # coasted position would let its velocity noise into the chain.
         # The new keyframe keeps its level frame as vision corrected it.
         f_kf = f_lvl @ tilt_rotation(m.relpose.tilt2_rad).T
-        self.chain.push(Keyframe(frame.seq, frame.t_exposure_s, tracks.ids, f_kf, depth, m.p_ned_m, yaw, frame.yaw_rad, self._attitude_sigma_rad(frame)), self.reset_counter)
+        p_kf = self.filter.position_ned_m if m.scale is not None and filtered else m.p_ned_m
+        self.chain.push(Keyframe(frame.seq, frame.t_exposure_s, tracks.ids, f_kf, depth, p_kf, yaw, frame.yaw_rad, self._attitude_sigma_rad(frame)), self.reset_counter)
         self._last_yaw_2_1 = 0.0
         known = np.isfinite(depth)
         self._metric_interval = m.scale is not None and self._trusted(m.scale) and np.count_nonzero(known) >= self.options.scale.min_points
