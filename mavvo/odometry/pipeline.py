@@ -64,6 +64,7 @@ log = logging.getLogger(__name__)
 _TRUSTED_SCALE = frozenset({ScaleSource.RANGEFINDER, ScaleSource.ALTITUDE, ScaleSource.FIXED, ScaleSource.CARRIED})
 # An untrusted scale source -> the reason the frame is degraded.
 _UNTRUSTED_SCALE_REASON = {ScaleSource.HELD: StateReason.SCALE_HELD, ScaleSource.ASSUMED: StateReason.SCALE_ASSUMED}
+_BASELINE_FACTOR_MIN = 0.5  # a new keyframe's depths follow the filter's baseline within a factor of 2
 _REFERENCE_DEPTH_M = 10.0  # the scene depth position_sigma_m is given for
 _STILL_PARALLAX_PX = 1.0  # median parallax below this and nothing triangulated: the camera has not moved
 # No parallax and less turn than this against the keyframe: standing still, not a degraded pure rotation.
@@ -388,29 +389,47 @@ class Odometry:
         self, frame: PairedFrame, tracks: Tracks, f_lvl: np.ndarray, kf: Keyframe, i_kf: np.ndarray, i_cur: np.ndarray, m: _Measurement, filtered: bool,
     ) -> None:
         rp = m.relpose
-        t_m = -rp.R_2_1 @ m.c2_m  # metric t_2_1
-        depth = carry_depths(kf, i_kf, i_cur, len(tracks.ids), rp.R_2_1, t_m, m.depth2_m, m.parallax_rad, self._carry_min_parallax_rad)
+        p_kf, k = self._keyframe_position(kf, m, filtered)
+        t_m = -rp.R_2_1 @ m.c2_m * k  # metric t_2_1
+        depth = carry_depths(kf, i_kf, i_cur, len(tracks.ids), rp.R_2_1, t_m, m.depth2_m * k, m.parallax_rad, self._carry_min_parallax_rad)
         yaw = wrap_angle(m.yaw_rad)
         tau = self.options.heading_correction_time_s
         if tau > 0 and math.isfinite(frame.yaw_rad):
             nudge = min(1.0, (frame.t_exposure_s - kf.t_s) / tau) * wrap_angle(frame.yaw_rad - yaw)
             yaw = wrap_angle(yaw + nudge)
             self.filter.shift_yaw(nudge)  # a correction of the frame's heading, not a measurement to gate
-        # With a measured translation the keyframe goes where the filter puts the frame (``filtered``):
-        # the raw measurement at the end of the old keyframe's reach carries that interval's largest
-        # error, and would step every later position by it. Not for a degraded frame: its sigma is
-        # inflated by the quality cap, so the filter's estimate lags (docs/odometry.md). Without a
-        # translation (mostly a turn on the spot) it stays where the old one was: the filter's
-        # coasted position would let its velocity noise into the chain.
         # The new keyframe keeps its level frame as vision corrected it.
         f_kf = f_lvl @ tilt_rotation(m.relpose.tilt2_rad).T
-        p_kf = self.filter.position_ned_m if m.scale is not None and filtered else m.p_ned_m
         self.chain.push(Keyframe(frame.seq, frame.t_exposure_s, tracks.ids, f_kf, depth, p_kf, yaw, frame.yaw_rad, self._attitude_sigma_rad(frame)), self.reset_counter)
         self._last_yaw_2_1 = 0.0
         known = np.isfinite(depth)
         self._metric_interval = m.scale is not None and self._trusted(m.scale) and np.count_nonzero(known) >= self.options.scale.min_points
         if np.any(known):
             self._scene_depth_m = float(np.median(depth[known]))
+
+    def _keyframe_position(self, kf: Keyframe, m: _Measurement, filtered: bool) -> tuple[np.ndarray, float]:
+        """Where a new keyframe made from the measured frame goes, and the factor its baseline (and so
+        the depths it carries) takes to match.
+
+        With a measured translation it goes where the filter puts the frame (``filtered``): the raw
+        measurement at the end of the old keyframe's reach carries that interval's largest error (a
+        scale with a wide spread: its sigma says so, and the filter leans on its prediction), and
+        would step every later position by it. Its depths are scaled to the baseline the keyframe is
+        placed with, so the carried scale does not take up the error the position left behind. Not
+        for a degraded frame: its sigma is inflated by the quality cap, so the filter's estimate lags
+        (docs/odometry.md). Without a translation (mostly a turn on the spot) it stays where the old
+        one was: the filter's coasted position would let its velocity noise into the chain.
+        """
+        if m.scale is None or not filtered:
+            return m.p_ned_m, 1.0
+        p = self.filter.position_ned_m
+        d_meas = m.p_ned_m - kf.p_ned_m
+        n2 = float(d_meas @ d_meas)
+        if not n2 > 0:
+            return p, 1.0
+        # The filtered baseline along the measured direction, over the measured one.
+        k = float((p - kf.p_ned_m) @ d_meas) / n2
+        return p, min(max(k, _BASELINE_FACTOR_MIN), 1.0 / _BASELINE_FACTOR_MIN)
 
     def _failed(self, frame: PairedFrame, reason: StateReason, tracks: int) -> PoseEstimate:
         self.filter.predict(frame.t_exposure_s)  # the filter runs from the first keyframe on
