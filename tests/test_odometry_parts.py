@@ -12,7 +12,7 @@ from mavvo.geometry.frames import rot_z
 from mavvo.odometry.keyframes import Keyframe, KeyframeOptions, carry_depths, keyframe_reason
 from mavvo.odometry.scale import ScaleEstimate, ScaleOptions, estimate_scale, ground_depth, scale_from_scene_depth, triangulate_unit
 from mavvo.odometry.pipeline import Odometry, _Measurement
-from mavvo.types import ScaleSource
+from mavvo.types import ScaleSource, StateReason
 from sim.scenarios.loader import load_scenario
 from sim.world.twoview import make_scene
 
@@ -235,10 +235,12 @@ def test_gate_uses_the_measurement_size():
     assert f.update(np.zeros(3), off, pos_sigma_m=0.01, yaw_sigma_rad=sigma) == Update.FUSED
 
 
-def test_a_keyframe_from_a_tracking_frame_takes_the_filters_position_and_baseline() -> None:
-    """docs/odometry.md, Keyframes: the keyframe goes where the filter puts the frame and its depths follow
-    the baseline that leaves it (the filtered baseline along the measured direction over the measured
-    one, within 0.5-2); a degraded frame or one without a measured translation keeps its measurement."""
+def test_a_new_keyframe_goes_where_the_filter_puts_its_frame_when_that_is_the_better_estimate() -> None:
+    """docs/odometry.md, Keyframes: a tracking frame's keyframe goes where the filter puts the frame and
+    its depths follow the baseline that leaves it (the filtered baseline along the measured direction
+    over the measured one, within 0.5-2); with a held scale (a guessed length) the filter's position and
+    the depths as measured; other degraded frames, and frames without a measured translation, keep the
+    measurement."""
     sc = load_scenario("forward")
     vo = Odometry(sc.camera.camera_model(), sc.camera.R_body_cam())
     kf = Keyframe(0, 0.0, np.arange(3), np.eye(3), np.full(3, np.nan), np.array([1.0, 2.0, -5.0]), 0.0, 0.0)
@@ -250,17 +252,22 @@ def test_a_keyframe_from_a_tracking_frame_takes_the_filters_position_and_baselin
     def filtered_at(p_ned_m: list[float]) -> None:
         vo.filter.reset(1.0, np.array(p_ned_m), 0.0, pos_sigma_m=0.1, yaw_sigma_rad=0.01)
 
+    tracking = StateReason.NONE
     filtered_at([4.0, 2.5, -5.0])
-    p, k = vo._keyframe_position(kf, measured([5.0, 2.0, -5.0]), filtered=True)
+    p, k = vo._keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking)
     np.testing.assert_allclose(p, [4.0, 2.5, -5.0])
     assert k == pytest.approx(3.0 / 4.0)  # 3 m of the filter's 3 m north, 0.5 m east along the measured 4 m north
-    p, k = vo._keyframe_position(kf, measured([5.0, 2.0, -5.0]), filtered=False)
-    np.testing.assert_allclose(p, [5.0, 2.0, -5.0])
+    p, k = vo._keyframe_position(kf, measured([5.0, 2.0, -5.0]), StateReason.SCALE_HELD)
+    np.testing.assert_allclose(p, [4.0, 2.5, -5.0])
     assert k == 1.0
-    p, k = vo._keyframe_position(kf, measured([1.0, 2.0, -5.0], with_scale=False), filtered=True)
+    for degraded in (StateReason.ATTITUDE_INTERPOLATED, StateReason.FEW_INLIERS):
+        p, k = vo._keyframe_position(kf, measured([5.0, 2.0, -5.0]), degraded)
+        np.testing.assert_allclose(p, [5.0, 2.0, -5.0])
+        assert k == 1.0
+    p, k = vo._keyframe_position(kf, measured([1.0, 2.0, -5.0], with_scale=False), tracking)
     np.testing.assert_allclose(p, [1.0, 2.0, -5.0])
     assert k == 1.0
     filtered_at([21.0, 2.0, -5.0])  # 20 m where 4 m were measured: the factor stops at 2
-    assert vo._keyframe_position(kf, measured([5.0, 2.0, -5.0]), filtered=True)[1] == pytest.approx(2.0)
+    assert vo._keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking)[1] == pytest.approx(2.0)
     filtered_at([1.5, 2.0, -5.0])
-    assert vo._keyframe_position(kf, measured([5.0, 2.0, -5.0]), filtered=True)[1] == pytest.approx(0.5)
+    assert vo._keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking)[1] == pytest.approx(0.5)

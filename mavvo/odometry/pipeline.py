@@ -64,6 +64,8 @@ log = logging.getLogger(__name__)
 _TRUSTED_SCALE = frozenset({ScaleSource.RANGEFINDER, ScaleSource.ALTITUDE, ScaleSource.FIXED, ScaleSource.CARRIED})
 # An untrusted scale source -> the reason the frame is degraded.
 _UNTRUSTED_SCALE_REASON = {ScaleSource.HELD: StateReason.SCALE_HELD, ScaleSource.ASSUMED: StateReason.SCALE_ASSUMED}
+# Frames whose keyframe goes where the filter puts them (Odometry._keyframe_position).
+_FILTER_PLACES_KEYFRAME = frozenset({StateReason.NONE, *_UNTRUSTED_SCALE_REASON.values()})
 _BASELINE_FACTOR_MIN = 0.5  # a new keyframe's depths follow the filter's baseline within a factor of 2
 _REFERENCE_DEPTH_M = 10.0  # the scene depth position_sigma_m is given for
 _STILL_PARALLAX_PX = 1.0  # median parallax below this and nothing triangulated: the camera has not moved
@@ -370,7 +372,7 @@ class Odometry:
         survival = len(i_kf) / len(kf.ids)
         why_kf = keyframe_reason(opt.keyframes, parallax_px=m.parallax_px, survival=survival, inliers=rp.num_inliers) if accepted else ""
         if why_kf:
-            self._new_keyframe(frame, tracks, f_lvl, kf, i_kf, i_cur, m, filtered=not degraded)
+            self._new_keyframe(frame, tracks, f_lvl, kf, i_kf, i_cur, m, reason)
         if accepted:
             self._good = _Good(frame.t_exposure_s, self.filter.position_ned_m, self.filter.velocity_ned_m_s, self.filter.yaw_rad, frame.yaw_rad)
             d = self._drift
@@ -386,10 +388,10 @@ class Odometry:
         return self._estimate(frame, diag, quality=quality, roll_pitch_rad=m.roll_pitch_rad)
 
     def _new_keyframe(
-        self, frame: PairedFrame, tracks: Tracks, f_lvl: np.ndarray, kf: Keyframe, i_kf: np.ndarray, i_cur: np.ndarray, m: _Measurement, filtered: bool,
+        self, frame: PairedFrame, tracks: Tracks, f_lvl: np.ndarray, kf: Keyframe, i_kf: np.ndarray, i_cur: np.ndarray, m: _Measurement, reason: StateReason,
     ) -> None:
         rp = m.relpose
-        p_kf, k = self._keyframe_position(kf, m, filtered)
+        p_kf, k = self._keyframe_position(kf, m, reason)
         t_m = -rp.R_2_1 @ m.c2_m * k  # metric t_2_1
         depth = carry_depths(kf, i_kf, i_cur, len(tracks.ids), rp.R_2_1, t_m, m.depth2_m * k, m.parallax_rad, self._carry_min_parallax_rad)
         yaw = wrap_angle(m.yaw_rad)
@@ -407,25 +409,30 @@ class Odometry:
         if np.any(known):
             self._scene_depth_m = float(np.median(depth[known]))
 
-    def _keyframe_position(self, kf: Keyframe, m: _Measurement, filtered: bool) -> tuple[np.ndarray, float]:
+    def _keyframe_position(self, kf: Keyframe, m: _Measurement, reason: StateReason) -> tuple[np.ndarray, float]:
         """Where a new keyframe made from the measured frame goes, and the factor its baseline (and so
-        the depths it carries) takes to match.
+        the depths it carries) takes to match; ``reason`` is why the frame is degraded (NONE: tracking).
 
-        With a measured translation it goes where the filter puts the frame (``filtered``): the raw
-        measurement at the end of the old keyframe's reach carries that interval's largest error (a
-        scale with a wide spread: its sigma says so, and the filter leans on its prediction), and
-        would step every later position by it. Its depths are scaled to the baseline the keyframe is
-        placed with, so the carried scale does not take up the error the position left behind. Not
-        for a degraded frame: its sigma is inflated by the quality cap, so the filter's estimate lags
-        (docs/odometry.md). Without a translation (mostly a turn on the spot) it stays where the old
-        one was: the filter's coasted position would let its velocity noise into the chain.
+        The keyframe goes where the filter puts the frame when that is the better estimate:
+        - tracking: the raw measurement at the end of the old keyframe's reach carries that interval's
+          largest error (a scale with a wide spread: its sigma says so, and the filter leans on its
+          prediction), and would step every later position by it. Its depths are scaled to the
+          baseline it is placed with (the filter's along the measured direction over the measured
+          one), so the carried scale does not take up the error the position left behind;
+        - a held or assumed scale: the measured length is a guess from the scene depth (in a turn on
+          the spot, a translation the images barely resolve moved the frame 16 cm); the depths stay
+          as measured, in the same guessed units.
+        Other degraded frames keep their raw measurement: their sigma is inflated by the quality cap,
+        so the filter's estimate lags (docs/odometry.md). Without a translation (mostly a turn on the
+        spot) the keyframe stays where the old one was: the filter's coasted position would let its
+        velocity noise into the chain.
         """
-        if m.scale is None or not filtered:
+        if m.scale is None or reason not in _FILTER_PLACES_KEYFRAME:
             return m.p_ned_m, 1.0
         p = self.filter.position_ned_m
         d_meas = m.p_ned_m - kf.p_ned_m
         n2 = float(d_meas @ d_meas)
-        if not n2 > 0:
+        if reason != StateReason.NONE or not n2 > 0:
             return p, 1.0
         # The filtered baseline along the measured direction, over the measured one.
         k = float((p - kf.p_ned_m) @ d_meas) / n2
