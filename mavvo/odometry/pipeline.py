@@ -9,6 +9,9 @@ Per frame: track features (:mod:`mavvo.odometry.frontend`), derotate their beari
 estimate yaw and translation direction against the keyframe with the 3-point RANSAC
 (:mod:`mavvo.estimation.relpose`), fix the baseline in metres (:mod:`mavvo.odometry.scale`), place the frame in the world
 frame through the keyframe (:mod:`mavvo.odometry.keyframes`), and smooth (:mod:`mavvo.odometry.filter`).
+A frame that becomes the keyframe is placed where the filter puts it, its carried depths scaled to
+that baseline, unless it is degraded for another reason than a scale that is not metric
+(:meth:`Odometry._keyframe_position`).
 
 World frame: the flight controller's local NED frame, so that what is sent needs no alignment. The
 first keyframe is placed where the flight controller believes the vehicle is
