@@ -108,8 +108,9 @@ def test_faults_scenario_is_what_the_vehicle_can_fly_on(faults_run):
 @pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
-    reason="94.7% when written: after the 0.5 s without frames the first frame's attitude-corrected pose is "
-    "15 cm off sideways with a sigma of 9 mm (docs/service.md); strict, so a fix shows here",
+    reason="93.8% (94.7% when first written): after the 0.5 s without frames the first frame's attitude-corrected pose is "
+    "15 cm off sideways with a sigma of 9 mm, and slowing into corners the rangefinder scale is 3-4% off with a 1% "
+    "spread (docs/service.md); strict, so a fix shows here",
 )
 def test_faults_scenario_keeps_95_percent_of_windows_inside_the_99_percent_ellipse(faults_run):
     assert faults_run.safety.nees_inside_99_fraction >= 0.95, faults_run.safety.nees_inside_99_fraction
