@@ -74,8 +74,8 @@ def draws_table(draws: Mapping[str, list[Summary]]) -> list[str]:
     """Markdown rows, one per scenario: median and range over its draws."""
     rows = [
         "| scenario | draws | median NEES: median (range) | inside the 99% ellipse | within 3x `VO_DRIFT` (lowest) | EKF end error | "
-        "EKF end error, % of the path (largest) | largest reset step (largest) |",
-        "|---|---:|---|---|---:|---|---:|---|",
+        "EKF end error, % of the path (largest) | heading at the end (largest) | largest reset step (largest) |",
+        "|---|---:|---|---|---:|---|---:|---:|---|",
     ]
     for name, flights in draws.items():
         vs = [s["vehicle"] for s in flights]
@@ -86,7 +86,8 @@ def draws_table(draws: Mapping[str, list[Summary]]) -> list[str]:
             f"| {name} | {len(flights)} | {_spread([v['nees_median'] for v in vs], '.2f')} | "
             f"{_spread([100 * v['nees_inside_99_fraction'] for v in vs], '.1f', '%')} | "
             f"{100 * min(v['drift_within_3x_fraction'] for v in vs):.0f}% | {_spread([v['fc_end_error_m'] for v in vs], '.2f', ' m')} | "
-            f"{'-' if percent is None else f'{percent:.2f}%'} | {'no reset' if not steps else f'{max(steps):.2f} m'} |"
+            f"{'-' if percent is None else f'{percent:.2f}%'} | {max(v['heading_end_error_deg'] for v in vs):.2f} deg | "
+            f"{'no reset' if not steps else f'{max(steps):.2f} m'} |"
         )
     return rows
 
