@@ -433,9 +433,11 @@ class Odometry:
         if m.scale is None or reason not in _FILTER_PLACES_KEYFRAME:
             return m.p_ned_m, 1.0
         p = self.filter.position_ned_m
+        if reason != StateReason.NONE:
+            return p, 1.0  # a guessed length: the depths stay in its units
         d_meas = m.p_ned_m - kf.p_ned_m
         n2 = float(d_meas @ d_meas)
-        if reason != StateReason.NONE or not n2 > 0:
+        if not n2 > 0:
             return p, 1.0
         # The filtered baseline along the measured direction, over the measured one.
         k = float((p - kf.p_ned_m) @ d_meas) / n2
