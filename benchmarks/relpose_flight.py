@@ -3,10 +3,10 @@ errors a flight controller makes, mavvo beside OpenCV and PoseLib in the same ru
 
     python benchmarks/relpose_flight.py [--quick] [--markdown docs/benchmarks.md] [--plots docs/img]
 
-Pairs: the simulated camera renders a flight (``survey``: nadir; ``forward``: a forward camera), mavvo's
-own frontend tracks it (KLT forward and backward, corners topped up), and every ``EVERY``-th frame is
-paired with the one ``GAP`` frames later on the tracks both hold: real tracking noise, real tracking
-failures as outliers. The truth is the trajectory's camera pose at both exposures.
+Pairs (:func:`sim.scenarios.tracked_pairs.tracked_pairs`): the simulated camera renders a flight
+(``survey``: nadir; ``forward``: a forward camera), mavvo's own frontend tracks it, and every 5th frame
+is paired with the one 10 frames later (0.5 s) on the tracks both hold: real tracking noise, real
+tracking failures as outliers. The truth is the trajectory's camera pose at both exposures.
 
 Roll/pitch given to mavvo: the truth plus, per view and axis, independent Gaussian errors (0, 0.2,
 0.5, 1 deg), or correlated ones: a bias common to both views (0.5 or 1 deg per axis, drawn per pair:
@@ -30,7 +30,6 @@ import math
 import statistics
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -44,9 +43,7 @@ from benchmarks.common import load_average, machine, publish  # noqa: E402
 from mavvo.estimation.relpose import RelposeOptions, estimate_relpose_known_gravity  # noqa: E402
 from mavvo.geometry.camera_model import CameraModel  # noqa: E402
 from mavvo.geometry.frames import R_lvl_cam, angle_between_rad, rotation_angle_rad  # noqa: E402
-from mavvo.odometry.frontend import Frontend, FrontendOptions  # noqa: E402
-from sim.scenarios.loader import load_scenario  # noqa: E402
-from sim.scenarios.paired_frames import PairedSequence  # noqa: E402
+from sim.scenarios.tracked_pairs import TrackedPair, tracked_pairs  # noqa: E402
 
 try:
     import poselib  # type: ignore[import-not-found]
@@ -55,57 +52,9 @@ except ImportError:  # the comparison is optional
 
 BEGIN, END = "<!-- relpose-flight:begin -->", "<!-- relpose-flight:end -->"
 THRESHOLD_PX = 1.0
-GAP = 10  # frames between the views of a pair (0.5 s at 20 Hz)
-EVERY = 5
 INDEPENDENT_DEG = (0.0, 0.2, 0.5, 1.0)
 CORRELATED_DEG = (0.5, 1.0)
 CORRELATED_NOISE_DEG = 0.05
-
-
-@dataclass(frozen=True)
-class Pair:
-    """Two views of one flight: tracked pixels (undistorted, pinhole K) and bearings in both camera
-    frames, the true roll/pitch of each view, the camera mounting and the true relative pose."""
-
-    scenario: str
-    uv1: np.ndarray
-    uv2: np.ndarray
-    rp1: tuple[float, float]
-    rp2: tuple[float, float]
-    yaw_2_1: float  # true yaw between the level frames (heading at view 1 minus at view 2)
-    R_body_cam: np.ndarray
-    R_c2_c1: np.ndarray
-    t_c2_c1: np.ndarray
-
-
-def make_pairs(name: str, duration_s: float) -> tuple[list[Pair], CameraModel]:
-    """The pairs of one scenario's flight (see the module docstring)."""
-    sc = load_scenario(name)
-    seq = PairedSequence(sc, duration_s=duration_s)
-    model = sc.camera.camera_model()
-    pinhole = CameraModel(model.width_px, model.height_px, model.fx_px, model.fy_px, model.cx_px, model.cy_px)
-    frontend = Frontend(model, FrontendOptions())
-    R_body_cam = sc.camera.R_body_cam()
-    lever = np.asarray(sc.camera.lever_arm_m, dtype=float)
-    views = []
-    for pf in seq:
-        tracks = frontend.process(pf.image)
-        st = seq.trajectory.state(pf.t_exposure_s)
-        R_ned_cam = st.R_ned_body @ R_body_cam
-        centre = st.p_ned_m + st.R_ned_body @ lever
-        views.append((tracks, (st.roll_rad, st.pitch_rad, st.yaw_rad), R_ned_cam, centre))
-    pairs = []
-    for k in range(0, len(views) - GAP, EVERY):
-        (ta, rpa, Ra, ca), (tb, rpb, Rb, cb) = views[k], views[k + GAP]
-        _, ia, ib = np.intersect1d(ta.ids, tb.ids, assume_unique=True, return_indices=True)
-        if len(ia) < 20 or np.linalg.norm(cb - ca) < 1e-3:
-            continue
-        fa, fb = ta.f_cam[ia], tb.f_cam[ib]
-        uv = lambda f: np.column_stack([model.fx_px * f[:, 0] / f[:, 2] + model.cx_px, model.fy_px * f[:, 1] / f[:, 2] + model.cy_px])  # noqa: E731
-        t = Rb.T @ (ca - cb)
-        yaw = math.remainder(rpa[2] - rpb[2], math.tau)
-        pairs.append(Pair(name, uv(fa), uv(fb), rpa[:2], rpb[:2], yaw, R_body_cam, Rb.T @ Ra, t / np.linalg.norm(t)))
-    return pairs, pinhole
 
 
 def attitude_errors(rng: np.random.Generator, kind: str, level_deg: float) -> np.ndarray:
@@ -116,14 +65,14 @@ def attitude_errors(rng: np.random.Generator, kind: str, level_deg: float) -> np
     return bias[None, :] + np.radians(CORRELATED_NOISE_DEG) * rng.standard_normal((2, 2))
 
 
-Method = Callable[[Pair, np.ndarray, np.ndarray, float, int], "tuple[np.ndarray, np.ndarray] | None"]
+Method = Callable[[TrackedPair, np.ndarray, np.ndarray, float, int], "tuple[np.ndarray, np.ndarray] | None"]
 YAW_PRIOR_NOISE_DEG = 1.0  # mavvo gets the flight controller's yaw change as the odometry does, this far off
 
 
 def mavvo(camera: CameraModel, with_sigma: bool) -> Method:
     opt = RelposeOptions(max_iterations=1000)
 
-    def run(p: Pair, R1: np.ndarray, R2: np.ndarray, sigma_rad: float, seed: int):  # type: ignore[no-untyped-def]
+    def run(p: TrackedPair, R1: np.ndarray, R2: np.ndarray, sigma_rad: float, seed: int):  # type: ignore[no-untyped-def]
         prior = p.yaw_2_1 + math.radians(YAW_PRIOR_NOISE_DEG) * np.random.default_rng(seed).standard_normal()
         r = estimate_relpose_known_gravity(p.uv1, p.uv2, camera, R1, R2, max_err_px=THRESHOLD_PX, seed=seed, options=opt,
                                            attitude_sigma_rad=(sigma_rad, sigma_rad) if with_sigma else None, yaw_prior_rad=prior)
@@ -133,7 +82,7 @@ def mavvo(camera: CameraModel, with_sigma: bool) -> Method:
 
 
 def opencv(camera: CameraModel) -> Method:
-    def run(p: Pair, R1: np.ndarray, R2: np.ndarray, sigma_rad: float, seed: int):  # type: ignore[no-untyped-def]
+    def run(p: TrackedPair, R1: np.ndarray, R2: np.ndarray, sigma_rad: float, seed: int):  # type: ignore[no-untyped-def]
         cv2.setRNGSeed(seed)
         E, mask = cv2.findEssentialMat(p.uv1, p.uv2, camera.K, method=cv2.USAC_MAGSAC, prob=0.99, threshold=THRESHOLD_PX)
         if E is None or E.shape != (3, 3):
@@ -147,7 +96,7 @@ def opencv(camera: CameraModel) -> Method:
 def poselib_method(camera: CameraModel, defaults: bool) -> Method:
     cam = {"model": "PINHOLE", "width": camera.width_px, "height": camera.height_px, "params": [camera.fx_px, camera.fy_px, camera.cx_px, camera.cy_px]}
 
-    def run(p: Pair, R1: np.ndarray, R2: np.ndarray, sigma_rad: float, seed: int):  # type: ignore[no-untyped-def]
+    def run(p: TrackedPair, R1: np.ndarray, R2: np.ndarray, sigma_rad: float, seed: int):  # type: ignore[no-untyped-def]
         ransac = {"max_epipolar_error": THRESHOLD_PX, "seed": seed} if defaults else {"max_epipolar_error": THRESHOLD_PX, "success_prob": 0.99, "min_iterations": 0, "seed": seed}
         pose, _ = poselib.estimate_relative_pose(p.uv1, p.uv2, cam, cam, ransac, {})
         return pose.R, pose.t
@@ -155,7 +104,7 @@ def poselib_method(camera: CameraModel, defaults: bool) -> Method:
     return run
 
 
-def evaluate(pairs: list[Pair], methods: dict[str, Method], kind: str, level_deg: float, seed: int) -> dict[str, dict[str, float]]:
+def evaluate(pairs: list[TrackedPair], methods: dict[str, Method], kind: str, level_deg: float, seed: int) -> dict[str, dict[str, float]]:
     rng = np.random.default_rng(seed)
     sigma = math.radians(max(level_deg, 0.2))
     out: dict[str, dict[str, list[float]]] = {m: {"ok": [], "rot": [], "trans": [], "us": []} for m in methods}
@@ -186,7 +135,7 @@ def run(quick: bool, plots: Path | None) -> str:
     method_names: list[str] = []
     n_pairs = {}
     for name, duration in scenarios.items():
-        pairs, camera = make_pairs(name, duration)
+        pairs, camera = tracked_pairs(name, duration)
         n_pairs[name] = (len(pairs), int(np.median([len(p.uv1) for p in pairs])))
         methods: dict[str, Method] = {"mavvo, roll/pitch exact": mavvo(camera, False), "mavvo, attitude sigma": mavvo(camera, True),
                                       "OpenCV USAC_MAGSAC": opencv(camera)}
