@@ -1,9 +1,12 @@
-"""The general relative pose (5 degrees of freedom, no gravity), for when roll/pitch are worse than the
-relative pose was told: OpenCV's 5-point USAC_MAGSAC on level-frame bearings.
+"""The general relative pose (5 degrees of freedom, no gravity) by OpenCV, on level-frame bearings.
 
-The bearings of each view are turned so that their mean points along +z and projected onto that
-virtual image plane (focal length 1), so the estimate works whichever way the camera looks; the pose
-is turned back into the level frames. Seeded through OpenCV's generator.
+- :func:`estimate_general_relpose`: the 5-point RANSAC, for when roll/pitch are worse than the relative
+  pose was told. The bearings of each view are turned so that their mean points along +z and projected
+  onto that virtual image plane (focal length 1), so the estimate works whichever way the camera
+  looks; the pose is turned back into the level frames. Seeded through OpenCV's generator.
+- :func:`estimate_ground_plane_relpose`: the pose a homography of points on the ground gives, with no
+  use of roll/pitch beyond choosing which of its solutions has the ground's normal: a start for the
+  refinement under the attitude prior that the attitude's error cannot have misled.
 """
 
 from __future__ import annotations
@@ -13,9 +16,11 @@ import numpy as np
 
 from mavvo.geometry.frames import cross
 
-__all__ = ["estimate_general_relpose", "sampson_sq_general"]
+__all__ = ["estimate_general_relpose", "estimate_ground_plane_relpose", "sampson_sq_general"]
 
 _MIN_Z = 0.1  # bearings this close to a virtual image's horizon are left out of the estimate
+_GROUND_MIN_Z = 0.3  # ground points: at least 17 deg below the horizon in both views (level z is down)
+_GROUND_MIN_SHARE = 0.8  # ... and this share of all the points, or the scene is not ground
 
 
 def _towards_z(f: np.ndarray) -> np.ndarray:
@@ -59,3 +64,28 @@ def estimate_general_relpose(
     R = V2.T @ R_v @ V1
     t = V2.T @ t_v[:, 0]
     return R, t / np.linalg.norm(t), V2.T @ E_v @ V1
+
+
+def estimate_ground_plane_relpose(f1: np.ndarray, f2: np.ndarray, max_err_rad: float, *, seed: int = 0) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(R_2_1, unit t_2_1)`` between the level frames of two views whose bearings (N, 3) see mostly
+    the ground, from a general homography (8 degrees of freedom: OpenCV's RANSAC at ``2 * max_err_rad``
+    on the level frames' image planes), decomposed; of its solutions the one whose plane normal in view
+    1 is nearest the vertical. Roll/pitch errors go into ``R_2_1`` and the normal, not into the
+    translation. None when under 80% of the points are well below the horizon in both views, or the
+    homography is degenerate."""
+    below = (f1[:, 2] > _GROUND_MIN_Z) & (f2[:, 2] > _GROUND_MIN_Z)
+    if np.count_nonzero(below) < max(8, _GROUND_MIN_SHARE * len(f1)):
+        return None
+    p1 = np.ascontiguousarray(f1[below, :2] / f1[below, 2:])
+    p2 = np.ascontiguousarray(f2[below, :2] / f2[below, 2:])
+    cv2.setRNGSeed(seed)
+    H, _ = cv2.findHomography(p1, p2, cv2.RANSAC, 2.0 * max_err_rad)
+    if H is None:
+        return None
+    _, Rs, ts, normals = cv2.decomposeHomographyMat(H, np.eye(3))
+    # H = R + t n^T / d: its solutions come in pairs of signs and in the plane's two poses; the
+    # ground's normal is +-z in a level frame whatever the translation.
+    best = max(range(len(Rs)), key=lambda i: abs(float(normals[i][2, 0])))
+    t = ts[best][:, 0]
+    nt = float(np.linalg.norm(t))
+    return (Rs[best], t / nt) if nt > 1e-12 else None
