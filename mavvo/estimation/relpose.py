@@ -487,7 +487,7 @@ def _ground_plane_start(
     answer and the first is kept (taking the cheaper there moved the simulated take-off's ATE from 6.4
     to 8.7 cm: a choice between two refinements of one answer is noise). The translation's sign is
     decided again by cheirality."""
-    yaw, t, tilt1, tilt2 = pose
+    t = pose[1]
     plane = estimate_ground_plane_relpose(f1[candidates], f2[candidates], sample_thr)
     if plane is None:
         return pose
