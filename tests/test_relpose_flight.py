@@ -35,15 +35,26 @@ def _successes(pairs: list[TrackedPair], camera, level_deg: float, seed: int) ->
     return ok
 
 
-def test_the_ground_plane_start_finds_the_pose_a_tilted_hypothesis_misses(survey_pairs, monkeypatch) -> None:
+def test_both_ways_out_of_a_tilted_hypothesis_find_the_pose(survey_pairs, monkeypatch) -> None:
     """Over flat ground with roll/pitch 0.5-1 deg off, a 3-point hypothesis can take the tilt's flow for
-    translation and refine into a local minimum; the refinement started from the ground homography's
-    pose finds the right one. 85 of 138 when written; 73 without the plane's start."""
+    translation. Two things put it right, each needed: the refinement started from the ground
+    homography's pose (the first's local minimum is another answer), and on pairs with less parallax
+    than the attitude's relative sigma, correcting roll/pitch where that fits significantly better
+    (kept as given, the tilt's flow stays in the translation). 121 of 138 when written; 94 without the
+    plane's start; 85 with roll/pitch kept as given at low parallax."""
     pairs, camera = survey_pairs
     runs = [(level, seed) for level in (0.5, 1.0) for seed in (1, 2, 3)]
-    with_plane = sum(_successes(pairs, camera, level, seed) for level, seed in runs)
-    monkeypatch.setattr(relpose, "estimate_ground_plane_relpose", lambda *args, **kwargs: None)
-    without = sum(_successes(pairs, camera, level, seed) for level, seed in runs)
+
+    def found() -> int:
+        return sum(_successes(pairs, camera, level, seed) for level, seed in runs)
+
+    both = found()
+    with monkeypatch.context() as m:
+        m.setattr(relpose, "estimate_ground_plane_relpose", lambda *args, **kwargs: None)
+        without_plane = found()
+    monkeypatch.setattr(relpose, "_CORRECTION_MIN_COST_DROP", math.inf)
+    as_given = found()
     assert len(pairs) == 23
-    assert with_plane >= 80, with_plane
-    assert with_plane >= without + 8, (with_plane, without)
+    assert both >= 112, both
+    assert both >= without_plane + 15, (both, without_plane)
+    assert both >= as_given + 20, (both, as_given)

@@ -26,6 +26,7 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
+from enum import Enum
 from typing import Literal, Mapping
 
 import cv2
@@ -84,10 +85,12 @@ _TILT_ROUNDS = 8  # refine / re-select rounds under the attitude prior, at most
 # that a high outlier rate alone never pays for the 5-point search.
 _FALLBACK_BELOW_RATIO = 0.6
 _FALLBACK_MARGIN = 1.25  # ... and take it when it explains this many times the points
-# Roll/pitch are corrected only with more median parallax than this many sigmas of their relative error
-# and this many inlier thresholds (a pixel's parallax would otherwise pass for a tilt).
+# With less median parallax than this many sigmas of the views' relative roll/pitch error or this many
+# inlier thresholds, a tilt and a translation explain nearly the same flow: roll/pitch are corrected
+# only where that lowers the posterior cost by this much (chi-square, 4 corrections, p = 0.999).
 _TILT_MIN_PARALLAX_SIGMAS = 1.0
 _TILT_MIN_PARALLAX_THRESHOLDS = 3.0
+_CORRECTION_MIN_COST_DROP = 18.5
 # A median parallax under min_parallax_ratio times the threshold, or times this many noise sigmas
 # when that is less, is a pure rotation.
 _PARALLAX_NOISE_SIGMAS = 10.0
@@ -200,8 +203,11 @@ class UprightRelpose:
         iterations: samples drawn.
         tilt1_rad, tilt2_rad: (2,) roll/pitch corrections of each view's level frame (``tilt_sigma_deg``).
         attitude_corrected: vision corrected roll/pitch; False when they were kept as given (too little
-            parallax to tell a tilt from a translation, or no attitude sigma): then their error moves
+            parallax for the corrections to fit significantly better, or no attitude sigma): then their error moves
             the translation by the scene's depth times it.
+        attitude_resolved: the corrections were made with enough parallax to tell a tilt from a
+            translation. Corrected without it (they fitted significantly better), their error is about
+            the prior's, and it moves the translation as if they had been kept as given.
         stats: :class:`RelposeStats`.
     """
 
@@ -222,6 +228,7 @@ class UprightRelpose:
     tilt2_rad: np.ndarray
     stats: RelposeStats
     attitude_corrected: bool = False
+    attitude_resolved: bool = False
 
 
 @dataclass(frozen=True)
@@ -278,6 +285,14 @@ def _ground_model(f1: np.ndarray, f2: np.ndarray, candidates: np.ndarray, opt: R
     return None if run.model is None else run.model[0]
 
 
+class _Correction(Enum):
+    """How roll/pitch went into a fit."""
+
+    AS_GIVEN = 0
+    FITTED = 1  # corrected with little parallax, where that fitted significantly better: about the prior's error left
+    RESOLVED = 2  # corrected with parallax enough to tell a tilt from a translation
+
+
 @dataclass(frozen=True)
 class _Fit:
     """One model's answer, before it becomes an :class:`UprightRelpose`."""
@@ -289,7 +304,7 @@ class _Fit:
     t_per_height: np.ndarray | None = None
     tilt1: np.ndarray = field(default_factory=lambda: np.zeros(2))
     tilt2: np.ndarray = field(default_factory=lambda: np.zeros(2))
-    attitude_corrected: bool = False
+    correction: _Correction = _Correction.AS_GIVEN
 
 
 def _rotation_fit(R: np.ndarray, err_sq: np.ndarray) -> _Fit:
@@ -399,34 +414,12 @@ def _select(
     rotation (GRIC) on the bearings with the roll/pitch corrections the refinement found: the chosen
     fit, the refined essential fit (what the attitude is judged by), the noise sigma and the GRIC scores."""
     thr_sq = max_err_rad**2
-    assert run.model is not None
-    pose = decompose_upright(run.model[0], f1[run.inliers], f2[run.inliers])
-    assert pose is not None  # a model has at least its own sample as inliers
-    yaw, t = pose
-    tilt1 = tilt2 = np.zeros(2)
-    if attitude_sigma_rad is not None:
-        # With less parallax than the attitude's own relative error (or a few pixels), vision cannot
-        # tell a tilt from a translation: roll/pitch are kept as given.
-        inl = run.err_sq < max_err_rad**2  # the points the hypothesis fits closely: outliers would inflate it
-        parallax = float(np.median(np.sqrt(2.0 * rotation_sq(rot_z(yaw), f1[inl], f2[inl])))) if inl.any() else 0.0
-        if parallax < max(_TILT_MIN_PARALLAX_SIGMAS * math.hypot(*attitude_sigma_rad), _TILT_MIN_PARALLAX_THRESHOLDS * max_err_rad):
-            attitude_sigma_rad = None
-    if attitude_sigma_rad is not None:
-        yaw, t, tilt1, tilt2 = _refine_with_attitude(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, opt.refine_steps)
-        if parallax < _PLANE_START_PARALLAX_SIGMAS * math.hypot(*attitude_sigma_rad):
-            yaw, t, tilt1, tilt2 = _ground_plane_start(f1, f2, run.inliers, (yaw, t, tilt1, tilt2), attitude_sigma_rad, sample_thr, max_err_rad, opt, yaw_prior_rad)
+    (yaw, t, tilt1, tilt2), correction = _refine(f1, f2, run, opt, max_err_rad, attitude_sigma_rad, sample_thr, yaw_prior_rad)
+    if correction != _Correction.AS_GIVEN:
         f1, f2 = f1 @ tilt_rotation(tilt1).T, f2 @ tilt_rotation(tilt2).T
     err_e = sampson_sq_upright(upright_e(yaw, t)[None], f1, f2)[0]
-    if attitude_sigma_rad is None and opt.refine_steps > 0:
-        # Refined on the inliers, which are then re-selected for a second round.
-        for steps in (opt.refine_steps, min(opt.refine_steps, 2)):
-            inl = err_e < thr_sq
-            fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=steps)
-            yaw, t = fit.yaw_rad, fit.t_2_1
-            err_e = sampson_sq_upright(upright_e(yaw, t)[None], f1, f2)[0]
     sigma = _robust_sigma(err_e[err_e < thr_sq], max_err_rad)
-    corrected = attitude_sigma_rad is not None
-    essential = _Fit("essential", yaw, t, err_e, None, tilt1, tilt2, corrected)
+    essential = _Fit("essential", yaw, t, err_e, None, tilt1, tilt2, correction)
 
     # GRIC runs on the essential inliers only: its outlier cap differs between models (2 for E, 4
     # for the others), so gross outliers, which fit none of them, would otherwise decide the choice.
@@ -434,7 +427,7 @@ def _select(
     inl_idx = np.nonzero(err_e < thr_sq)[0]
     gric = {"essential": _gric(err_e[inl_idx], sigma_sq, "essential")}
     R_rot = _refit_rotation(fit_rotation(f1[inl_idx], f2[inl_idx]), f1, f2, thr_sq)
-    rotation = None if R_rot is None else _Fit("rotation", yaw_of(R_rot), np.zeros(3), rotation_sq(R_rot, f1, f2), None, tilt1, tilt2, corrected)
+    rotation = None if R_rot is None else _Fit("rotation", yaw_of(R_rot), np.zeros(3), rotation_sq(R_rot, f1, f2), None, tilt1, tilt2, correction)
     if rotation is not None:
         gric["rotation"] = _gric(rotation.err_sq[inl_idx], sigma_sq, "rotation")
         # Below about a pixel of parallax a translation direction is noise, and a near-vertical one
@@ -454,7 +447,7 @@ def _select(
             R, t_per_h = ground_pose_from_homography(H)
             nt = float(np.linalg.norm(t_per_h))
             if nt > 0:
-                ground = _Fit("ground", yaw_of(R), t_per_h / nt, ground_sq(H, f1, f2), t_per_h, tilt1, tilt2, corrected)
+                ground = _Fit("ground", yaw_of(R), t_per_h / nt, ground_sq(H, f1, f2), t_per_h, tilt1, tilt2, correction)
     if opt.model == "auto":
         allowed: tuple[str, ...] = ("essential", "ground", "rotation")
     elif opt.model == "ground" and "ground" in gric:
@@ -467,6 +460,52 @@ def _select(
 
 
 Pose = tuple[float, np.ndarray, np.ndarray, np.ndarray]  # yaw, unit t, tilt1, tilt2 (rad) in the corrected level frames
+
+
+def _refine(
+    f1: np.ndarray, f2: np.ndarray, run: RansacResult, opt: RelposeOptions, max_err_rad: float, attitude_sigma_rad: tuple[float, float] | None,
+    sample_thr: float, yaw_prior_rad: float | None,
+) -> tuple[Pose, _Correction]:
+    """The sampling's essential model refined, and how roll/pitch went into it.
+
+    Without an attitude sigma, yaw and translation with roll/pitch as given. With one, under the
+    attitude prior (:func:`_refine_with_attitude`, and the ground plane's start where the tilt's share
+    of the flow can mislead the hypothesis). With less median parallax than the relative attitude sigma
+    or a few thresholds a tilt and a translation explain nearly the same flow, and the corrections are
+    kept only where they fit significantly better than roll/pitch as given: their posterior cost lower
+    by ``_CORRECTION_MIN_COST_DROP`` (a likelihood-ratio test of the 4 corrections). Exact roll/pitch
+    then stay as given (a free tilt would fit noise and pass a pixel's parallax off as a tilt), while a
+    flight controller's 0.2-1 deg errors, which leave a nadir view over flat ground with a translation
+    tens of degrees off, are corrected."""
+    assert run.model is not None
+    pose = decompose_upright(run.model[0], f1[run.inliers], f2[run.inliers])
+    assert pose is not None  # a model has at least its own sample as inliers
+    yaw, t = pose
+    if attitude_sigma_rad is None:
+        return _refine_uncorrected(f1, f2, yaw, t, max_err_rad**2, opt.refine_steps), _Correction.AS_GIVEN
+    inl = run.err_sq < max_err_rad**2  # the points the hypothesis fits closely: outliers would inflate it
+    parallax = float(np.median(np.sqrt(2.0 * rotation_sq(rot_z(yaw), f1[inl], f2[inl])))) if inl.any() else 0.0
+    relative_sigma = math.hypot(*attitude_sigma_rad)
+    corrected = _refine_with_attitude(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, opt.refine_steps)
+    if parallax < _PLANE_START_PARALLAX_SIGMAS * relative_sigma:
+        corrected = _ground_plane_start(f1, f2, run.inliers, corrected, attitude_sigma_rad, sample_thr, max_err_rad, opt, yaw_prior_rad)
+    if parallax >= max(_TILT_MIN_PARALLAX_SIGMAS * relative_sigma, _TILT_MIN_PARALLAX_THRESHOLDS * max_err_rad):
+        return corrected, _Correction.RESOLVED
+    as_given = _refine_uncorrected(f1, f2, yaw, t, max_err_rad**2, opt.refine_steps)
+    cost_corrected, cost_as_given = _posterior_costs(f1, f2, (corrected, as_given), attitude_sigma_rad, max_err_rad)
+    if cost_as_given - cost_corrected >= _CORRECTION_MIN_COST_DROP:
+        return corrected, _Correction.FITTED
+    return as_given, _Correction.AS_GIVEN
+
+
+def _refine_uncorrected(f1: np.ndarray, f2: np.ndarray, yaw: float, t: np.ndarray, thr_sq: float, steps: int) -> Pose:
+    """Yaw and translation refined on the inliers, which are then re-selected for a second round;
+    roll/pitch as given (zero corrections)."""
+    for k in (steps, min(steps, 2)) if steps > 0 else ():
+        inl = sampson_sq_upright(upright_e(yaw, t)[None], f1, f2)[0] < thr_sq
+        fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=k)
+        yaw, t = fit.yaw_rad, fit.t_2_1
+    return yaw, t, np.zeros(2), np.zeros(2)
 
 
 def _ground_plane_start(
@@ -628,7 +667,7 @@ def _general_if_attitude_is_worse(
     if np.count_nonzero(err < thr_sq) <= _FALLBACK_MARGIN * upright:
         return fit
     yaw, t2, tilt2 = _upright_from_general(R, t)
-    return _Fit("general", yaw, t2, err, None, np.zeros(2), tilt2, True)
+    return _Fit("general", yaw, t2, err, None, np.zeros(2), tilt2, _Correction.RESOLVED)
 
 
 def _robust_sigma(err_sq_inliers: np.ndarray, max_err_rad: float) -> float:
@@ -659,7 +698,8 @@ def _result(fit: _Fit, thr_sq: float, iterations: int, stats: RelposeStats) -> U
         tilt1_rad=_frozen(fit.tilt1),
         tilt2_rad=_frozen(fit.tilt2),
         stats=stats,
-        attitude_corrected=fit.attitude_corrected,
+        attitude_corrected=fit.correction != _Correction.AS_GIVEN,
+        attitude_resolved=fit.correction == _Correction.RESOLVED,
     )
 
 

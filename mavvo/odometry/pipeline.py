@@ -345,11 +345,11 @@ class Odometry:
         depth = self._scene_depth_m or opt.scale.initial_depth_m
         p_meas: np.ndarray | None = m.p_ned_m
         if m.scale is not None:
-            # Roll/pitch the relative pose kept as given (too little parallax to tell a tilt from a
-            # translation) turn every bearing by their error: the translation moves by depth times it.
-            # Corrected ones leave what the pairing's interpolation may add. Independent sources: they
-            # add in quadrature.
-            tilt_rad = frame.interpolation_sigma_rad if rp.attitude_corrected else math.hypot(*self._view_attitude_sigmas_rad(kf, frame))
+            # Roll/pitch the relative pose kept as given, or corrected with too little parallax to tell
+            # a tilt from a translation, turn every bearing by about their error: the translation moves
+            # by depth times it. Resolved ones leave what the pairing's interpolation may add.
+            # Independent sources: they add in quadrature.
+            tilt_rad = frame.interpolation_sigma_rad if rp.attitude_resolved else math.hypot(*self._view_attitude_sigmas_rad(kf, frame))
             unresolved = math.hypot(
                 m.scale.spread * float(np.linalg.norm(m.c2_m)),
                 opt.position_sigma_per_speed_s * float(np.linalg.norm(self.filter.velocity_ned_m_s)),
