@@ -284,6 +284,28 @@ def test_yaw_prior_far_from_the_truth_excludes_it() -> None:
     assert not (r.model == "essential" and np.degrees(rotation_angle_rad(r.R_2_1, scene.R_2_1)) < 30.0)
 
 
+def test_tracks_that_slide_the_wrong_way_along_their_epipolar_lines_are_not_inliers() -> None:
+    """A track that moves along its epipolar line the other way than the scene's motion takes it (a
+    corner that is no point of the scene) has no epipolar error; cheirality finds it, and the result's
+    inliers leave it out, while the true tracks stay in."""
+    from mavvo.geometry.residuals import sampson_sq_upright
+    from mavvo.estimation.estimators import upright_e
+
+    rng = np.random.default_rng(5)
+    scene = make_scene(rng, 300, motion="forward", mount="forward", pixel_noise_px=0.3, focal_px=FOCAL_PX)
+    f1, f2 = scene.f1_lvl, scene.f2_lvl.copy()
+    wrong = np.zeros(300, dtype=bool)
+    wrong[rng.choice(300, 30, replace=False)] = True
+    a = f1[wrong] @ scene.R_2_1.T  # view 1's rays turned into view 2: the wrong-way track mirrors f2 about them
+    f2[wrong] = 2.0 * np.sum(a * f2[wrong], axis=1, keepdims=True) * a - f2[wrong]
+    r = estimate_upright_relpose(f1, f2, max_err_rad=THRESHOLD_RAD, seed=0)
+    assert r.success and math.degrees(angle_between_rad(r.t_2_1, scene.t_2_1)) < 2.0
+    sampson = sampson_sq_upright(upright_e(r.yaw_rad, r.t_2_1)[None], f1, f2)[0]
+    assert np.count_nonzero(sampson[wrong] < THRESHOLD_RAD**2) >= 27  # the epipolar error does not see them
+    assert not r.inliers[wrong].any()
+    assert np.mean(r.inliers[~wrong]) > 0.95
+
+
 def test_subpixel_parallax_is_a_pure_rotation() -> None:
     """A baseline too short to resolve (about a pixel of parallax, tracks at 0.2 px) is reported as a
     rotation with the right yaw, not as a translation direction drawn from the noise; with tracks ten

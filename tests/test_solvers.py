@@ -271,6 +271,22 @@ def test_decomposition_returns_rotation_about_z_and_unit_translation() -> None:
         assert max(pose_errors(E * scale, s)) < 1e-8
 
 
+def test_points_behind_a_view_are_found_where_the_parallax_tells() -> None:
+    """Every point of a scene lies in front of both views for the true pose; for the same pose with
+    the translation reversed, the points with more parallax than the bound lie behind, and the ones
+    with less are not judged (their side is noise)."""
+    from mavvo.estimation.estimators import yaw_of
+    from mavvo.geometry.upright_pose import behind_upright
+
+    s = make_scene(np.random.default_rng(72), 200, motion="sideways", baseline_fraction=0.05)
+    yaw = yaw_of(s.R_2_1)
+    parallax = np.arccos(np.clip(np.einsum("ij,ij->i", s.f1_lvl @ s.R_2_1.T, s.f2_lvl), -1.0, 1.0))
+    bound = float(np.median(parallax))
+    assert not behind_upright(yaw, s.t_2_1, s.f1_lvl, s.f2_lvl, 0.0).any()
+    reversed_ = behind_upright(yaw, -s.t_2_1, s.f1_lvl, s.f2_lvl, bound)
+    np.testing.assert_array_equal(reversed_, parallax > bound)
+
+
 def test_essential_vector_round_trip() -> None:
     e = np.arange(1.0, 7.0)
     E = essential_from_vector(e)

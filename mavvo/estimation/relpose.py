@@ -42,7 +42,8 @@ from mavvo.estimation.ransac import RansacOptions, RansacResult, RansacStats, lo
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import as_rotation, rot_z
 from mavvo.geometry.refine import fit_rotation, gauss_newton_upright, refine_upright, tilt_matrix, tilt_rotation, upright_vector
-from mavvo.geometry.residuals import ground_sq, rotation_sq, sampson_sq_kernel, sampson_sq_upright
+from mavvo.geometry.residuals import UNMAPPABLE_SQ, ground_sq, rotation_sq, sampson_sq_kernel, sampson_sq_upright
+from mavvo.geometry.upright_pose import behind_upright
 from mavvo.jit import kernel
 from mavvo.geometry import as_bearing_pair, ground_pose_from_homography
 
@@ -91,6 +92,8 @@ _FALLBACK_MARGIN = 1.25  # ... and take it when it explains this many times the 
 _TILT_MIN_PARALLAX_SIGMAS = 1.0
 _TILT_MIN_PARALLAX_THRESHOLDS = 3.0
 _CORRECTION_MIN_COST_DROP = 18.5
+# Refinements weigh inliers with a Cauchy loss of this many noise sigmas (95% efficiency for Gaussian noise).
+_CAUCHY_NOISE_SIGMAS = 2.385
 # A median parallax under min_parallax_ratio times the threshold, or times this many noise sigmas
 # when that is less, is a pure rotation.
 _PARALLAX_NOISE_SIGMAS = 10.0
@@ -414,10 +417,11 @@ def _select(
     rotation (GRIC) on the bearings with the roll/pitch corrections the refinement found: the chosen
     fit, the refined essential fit (what the attitude is judged by), the noise sigma and the GRIC scores."""
     thr_sq = max_err_rad**2
-    (yaw, t, tilt1, tilt2), correction = _refine(f1, f2, run, opt, max_err_rad, attitude_sigma_rad, sample_thr, yaw_prior_rad)
+    pose, correction = _refine(f1, f2, run, opt, max_err_rad, attitude_sigma_rad, sample_thr, yaw_prior_rad)
+    yaw, t, tilt1, tilt2 = pose
+    err_e = _pose_err_sq(pose, f1, f2, max_err_rad)
     if correction != _Correction.AS_GIVEN:
         f1, f2 = f1 @ tilt_rotation(tilt1).T, f2 @ tilt_rotation(tilt2).T
-    err_e = sampson_sq_upright(upright_e(yaw, t)[None], f1, f2)[0]
     sigma = _robust_sigma(err_e[err_e < thr_sq], max_err_rad)
     essential = _Fit("essential", yaw, t, err_e, None, tilt1, tilt2, correction)
 
@@ -482,7 +486,7 @@ def _refine(
     assert pose is not None  # a model has at least its own sample as inliers
     yaw, t = pose
     if attitude_sigma_rad is None:
-        return _refine_uncorrected(f1, f2, yaw, t, max_err_rad**2, opt.refine_steps), _Correction.AS_GIVEN
+        return _refine_uncorrected(f1, f2, yaw, t, max_err_rad, opt.refine_steps), _Correction.AS_GIVEN
     inl = run.err_sq < max_err_rad**2  # the points the hypothesis fits closely: outliers would inflate it
     parallax = float(np.median(np.sqrt(2.0 * rotation_sq(rot_z(yaw), f1[inl], f2[inl])))) if inl.any() else 0.0
     relative_sigma = math.hypot(*attitude_sigma_rad)
@@ -491,21 +495,30 @@ def _refine(
         corrected = _ground_plane_start(f1, f2, run.inliers, corrected, attitude_sigma_rad, sample_thr, max_err_rad, opt, yaw_prior_rad)
     if parallax >= max(_TILT_MIN_PARALLAX_SIGMAS * relative_sigma, _TILT_MIN_PARALLAX_THRESHOLDS * max_err_rad):
         return corrected, _Correction.RESOLVED
-    as_given = _refine_uncorrected(f1, f2, yaw, t, max_err_rad**2, opt.refine_steps)
+    as_given = _refine_uncorrected(f1, f2, yaw, t, max_err_rad, opt.refine_steps)
     cost_corrected, cost_as_given = _posterior_costs(f1, f2, (corrected, as_given), attitude_sigma_rad, max_err_rad)
     if cost_as_given - cost_corrected >= _CORRECTION_MIN_COST_DROP:
         return corrected, _Correction.FITTED
     return as_given, _Correction.AS_GIVEN
 
 
-def _refine_uncorrected(f1: np.ndarray, f2: np.ndarray, yaw: float, t: np.ndarray, thr_sq: float, steps: int) -> Pose:
-    """Yaw and translation refined on the inliers, which are then re-selected for a second round;
-    roll/pitch as given (zero corrections)."""
+def _refine_uncorrected(f1: np.ndarray, f2: np.ndarray, yaw: float, t: np.ndarray, max_err_rad: float, steps: int) -> Pose:
+    """Yaw and translation refined on the inliers (Cauchy loss at ``_CAUCHY_NOISE_SIGMAS`` noise
+    sigmas), which are then re-selected for a second round; roll/pitch as given (zero corrections)."""
+    zero = np.zeros(2)
     for k in (steps, min(steps, 2)) if steps > 0 else ():
-        inl = sampson_sq_upright(upright_e(yaw, t)[None], f1, f2)[0] < thr_sq
-        fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=k)
+        err = _pose_err_sq((yaw, t, zero, zero), f1, f2, max_err_rad)
+        inl = err < max_err_rad**2
+        noise = _robust_sigma(err[inl], max_err_rad)
+        fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=k, robust_scale_rad=_CAUCHY_NOISE_SIGMAS * noise)
         yaw, t = fit.yaw_rad, fit.t_2_1
-    return yaw, t, np.zeros(2), np.zeros(2)
+    return yaw, t, zero, zero
+
+
+def _pose_err_sq(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float) -> np.ndarray:
+    """:func:`_corrected_err_sq` of a pose."""
+    yaw, t, tilt1, tilt2 = pose
+    return _corrected_err_sq(np.array([yaw, *t, *tilt1, *tilt2]), f1, f2, max_err_rad)
 
 
 def _ground_plane_start(
@@ -524,8 +537,8 @@ def _ground_plane_start(
     the same prior, it replaces ``pose`` when its translation is more than ``_OTHER_ANSWER_DEG`` away,
     its yaw keeps to the prior, and its posterior cost is lower. Closer than that the two are one
     answer and the first is kept (taking the cheaper there moved the simulated take-off's ATE from 6.4
-    to 8.7 cm: a choice between two refinements of one answer is noise). The translation's sign is
-    decided again by cheirality."""
+    to 8.7 cm: a choice between two refinements of one answer is noise). The start's translation sign
+    is decided by cheirality first (the refinement counts points behind a view as outliers)."""
     t = pose[1]
     plane = estimate_ground_plane_relpose(f1[candidates], f2[candidates], sample_thr)
     if plane is None:
@@ -534,20 +547,25 @@ def _ground_plane_start(
     start_yaw, start_t, start_tilt2 = _upright_from_general(*plane)
     if abs(float(np.dot(start_t, t))) >= other_answer:
         return pose  # the same answer: not worth a second refinement
+    start_yaw, start_t, _, _ = _in_front((start_yaw, start_t, np.zeros(2), start_tilt2), f1, f2, max_err_rad)
     alt = _refine_with_attitude(f1, f2, start_yaw, start_t, attitude_sigma_rad, sample_thr, max_err_rad, opt.refine_steps, tilt2=start_tilt2)
     if abs(float(np.dot(alt[1], t))) >= other_answer:
         return pose
     if yaw_prior_rad is not None and abs(math.remainder(alt[0] - yaw_prior_rad, math.tau)) > math.radians(opt.yaw_prior_tolerance_deg):
         return pose
     cost_alt, cost = _posterior_costs(f1, f2, (alt, pose), attitude_sigma_rad, max_err_rad)
-    if cost_alt >= cost:
-        return pose
-    yaw, t, tilt1, tilt2 = alt
+    return alt if cost_alt < cost else pose
+
+
+def _in_front(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float) -> Pose:
+    """The pose with the sign of its translation (and for a vertical one, the yaw's twin) that puts
+    the points it fits in front of both views."""
+    yaw, t, tilt1, tilt2 = pose
     g1, g2 = f1 @ tilt_rotation(tilt1).T, f2 @ tilt_rotation(tilt2).T
     e = upright_e(yaw, t)
     inl = sampson_sq_upright(e[None], g1, g2)[0] < max_err_rad**2
     decided = decompose_upright(e, g1[inl], g2[inl])
-    return alt if decided is None else (decided[0], decided[1], tilt1, tilt2)
+    return pose if decided is None else (decided[0], decided[1], tilt1, tilt2)
 
 
 def _posterior_costs(f1: np.ndarray, f2: np.ndarray, poses: tuple[Pose, ...], attitude_sigma_rad: tuple[float, float], max_err_rad: float) -> list[float]:
@@ -556,7 +574,7 @@ def _posterior_costs(f1: np.ndarray, f2: np.ndarray, poses: tuple[Pose, ...], at
     that a worse fit does not shrink its own cost), plus ``sum (d / sigma_view)^2`` of its tilt
     corrections d."""
     thr_sq = max_err_rad**2
-    errs = [_corrected_err_sq(np.array([yaw, *t, *d1, *d2]), f1, f2) for yaw, t, d1, d2 in poses]
+    errs = [_pose_err_sq(pose, f1, f2, max_err_rad) for pose in poses]
     noise_sq = min(_robust_sigma(e[e < thr_sq], max_err_rad) for e in errs) ** 2
     s1_sq, s2_sq = attitude_sigma_rad[0] ** 2, attitude_sigma_rad[1] ** 2
     return [float(np.minimum(e, thr_sq).sum() / noise_sq + d1 @ d1 / s1_sq + d2 @ d2 / s2_sq) for e, (_, _, d1, d2) in zip(errs, poses)]
@@ -604,11 +622,25 @@ def _robust_sigma_kernel(err_sq_inliers: np.ndarray, max_err_rad: float) -> floa
 
 
 @kernel
-def _corrected_err_sq(x: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
-    """Sampson errors (N,) of the state x = (yaw, t, d1, d2) on the tilt-corrected bearings."""
+def _corrected_err_sq(x: np.ndarray, f1: np.ndarray, f2: np.ndarray, max_err_rad: float) -> np.ndarray:
+    """Sampson errors (N,) of the state x = (yaw, t, d1, d2) on the tilt-corrected bearings, and
+    ``UNMAPPABLE_SQ`` for points with more than ``max_err_rad`` of parallax that it puts behind a view.
+
+    A track can slide along its epipolar line the wrong way (a corner that is no point of the scene,
+    where a texture meets the haze at the horizon): the Sampson error misses it and cheirality does not.
+    On the forward camera's pairs of ``benchmarks/relpose_flight.py`` 9% of the tracks were such, and
+    refined on, they moved the translation by 0.06 deg of a median 0.54. Cheirality rejects tracks,
+    not the pose: where it would reject most of the inliers, the pose is a twin (over flat ground with
+    a pixel of parallax, a vertical translation with the yaw off by pi fits as well), which the pure
+    rotation rule and the decomposition deal with, and the errors are left as they are."""
     g1 = f1 @ tilt_matrix(x[4], x[5]).T
     g2 = f2 @ tilt_matrix(x[6], x[7]).T
-    return sampson_sq_kernel(upright_vector(x[0], x[1:4]).reshape(1, 6), g1, g2)[0]
+    err = sampson_sq_kernel(upright_vector(x[0], x[1:4]).reshape(1, 6), g1, g2)[0]
+    behind = behind_upright(x[0], x[1:4], g1, g2, max_err_rad)
+    inl = err < max_err_rad * max_err_rad
+    if 2 * np.count_nonzero(behind & inl) < np.count_nonzero(inl):
+        err[behind] = UNMAPPABLE_SQ
+    return err
 
 
 @kernel
@@ -617,13 +649,13 @@ def _attitude_rounds(x: np.ndarray, f1: np.ndarray, f2: np.ndarray, sigmas: np.n
     is put back to its start when the corrections lost most of the start's tight inliers."""
     start = x.copy()
     max_sq = max_err_rad * max_err_rad
-    start_inliers = np.count_nonzero(_corrected_err_sq(x, f1, f2) < max_sq)
+    start_inliers = np.count_nonzero(_corrected_err_sq(x, f1, f2, max_err_rad) < max_sq)
     prior_w = np.array([1.0 / sigmas[0], 1.0 / sigmas[0], 1.0 / sigmas[1], 1.0 / sigmas[1]])
     thr = sample_thr
     previous = np.zeros(f1.shape[0], dtype=np.bool_)
     have_previous = False
     for _ in range(rounds):
-        err = _corrected_err_sq(x, f1, f2)
+        err = _corrected_err_sq(x, f1, f2, max_err_rad)
         inl = err < thr * thr
         if np.count_nonzero(inl) < 5 or steps == 0:
             break
@@ -631,10 +663,10 @@ def _attitude_rounds(x: np.ndarray, f1: np.ndarray, f2: np.ndarray, sigmas: np.n
             break
         noise = _robust_sigma_kernel(err[inl], max_err_rad)
         # A few steps per round from the warm start: the rounds go on until the inliers settle.
-        gauss_newton_upright(x, f1[inl], f2[inl], min(steps, 3), True, prior_w, 1.0 / noise, thr)
+        gauss_newton_upright(x, f1[inl], f2[inl], min(steps, 3), True, prior_w, 1.0 / noise, min(thr, _CAUCHY_NOISE_SIGMAS * noise))
         previous, have_previous = inl, True
         thr = max(max_err_rad, 0.5 * thr)
-    if np.count_nonzero(_corrected_err_sq(x, f1, f2) < max_sq) < 0.5 * start_inliers:
+    if np.count_nonzero(_corrected_err_sq(x, f1, f2, max_err_rad) < max_sq) < 0.5 * start_inliers:
         # The corrections lost most of what the hypothesis explained (a start among outliers): keep it. A
         # few fewer tight inliers is normal: the hypothesis may fit a subset closely and the rest badly.
         x[:] = start

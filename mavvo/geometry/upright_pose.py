@@ -66,22 +66,42 @@ def nearest_upright(e: np.ndarray) -> tuple[float, np.ndarray]:
 
 
 @kernel
+def _midpoint_depths(c: float, s: float, t: np.ndarray, f1: np.ndarray, f2: np.ndarray, i: int) -> tuple[float, float, float]:
+    """Point i's midpoint triangulation for R = Rz(yaw) (c, s its cosine and sine): its depths along
+    f1 and along f2, each times ``det``, and ``det`` = sin^2 of the parallax times |f1|^2 |f2|^2."""
+    a0, a1, a2 = c * f1[i, 0] - s * f1[i, 1], s * f1[i, 0] + c * f1[i, 1], f1[i, 2]
+    b0, b1, b2 = f2[i, 0], f2[i, 1], f2[i, 2]
+    aa = a0 * a0 + a1 * a1 + a2 * a2
+    bb = b0 * b0 + b1 * b1 + b2 * b2
+    ab = a0 * b0 + a1 * b1 + a2 * b2
+    at = a0 * t[0] + a1 * t[1] + a2 * t[2]
+    bt = b0 * t[0] + b1 * t[1] + b2 * t[2]
+    return -at * bb + ab * bt, aa * bt - ab * at, aa * bb - ab * ab
+
+
+@kernel
 def _count_in_front(yaw: float, t: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> int:
     """Points whose midpoint triangulation lies in front of both views (R = Rz(yaw))."""
     c, s = math.cos(yaw), math.sin(yaw)
     count = 0
     for i in range(f1.shape[0]):
-        a0, a1, a2 = c * f1[i, 0] - s * f1[i, 1], s * f1[i, 0] + c * f1[i, 1], f1[i, 2]
-        b0, b1, b2 = f2[i, 0], f2[i, 1], f2[i, 2]
-        aa = a0 * a0 + a1 * a1 + a2 * a2
-        bb = b0 * b0 + b1 * b1 + b2 * b2
-        ab = a0 * b0 + a1 * b1 + a2 * b2
-        at = a0 * t[0] + a1 * t[1] + a2 * t[2]
-        bt = b0 * t[0] + b1 * t[1] + b2 * t[2]
-        det = aa * bb - ab * ab
-        if det > 1e-12 and (-at * bb + ab * bt) / det > 0.0 and (aa * bt - ab * at) / det > 0.0:
+        d1, d2, det = _midpoint_depths(c, s, t, f1, f2, i)
+        if det > 1e-12 and d1 > 0.0 and d2 > 0.0:
             count += 1
     return count
+
+
+@kernel
+def behind_upright(yaw: float, t: np.ndarray, f1: np.ndarray, f2: np.ndarray, min_parallax_rad: float) -> np.ndarray:
+    """(N,) bool: points with more parallax than ``min_parallax_rad`` whose midpoint triangulation for
+    R = Rz(yaw) and t lies behind either view (unit bearings). With less parallax the side is noise."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    min_det = math.sin(min_parallax_rad) ** 2
+    out = np.zeros(f1.shape[0], dtype=np.bool_)
+    for i in range(f1.shape[0]):
+        d1, d2, det = _midpoint_depths(c, s, t, f1, f2, i)
+        out[i] = det > min_det and (d1 <= 0.0 or d2 <= 0.0)
+    return out
 
 
 @kernel
