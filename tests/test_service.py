@@ -149,6 +149,20 @@ def test_bad_frames_are_counted_not_fatal():
     assert summary.counters["bad_frames"] == 2 and summary.counters["frames"] == 2
 
 
+def test_messages_held_by_a_disconnected_link_do_not_hold_a_lockstep_driver():
+    """What the worker queues while the link is down (a reconnect's back-off) is written after the
+    reconnect, which only a later tick brings: a driver that waited for it held the clock for its whole
+    timeout on every frame of the back-off (the faults flight's lockstep twin, now and then)."""
+    from mavvo.service.daemon import Daemon
+
+    d = Daemon(_offline_config(), source=InjectedSource(), clock=FixedClock())
+    assert not d.link.connected.is_set()
+    d.link.send("NAMED_VALUE_FLOAT", {"time_boot_ms": 0, "name": b"VO_DRIFT", "value": 0.1})
+    assert d.link.sends_pending() == 1
+    p = d.progress()
+    assert p.sends_pending == 0 and p.idle_after(0)
+
+
 def test_lockstep_hook_reports_progress_a_driver_can_wait_for():
     """The documented hook a simulation or replay drives the daemon with: hand over a frame, wait until
     the daemon can do nothing more with it (finished, or waiting for an ATTITUDE), move the clock on;

@@ -95,7 +95,9 @@ class LockstepProgress:
         frames_done: frames the worker has finished, whatever came of them (estimate, skipped, error).
         frames_queued: frames the camera thread has handed to the worker.
         sends_pending: messages the worker queued for the link and the link has not yet written or
-            dropped (this one goes up and down).
+            dropped (this one goes up and down); 0 while the link is disconnected: what it holds then
+            waits for the reconnect, which only a later tick of the clock brings (a driver that waited
+            for it held the clock for its whole timeout on each frame of the back-off).
         messages_sent: MAVLink messages the link has written (its first tells a listening flight
             controller where the service is).
         datagrams_done: UDP datagrams the link has read and finished with, whatever they held (a
@@ -214,7 +216,8 @@ class Daemon:
     def progress(self) -> LockstepProgress:
         """The counts a lockstep driver waits on (thread-safe: each is read in one step)."""
         return LockstepProgress(
-            self.link.counters["rx"], self.fc.version, self.counters["frames_done"], self.counters["frames_queued"], self.link.sends_pending(),
+            self.link.counters["rx"], self.fc.version, self.counters["frames_done"], self.counters["frames_queued"],
+            self.link.sends_pending() if self.link.connected.is_set() else 0,
             self.link.counters["sent"], self.link.datagrams_done, self.link.tick_clock_s, self.fc.waiting_for_data(),
         )
 
