@@ -107,6 +107,20 @@ def test_hover_stays_put() -> None:
     assert all(e.diagnostics.state == "tracking" for e in run.estimates[1:])
 
 
+def test_a_height_sensors_noise_widens_the_covariance_along_the_translation_only() -> None:
+    """The rangefinder's 2 cm at 10 m are 0.2% of the scale, a new reading each frame: a hover's frame
+    0.3-0.7 m from its keyframe moves by that along the translation from it (horizontal), not across it
+    or up and down. The sent covariance is widest along a horizontal direction."""
+    run = _shipped("hover")
+    widest_z, ratios = [], []
+    for e in run.good()[20:]:
+        w, V = np.linalg.eigh(e.covariance[:3, :3])
+        widest_z.append(abs(V[2, -1]))
+        ratios.append(w[-1] / w[0])
+    assert np.median(widest_z) < 0.3  # the widest axis is about horizontal (measured: 0.17)
+    assert np.median(ratios) > 1.25  # and clearly wider than the narrowest (measured: 1.45; the same in every direction: 1)
+
+
 def test_fast_yaw_spin_turns_without_moving() -> None:
     """Two turns at 120 deg/s on the spot: the heading follows, the position does not run off."""
     run = _shipped("yaw_spin")

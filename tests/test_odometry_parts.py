@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -12,7 +13,8 @@ from mavvo.geometry.frames import rot_z
 from mavvo.odometry.keyframes import Keyframe, KeyframeOptions, carry_depths, keyframe_reason
 from mavvo.odometry.scale import ScaleEstimate, ScaleOptions, estimate_scale, ground_depth, scale_from_scene_depth, triangulate_unit
 from mavvo.odometry.pipeline import Odometry, _Measurement
-from mavvo.types import ScaleSource, StateReason
+from mavvo.estimation.relpose import RelposeFailure, _failure
+from mavvo.types import PairedFrame, ScaleSource, StateReason
 from sim.scenarios.loader import load_scenario
 from sim.world.twoview import make_scene
 
@@ -98,7 +100,8 @@ def test_a_ground_fit_that_is_no_plane_gives_no_scale_and_the_carried_depths_tak
 
 def test_a_height_sources_noise_over_the_height_is_part_of_the_scales_uncertainty() -> None:
     """A fresh rangefinder reading each frame: 2 cm of noise is 4% of the scale at 0.5 m and 0.2% at
-    10 m. Near the ground that, not the ground fit's spread, is what moves the positions."""
+    10 m. Near the ground that, not the ground fit's spread, is what moves the positions; it is kept
+    apart from the fit's spread (it moves a position along the translation only)."""
     rng = np.random.default_rng(5)
     scene = make_scene(rng, 200, motion="sideways", mount="nadir", structure="ground", distance_m=10.0)
     lam1, _, par, valid, c2 = _unit_geometry(scene)
@@ -110,9 +113,27 @@ def test_a_height_sources_noise_over_the_height_is_part_of_the_scales_uncertaint
     _, fit_spread = ground_depth(pts, par[valid] ** 2, 12)
     for range_m in (0.5, 10.0):
         s = estimate_scale(ScaleOptions(source="rangefinder", rangefinder_sigma_m=0.02), range_m=range_m, **common)
-        assert s is not None and s.spread == pytest.approx(math.hypot(fit_spread, 0.02 / range_m), rel=1e-6)
+        assert s is not None and s.sensor_spread == pytest.approx(0.02 / range_m, rel=1e-9)
+        assert s.spread == pytest.approx(fit_spread, rel=1e-9)
     exact = estimate_scale(ScaleOptions(source="rangefinder", rangefinder_sigma_m=0.0), range_m=0.5, **common)
-    assert exact is not None and exact.spread == pytest.approx(fit_spread, rel=1e-9)
+    assert exact is not None and exact.spread == pytest.approx(fit_spread, rel=1e-9) and exact.sensor_spread == 0.0
+
+
+def test_the_ground_fits_spread_is_weighted_as_its_depth() -> None:
+    """The ground depth is a median weighted by parallax squared, so its spread is too: votes with
+    little parallax (a climb's points near the image centre, triangulated from almost nothing) neither
+    move the depth nor widen the spread. Here over half the votes are 50% off with a thousandth of
+    the weight: unweighted, the spread would be tens of percent; weighted, it is the good votes' 1%."""
+    rng = np.random.default_rng(9)
+    good = np.column_stack([rng.uniform(-5, 5, (140, 2)), 10.0 * (1.0 + rng.uniform(-0.02, 0.02, 140))])
+    bad = np.column_stack([rng.uniform(-1, 1, (160, 2)), 10.0 * (1.0 + rng.choice([-0.5, 0.5], 160))])
+    pts = np.vstack([good, bad])
+    w = np.concatenate([np.ones(140), np.full(160, 1e-3)])
+    depth, spread = ground_depth(pts, w, 12)
+    assert depth == pytest.approx(10.0, rel=0.01)
+    assert 0.005 < spread < 0.015  # uniform +-2%: median absolute deviation 1%
+    _, unweighted = ground_depth(pts, np.ones(300), 12)
+    assert unweighted > 0.1
 
 
 def test_ground_depth_outvotes_raised_objects() -> None:
@@ -153,21 +174,21 @@ def test_depths_carry_through_a_pure_rotation() -> None:
 def test_filter_follows_constant_velocity_and_rejects_a_jump() -> None:
     rng = np.random.default_rng(4)
     f = PoseFilter(FilterOptions(max_rejections=3, accel_sigma_m_s2=0.5))
-    f.reset(0.0, np.zeros(3), 3.1, pos_sigma_m=0.05, yaw_sigma_rad=0.01)
+    f.reset(0.0, np.zeros(3), 3.1, pos_cov_m2=0.05**2 * np.eye(3), yaw_sigma_rad=0.01)
     v = np.array([2.0, -1.0, 0.5])
     for k in range(1, 101):
         t = 0.05 * k
         f.predict(t)
         # the yaw wraps through +-pi on the way
-        assert f.update(v * t + rng.normal(0, 0.02, 3), wrap_angle(3.1 + 0.2 * t), pos_sigma_m=0.02, yaw_sigma_rad=0.005) == Update.FUSED
+        assert f.update(v * t + rng.normal(0, 0.02, 3), wrap_angle(3.1 + 0.2 * t), pos_cov_m2=0.02**2 * np.eye(3), yaw_sigma_rad=0.005) == Update.FUSED
     np.testing.assert_allclose(f.velocity_ned_m_s, v, atol=0.05)
     assert abs(wrap_angle(f.yaw_rad - (3.1 + 0.2 * 5.0))) < 0.01
     p_before = f.position_ned_m
     f.predict(5.05)
-    assert f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_sigma_m=0.02, yaw_sigma_rad=0.005) == Update.REJECTED
+    assert f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_cov_m2=0.02**2 * np.eye(3), yaw_sigma_rad=0.005) == Update.REJECTED
     assert np.linalg.norm(f.position_ned_m - (p_before + 0.05 * v)) < 0.05  # coasted, not jumped
-    assert f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_sigma_m=0.02, yaw_sigma_rad=0.005) == Update.REJECTED
-    assert f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_sigma_m=0.02, yaw_sigma_rad=0.005) == Update.RESTARTED  # third: believed
+    assert f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_cov_m2=0.02**2 * np.eye(3), yaw_sigma_rad=0.005) == Update.REJECTED
+    assert f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_cov_m2=0.02**2 * np.eye(3), yaw_sigma_rad=0.005) == Update.RESTARTED  # third: believed
     np.testing.assert_allclose(f.position_ned_m, v * 5.05 + [10.0, 0, 0])
     assert np.all(np.linalg.eigvalsh(f.position_covariance) > 0)
 
@@ -183,7 +204,7 @@ def test_filter_steps_match_filterpys_kalman_filter() -> None:
     rng = np.random.default_rng(12)
     opt = FilterOptions(max_rejections=1000, gate_probability=0.999999)
     f = PoseFilter(opt)
-    f.reset(0.0, np.array([1.0, -2.0, 0.5]), 0.3, pos_sigma_m=0.05, yaw_sigma_rad=0.02)
+    f.reset(0.0, np.array([1.0, -2.0, 0.5]), 0.3, pos_cov_m2=0.05**2 * np.eye(3), yaw_sigma_rad=0.02)
     ref = KalmanFilter(dim_x=8, dim_z=4)
     ref.x = f._x.copy()
     ref.P = f._P.copy()
@@ -202,13 +223,17 @@ def test_filter_steps_match_filterpys_kalman_filter() -> None:
         ref.predict(F=F, Q=Q)
         yaw = float(ref.x[6, 0] + rng.normal(0, 0.02))
         sp, sy = float(rng.uniform(0.01, 0.1)), float(rng.uniform(0.005, 0.05))
+        A = rng.normal(0.0, sp, (3, 3))
+        C = A @ A.T + sp**2 * np.eye(3)  # a full position covariance: errors along some directions more
+        R = np.zeros((4, 4))
+        R[:3, :3], R[3, 3] = C, sy**2
         if k % 4 == 3:
-            assert f.update(None, yaw, pos_sigma_m=sp, yaw_sigma_rad=sy) == Update.FUSED
+            assert f.update(None, yaw, pos_cov_m2=C, yaw_sigma_rad=sy) == Update.FUSED
             ref.update(np.array([[yaw]]), R=np.array([[sy**2]]), H=_H[3:4])
         else:
             p = ref.x[0:3, 0] + rng.normal(0, 0.05, 3)
-            assert f.update(p, yaw, pos_sigma_m=sp, yaw_sigma_rad=sy) == Update.FUSED
-            ref.update(np.array([[*p, yaw]]).T, R=np.diag([sp**2] * 3 + [sy**2]), H=_H)
+            assert f.update(p, yaw, pos_cov_m2=C, yaw_sigma_rad=sy) == Update.FUSED
+            ref.update(np.array([[*p, yaw]]).T, R=R, H=_H)
         np.testing.assert_allclose(f._x, ref.x, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(f._P, ref.P, rtol=1e-8, atol=1e-14)
     assert np.linalg.norm(f.velocity_ned_m_s) > 0  # the velocity was estimated, not left at its start
@@ -228,11 +253,11 @@ def test_gate_uses_the_measurement_size():
     """A yaw-only update 3.5 sigma off is beyond the 1-dof gate (10.83) though inside the 4-dof one
     (18.47): it is rejected. The same yaw error with a position that agrees passes the 4-dof gate."""
     f = PoseFilter(FilterOptions(max_rejections=10))
-    f.reset(0.0, np.zeros(3), 0.0, pos_sigma_m=0.01, yaw_sigma_rad=1e-4)
+    f.reset(0.0, np.zeros(3), 0.0, pos_cov_m2=0.01**2 * np.eye(3), yaw_sigma_rad=1e-4)
     sigma = 0.01
     off = 3.5 * np.hypot(sigma, 1e-4)
-    assert f.update(None, off, pos_sigma_m=0.01, yaw_sigma_rad=sigma) == Update.REJECTED
-    assert f.update(np.zeros(3), off, pos_sigma_m=0.01, yaw_sigma_rad=sigma) == Update.FUSED
+    assert f.update(None, off, pos_cov_m2=0.01**2 * np.eye(3), yaw_sigma_rad=sigma) == Update.REJECTED
+    assert f.update(np.zeros(3), off, pos_cov_m2=0.01**2 * np.eye(3), yaw_sigma_rad=sigma) == Update.FUSED
 
 
 def test_a_new_keyframe_goes_where_the_filter_puts_its_frame_when_that_is_the_better_estimate() -> None:
@@ -250,7 +275,7 @@ def test_a_new_keyframe_goes_where_the_filter_puts_its_frame_when_that_is_the_be
         return _Measurement(np.array(p_ned_m), 0.0, None, scale if with_scale else None, np.zeros(3), 50.0, np.zeros(0), np.zeros(0), (0.0, 0.0))  # type: ignore[arg-type]
 
     def filtered_at(p_ned_m: list[float]) -> None:
-        vo.filter.reset(1.0, np.array(p_ned_m), 0.0, pos_sigma_m=0.1, yaw_sigma_rad=0.01)
+        vo.filter.reset(1.0, np.array(p_ned_m), 0.0, pos_cov_m2=0.1**2 * np.eye(3), yaw_sigma_rad=0.01)
 
     tracking = StateReason.NONE
     filtered_at([4.0, 2.5, -5.0])
@@ -271,3 +296,33 @@ def test_a_new_keyframe_goes_where_the_filter_puts_its_frame_when_that_is_the_be
     assert vo._keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking)[1] == pytest.approx(2.0)
     filtered_at([1.5, 2.0, -5.0])
     assert vo._keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking)[1] == pytest.approx(0.5)
+
+
+def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_the_translation() -> None:
+    """docs/odometry.md, Covariance. At 3 m/s the motion term is position_sigma_per_speed_s * 3 m/s
+    times the tracks' noise over track_noise_px (0.1 px), counted from half to twice it: 4.5 mm for
+    tracks at 0.02 px, 18 mm at 1 px. A height source's 1% moves a frame 4 m north of its keyframe by
+    4 cm north and not at all east or down; the votes' spread (here 0) would count everywhere."""
+    sc = load_scenario("square")
+    vo = Odometry(sc.camera.camera_model(), sc.camera.R_body_cam())
+    opt = vo.options
+    kf = Keyframe(0, 0.0, np.arange(3), np.eye(3), np.full(3, np.nan), np.array([1.0, 2.0, -10.0]), 0.0, 0.0)
+    frame = PairedFrame(np.zeros((4, 4), np.uint8), 1.0, 1, 0.0, 0.0)
+    vo.filter.reset(1.0, np.array([5.0, 2.0, -10.0]), 0.0, v_ned_m_s=np.array([3.0, 0.0, 0.0]), pos_cov_m2=0.01 * np.eye(3), yaw_sigma_rad=0.01)
+    rp = dataclasses.replace(_failure(RelposeFailure.NO_MODEL, 40), success=True, reason=RelposeFailure.NONE, attitude_resolved=True)
+
+    def noise(track_noise_px: float, sensor_spread: float) -> np.ndarray:
+        m = _Measurement(
+            np.array([5.0, 2.0, -10.0]), 0.0, dataclasses.replace(rp, residual_rms_rad=track_noise_px / vo._focal_px),
+            ScaleEstimate(1.0, ScaleSource.RANGEFINDER, 40, 0.0, sensor_spread), np.array([4.0, 0.0, 0.0]), 50.0, np.zeros(0), np.zeros(0), (0.0, 0.0),
+        )
+        p, cov = vo._position_noise(frame, kf, m)
+        assert p is not None
+        return cov
+
+    floor_sq = opt.position_sigma_m**2  # the scene 10 m away (initial_depth_m)
+    for track_px, factor in ((0.02, 0.5), (0.1, 1.0), (1.0, 2.0)):
+        expected = floor_sq + (opt.position_sigma_per_speed_s * 3.0 * factor) ** 2
+        np.testing.assert_allclose(noise(track_px, 0.0), expected * np.eye(3), rtol=1e-9, atol=1e-15)
+    extra = noise(0.1, 0.01) - noise(0.1, 0.0)
+    np.testing.assert_allclose(extra, np.diag([0.04**2, 0.0, 0.0]), atol=1e-12)

@@ -95,9 +95,10 @@ class PoseFilter:
 
     def reset(
         self, t_s: float, p_ned_m: np.ndarray, yaw_rad: float, *, v_ned_m_s: np.ndarray | None = None, yaw_rate_rad_s: float | None = None,
-        pos_sigma_m: float, yaw_sigma_rad: float,
+        pos_cov_m2: np.ndarray, yaw_sigma_rad: float,
     ) -> None:
-        """Start at a pose (velocity and yaw rate zero, with their initial sigmas, unless given)."""
+        """Start at a pose (velocity and yaw rate zero, with their initial sigmas, unless given);
+        ``pos_cov_m2`` (3,3) its position covariance."""
         x = np.zeros((_DIM_X, 1))
         x[0:3, 0] = p_ned_m
         if v_ned_m_s is not None:
@@ -108,7 +109,8 @@ class PoseFilter:
         if yaw_rate_rad_s is not None:
             x[7, 0], sw = yaw_rate_rad_s, 0.1
         self._x = x
-        self._P = np.diag([pos_sigma_m**2] * 3 + [opt.initial_velocity_sigma_m_s**2] * 3 + [yaw_sigma_rad**2, sw**2])
+        self._P = np.diag([0.0] * 3 + [opt.initial_velocity_sigma_m_s**2] * 3 + [yaw_sigma_rad**2, sw**2])
+        self._P[0:3, 0:3] = pos_cov_m2
         self._t_s = float(t_s)
         self.rejections = 0
 
@@ -130,8 +132,9 @@ class PoseFilter:
         self._P = F @ self._P @ F.T + Q  # P = F P F' + Q
         self._t_s = float(t_s)
 
-    def update(self, p_ned_m: np.ndarray | None, yaw_rad: float, *, pos_sigma_m: float, yaw_sigma_rad: float) -> Update:
-        """Fuse a measurement taken at the current time (see :class:`Update`).
+    def update(self, p_ned_m: np.ndarray | None, yaw_rad: float, *, pos_cov_m2: np.ndarray, yaw_sigma_rad: float) -> Update:
+        """Fuse a measurement taken at the current time (see :class:`Update`): a position with
+        covariance ``pos_cov_m2`` (3,3) m^2, and a yaw.
 
         ``p_ned_m`` None measures the yaw only (vision saw a rotation but no translation).
         """
@@ -143,7 +146,10 @@ class PoseFilter:
             z[0:3, 0] = p_ned_m
         z[3, 0] = x[6, 0] + wrap_angle(yaw_rad - x[6, 0])
         z = z[rows]
-        R = np.diag([pos_sigma_m**2] * 3 + [yaw_sigma_rad**2])[rows, rows]
+        R = np.zeros((_DIM_Z, _DIM_Z))
+        R[0:3, 0:3] = pos_cov_m2
+        R[3, 3] = yaw_sigma_rad**2
+        R = R[rows, rows]
         y = z - H @ x  # innovation y = z - H x
         S = H @ P @ H.T + R  # its covariance S = H P H' + R
         d2 = float((y.T @ np.linalg.solve(S, y))[0, 0])  # squared Mahalanobis distance y' S^-1 y
@@ -152,7 +158,7 @@ class PoseFilter:
             if self.rejections < self.options.max_rejections:
                 return Update.REJECTED
             p = x[0:3, 0] if p_ned_m is None else p_ned_m
-            self.reset(self._t_s, p, z[-1, 0], v_ned_m_s=x[3:6, 0], yaw_rate_rad_s=float(x[7, 0]), pos_sigma_m=pos_sigma_m, yaw_sigma_rad=yaw_sigma_rad)
+            self.reset(self._t_s, p, z[-1, 0], v_ned_m_s=x[3:6, 0], yaw_rate_rad_s=float(x[7, 0]), pos_cov_m2=pos_cov_m2, yaw_sigma_rad=yaw_sigma_rad)
             return Update.RESTARTED
         self.rejections = 0
         K = np.linalg.solve(S, H @ P).T  # gain K = P H' S^-1 (S and P symmetric)

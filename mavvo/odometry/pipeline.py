@@ -89,8 +89,9 @@ class OdometryOptions:
     min_inliers: int = bounded(20, "fewer inliers: no pose from this frame", ge=5, le=5000)
     good_inliers: int = bounded(120, "inliers for full quality", ge=5, le=5000)
     max_failed_frames: int = bounded(5, "frames in a row without a pose before the keyframe is given up", ge=1, le=1000)
-    position_sigma_m: float = bounded(0.0012, "vision position noise from the image at full quality with the scene 10 m away (it scales with the depth, down to a fifth of it); the other terms: docs/odometry.md", gt=0, le=100)
-    position_sigma_per_speed_s: float = bounded(0.003, "vision position noise per m/s of speed (the translation's direction and length errors grow with the motion), seconds", ge=0, le=10)
+    position_sigma_m: float = bounded(0.0008, "vision position noise from the image at full quality with the scene 10 m away (it scales with the depth, down to a fifth of it); the other terms: docs/odometry.md", gt=0, le=100)
+    position_sigma_per_speed_s: float = bounded(0.003, "vision position noise per m/s of speed with the tracks' noise at track_noise_px (the translation's direction and length errors grow with the motion and the noise; counted from half to twice this noise), seconds", ge=0, le=10)
+    track_noise_px: float = bounded(0.1, "the tracks' noise (RMS of the relative pose's inlier residuals) position_sigma_per_speed_s is given for", gt=0, le=10)
     yaw_sigma_deg: float = bounded(0.3, "vision yaw noise at full quality", gt=0, le=180)
     attitude_sigma_deg: float = bounded(0.2, "roll/pitch uncertainty reported in the covariance", gt=0, le=90)
     heading_correction_time_s: float = bounded(10.0, "pull the vision heading toward the flight controller's yaw with this time constant (0: vision's heading alone)", ge=0, le=3600)
@@ -132,6 +133,15 @@ class _NoPose:
     """Why a frame has no pose against its keyframe."""
 
     reason: StateReason
+
+
+def _along(direction: np.ndarray, sigma_m: float) -> np.ndarray:
+    """(3,3) covariance of an error of ``sigma_m`` (1 sigma) along ``direction`` (none where it is zero)."""
+    n = float(np.linalg.norm(direction))
+    if n == 0.0 or sigma_m == 0.0:
+        return np.zeros((3, 3))
+    u = direction / n
+    return sigma_m**2 * np.outer(u, u)
 
 
 @dataclass
@@ -245,7 +255,7 @@ class Odometry:
         self._last_yaw_2_1 = 0.0
         self._metric_interval = False
         self._failed_in_row = 0
-        self.filter.reset(frame.t_exposure_s, p, yaw, v_ned_m_s=v, pos_sigma_m=sigma, yaw_sigma_rad=self._yaw_sigma_rad)
+        self.filter.reset(frame.t_exposure_s, p, yaw, v_ned_m_s=v, pos_cov_m2=sigma**2 * np.eye(3), yaw_sigma_rad=self._yaw_sigma_rad)
         self._good = _Good(frame.t_exposure_s, p.copy(), np.zeros(3) if v is None else v.copy(), yaw, fc_yaw)
         diag = VoDiagnostics(state=VisionState.INITIALISING, reason=StateReason.NEW_KEYFRAME, tracks=len(tracks.ids), keyframe=True)
         return self._estimate(frame, diag, quality=1)
@@ -342,31 +352,11 @@ class Odometry:
             reason = StateReason.ATTITUDE_INTERPOLATED
         degraded = reason != StateReason.NONE
         quality = self._quality(rp, degraded=degraded)
-        depth = self._scene_depth_m or opt.scale.initial_depth_m
-        p_meas: np.ndarray | None = m.p_ned_m
-        if m.scale is not None:
-            # Roll/pitch the relative pose kept as given, or corrected with too little parallax to tell
-            # a tilt from a translation, turn every bearing by about their error: the translation moves
-            # by depth times it. Resolved ones leave what the pairing's interpolation may add.
-            # Independent sources: they add in quadrature.
-            tilt_rad = frame.interpolation_sigma_rad if rp.attitude_resolved else math.hypot(*self._view_attitude_sigmas_rad(kf, frame))
-            unresolved = math.hypot(
-                m.scale.spread * float(np.linalg.norm(m.c2_m)),
-                opt.position_sigma_per_speed_s * float(np.linalg.norm(self.filter.velocity_ned_m_s)),
-                depth * tilt_rad,
-            )
-        elif rp.reason == RelposeFailure.PURE_ROTATION or m.parallax_px < _STILL_PARALLAX_PX:
-            # No parallax the images resolve (the relative pose says pure rotation, or under a pixel
-            # with nothing triangulated): the frame is where its keyframe is, within the baseline the
-            # parallax left after the rotation stands for at the scene's depth.
-            unresolved = depth * m.parallax_px / self._focal_px
-        else:
-            # Parallax, but too few points to triangulate: the translation is not measured.
-            p_meas, unresolved = None, 0.0
-        pos_sigma = math.hypot(opt.position_sigma_m * max(depth / _REFERENCE_DEPTH_M, 0.2), unresolved) * 100.0 / quality
+        p_meas, noise_cov = self._position_noise(frame, kf, m)
+        pos_cov = noise_cov * (100.0 / quality) ** 2
         yaw_sigma = self._yaw_sigma_rad * 100.0 / quality
         self.filter.predict(frame.t_exposure_s)
-        outcome = self.filter.update(p_meas, m.yaw_rad, pos_sigma_m=pos_sigma, yaw_sigma_rad=yaw_sigma)
+        outcome = self.filter.update(p_meas, m.yaw_rad, pos_cov_m2=pos_cov, yaw_sigma_rad=yaw_sigma)
         accepted = outcome != Update.REJECTED
         if outcome == Update.RESTARTED:
             # The filter jumped to the measurement: a change of the sent pose that is not motion.
@@ -446,6 +436,41 @@ class Odometry:
     def _failed(self, frame: PairedFrame, reason: StateReason, tracks: int) -> PoseEstimate:
         self.filter.predict(frame.t_exposure_s)  # the filter runs from the first keyframe on
         return self._estimate(frame, VoDiagnostics(state=VisionState.FAILED, reason=reason, tracks=tracks), quality=-1)
+
+    def _position_noise(self, frame: PairedFrame, kf: Keyframe, m: _Measurement) -> tuple[np.ndarray | None, np.ndarray]:
+        """The position to fuse (None: the translation is not measured) and its noise covariance (3,3)
+        m^2 at full quality (docs/odometry.md, Covariance)."""
+        opt = self.options
+        rp = m.relpose
+        depth = self._scene_depth_m or opt.scale.initial_depth_m
+        p_meas: np.ndarray | None = m.p_ned_m
+        along_m, along_dir = 0.0, np.zeros(3)
+        if m.scale is not None:
+            # Roll/pitch the relative pose kept as given, or corrected with too little parallax to tell
+            # a tilt from a translation, turn every bearing by about their error: the translation moves
+            # by depth times it. Resolved ones leave what the pairing's interpolation may add.
+            # The motion's errors grow with the tracks' noise (the relative pose's residuals, over
+            # the noise position_sigma_per_speed_s is given for). Independent sources: they add in
+            # quadrature; a height source's noise moves the position along the translation only.
+            tilt_rad = frame.interpolation_sigma_rad if rp.attitude_resolved else math.hypot(*self._view_attitude_sigmas_rad(kf, frame))
+            track_noise = min(max(rp.residual_rms_rad * self._focal_px / opt.track_noise_px, 0.5), 2.0)
+            c2_m = float(np.linalg.norm(m.c2_m))
+            unresolved = math.hypot(
+                m.scale.spread * c2_m,
+                opt.position_sigma_per_speed_s * float(np.linalg.norm(self.filter.velocity_ned_m_s)) * track_noise,
+                depth * tilt_rad,
+            )
+            along_m, along_dir = m.scale.sensor_spread * c2_m, m.p_ned_m - kf.p_ned_m
+        elif rp.reason == RelposeFailure.PURE_ROTATION or m.parallax_px < _STILL_PARALLAX_PX:
+            # No parallax the images resolve (the relative pose says pure rotation, or under a pixel
+            # with nothing triangulated): the frame is where its keyframe is, within the baseline the
+            # parallax left after the rotation stands for at the scene's depth.
+            unresolved = depth * m.parallax_px / self._focal_px
+        else:
+            # Parallax, but too few points to triangulate: the translation is not measured.
+            p_meas, unresolved = None, 0.0
+        iso_m = math.hypot(opt.position_sigma_m * max(depth / _REFERENCE_DEPTH_M, 0.2), unresolved)
+        return p_meas, iso_m**2 * np.eye(3) + _along(along_dir, along_m)
 
     def _trusted(self, scale: ScaleEstimate) -> bool:
         """Metric: a measured source, or the scene depth held from one while the interval is metric."""

@@ -67,15 +67,19 @@ class ScaleEstimate:
         baseline_m: the metric length of the unit translation (the baseline), metres.
         source: :class:`~mavvo.types.ScaleSource` (never ``none``).
         points: how many triangulated points voted.
-        spread: relative uncertainty of the scale for the measurement covariance: the spread of the
-            votes (median absolute deviation over the median), with a height source's noise over the
-            height.
+        spread: relative spread of the votes (median absolute deviation over the median, weighted as
+            the median is): how well the triangulated scene fits, which also says how well the
+            translation was measured.
+        sensor_spread: relative uncertainty a height source adds (its noise over the height): a new
+            reading every frame, so the scale's frame-to-frame error, which moves the position along
+            the translation only.
     """
 
     baseline_m: float
     source: ScaleSource
     points: int
     spread: float
+    sensor_spread: float = 0.0
 
 
 def triangulate_unit(
@@ -116,15 +120,17 @@ def _weighted_median(x: np.ndarray, w: np.ndarray) -> float:
 def ground_depth(points_lvl: np.ndarray, weights: np.ndarray, min_points: int) -> tuple[float, float] | None:
     """Depth of a horizontal ground plane below view 1, from triangulated points (level frame, z down).
 
-    Returns (depth, relative spread) from the points below the horizon (weighted median of their z),
-    or None with fewer than ``min_points`` of them.
+    Returns (depth, relative spread) from the points below the horizon: the weighted median of their z
+    and the weighted median of their absolute deviations from it over it (weights: ``weights``, the
+    parallax squared, so votes triangulated from almost no parallax neither move nor widen it), or
+    None with fewer than ``min_points`` of them.
     """
     below = points_lvl[:, 2] > 0
     if np.count_nonzero(below) < min_points:
         return None
     z, w = points_lvl[below, 2], weights[below]
     d = _weighted_median(z, w)
-    spread = float(np.median(np.abs(z - d))) / d
+    spread = _weighted_median(np.abs(z - d), w) / d
     return d, spread
 
 
@@ -171,7 +177,7 @@ def estimate_scale(
             return None
         # A new reading every frame: its noise over the height is the scale's frame-to-frame error
         # (2 cm at 0.5 m is 4%, what moved the landing's positions by centimetres).
-        return ScaleEstimate(h2_m / h2_unit, source, int(np.count_nonzero(points_lvl[:, 2] > 0)), float(np.hypot(spread, sigma_m / h2_m)))
+        return ScaleEstimate(h2_m / h2_unit, source, int(np.count_nonzero(points_lvl[:, 2] > 0)), spread, sigma_m / h2_m)
 
     def rangefinder() -> ScaleEstimate | None:
         if range_m is None or not (np.isfinite(range_m) and range_m > 0) or down_lvl2[2] < 0.5:
