@@ -126,7 +126,9 @@ def test_fast_yaw_spin_turns_without_moving() -> None:
     run = _shipped("yaw_spin")
     ev = run.evaluation()
     assert run.resets == 0 and all(e.quality >= 0 for e in run.estimates)
-    assert ev.ate_se3_m["max"] <= 1.0  # at 10 m; tracks blur at 120 deg/s
+    # At 10 m; tracks blur at 120 deg/s. Measured: 0.09 m. A ground fit's spread weighted by parallax
+    # (the few votes with the most, from the rotation's error, agree) let spurious translations through: 0.36 m.
+    assert ev.ate_se3_m["max"] <= 0.2
     assert np.abs(run.heading_errors_deg()).max() <= 4.0  # after 720 deg
     assert any(e.diagnostics.reason == "pure_rotation" for e in run.estimates)
 

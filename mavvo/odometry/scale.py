@@ -67,9 +67,8 @@ class ScaleEstimate:
         baseline_m: the metric length of the unit translation (the baseline), metres.
         source: :class:`~mavvo.types.ScaleSource` (never ``none``).
         points: how many triangulated points voted.
-        spread: relative spread of the votes (median absolute deviation over the median, weighted as
-            the median is): how well the triangulated scene fits, which also says how well the
-            translation was measured.
+        spread: relative spread of the votes (median absolute deviation over the median): how well
+            the triangulated scene fits, which also says how well the translation was measured.
         sensor_spread: relative uncertainty a height source adds (its noise over the height): a new
             reading every frame, so the scale's frame-to-frame error, which moves the position along
             the translation only.
@@ -120,17 +119,19 @@ def _weighted_median(x: np.ndarray, w: np.ndarray) -> float:
 def ground_depth(points_lvl: np.ndarray, weights: np.ndarray, min_points: int) -> tuple[float, float] | None:
     """Depth of a horizontal ground plane below view 1, from triangulated points (level frame, z down).
 
-    Returns (depth, relative spread) from the points below the horizon: the weighted median of their z
-    and the weighted median of their absolute deviations from it over it (weights: ``weights``, the
-    parallax squared, so votes triangulated from almost no parallax neither move nor widen it), or
-    None with fewer than ``min_points`` of them.
+    Returns (depth, relative spread) from the points below the horizon: the median of their z weighted
+    by ``weights`` (the parallax squared: votes triangulated from almost no parallax do not move it),
+    and the unweighted median of their absolute deviations from it over it (all votes: where the
+    parallax came from a rotation error rather than a translation, as in a spin on the spot, the few
+    with the most agree with each other while the rest do not, and the spread has to say so), or None
+    with fewer than ``min_points`` of them.
     """
     below = points_lvl[:, 2] > 0
     if np.count_nonzero(below) < min_points:
         return None
     z, w = points_lvl[below, 2], weights[below]
     d = _weighted_median(z, w)
-    spread = _weighted_median(np.abs(z - d), w) / d
+    spread = float(np.median(np.abs(z - d))) / d
     return d, spread
 
 
