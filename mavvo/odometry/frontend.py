@@ -5,11 +5,7 @@ frame against its keyframe by id. Per frame:
 
 1. the previous frame's tracks are followed into the new image with pyramidal Lucas-Kanade, then
    followed back (from their old positions, at full resolution by default); a track survives when both directions converge, the round trip returns within
-   ``fb_max_px`` and it stays ``border_px`` inside the image. Lucas-Kanade assumes a pixel keeps its
-   brightness; a camera's auto-exposure breaks that by a fraction of a percent per frame, which biases
-   every track a little the same way each frame (``gain_compensation``): the new image is tracked
-   divided by the exposure ratio of the last pair (brightness around the surviving tracks, new over
-   old; exposure changes slowly, so the last pair predicts the next);
+   ``fb_max_px`` and it stays ``border_px`` inside the image;
 2. when fewer than ``redetect_fraction`` of ``max_features`` survive, FAST corners are detected in the
    grid cells that have lost theirs: at most ``max_features / cells`` per cell, the strongest first, and
    none within ``min_distance_px`` of a live track or of each other.
@@ -52,7 +48,6 @@ class FrontendOptions:
         0, "pyramid levels of the backward check, which starts at the tracks' old positions (0: full resolution only, a third of the forward cost)", ge=0, le=6
     )
     border_px: int = bounded(8, "tracks this close to the image edge are dropped", ge=0, le=500)
-    gain_compensation: bool = bounded(True, "track each new image divided by the last pair's exposure ratio (auto-exposure)")
 
 
 @dataclass(frozen=True)
@@ -70,26 +65,6 @@ class Tracks:
     uv_px: np.ndarray
     f_cam: np.ndarray
     tracked: int
-
-
-_GAIN_NOISE = 1e-3  # exposure ratios closer to 1 are left alone (the estimate's own noise: a median of 0.03-0.06%, up to 0.2% over a forward camera's changing view)
-_GAIN_PATCH = np.stack(np.meshgrid(np.arange(-2, 3), np.arange(-2, 3)), axis=-1).reshape(1, -1, 2).astype(np.float32)  # 5x5 offsets
-_GAIN_MIN_TRACKS = 20
-
-
-def _exposure_ratio(prev: np.ndarray, cur: np.ndarray, uv_prev: np.ndarray, uv_cur: np.ndarray) -> float:
-    """Exposure of ``cur`` over ``prev`` from the same surface around matched tracks: the median over
-    tracks of the brightness of a 5x5 patch (bilinear, sub-pixel) in ``cur`` over the same in ``prev``,
-    clamped to [0.5, 2]; 1 with fewer than 20 tracks."""
-    if len(uv_prev) < _GAIN_MIN_TRACKS:
-        return 1.0
-    a = cv2.remap(prev, *(uv_prev[:, None, :].astype(np.float32) + _GAIN_PATCH).transpose(2, 0, 1), cv2.INTER_LINEAR)
-    b = cv2.remap(cur, *(uv_cur[:, None, :].astype(np.float32) + _GAIN_PATCH).transpose(2, 0, 1), cv2.INTER_LINEAR)
-    sa, sb = a.sum(axis=1, dtype=np.float64), b.sum(axis=1, dtype=np.float64)
-    ok = sa > 0
-    if np.count_nonzero(ok) < _GAIN_MIN_TRACKS:
-        return 1.0
-    return float(np.clip(np.median(sb[ok] / sa[ok]), 0.5, 2.0))
 
 
 class Frontend:
@@ -112,7 +87,6 @@ class Frontend:
         self._prev: np.ndarray | None = None
         self._ids = np.zeros(0, np.int64)
         self._uv = np.zeros((0, 2), np.float32)
-        self.gain = 1.0  # the last pair's exposure ratio, new over old: the next pair's prediction
 
     def process(self, image: np.ndarray) -> Tracks:
         """Track into ``image`` ((H,W) uint8, the camera's size) and top up with new corners."""
@@ -157,9 +131,6 @@ class Frontend:
         opt = self.options
         p0 = uv0.reshape(-1, 1, 2)
         lk = dict(winSize=self._win, maxLevel=opt.klt_levels, criteria=self._criteria)
-        raw = cur
-        if opt.gain_compensation and abs(self.gain - 1.0) > _GAIN_NOISE:
-            cur = cv2.convertScaleAbs(cur, alpha=1.0 / self.gain)
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, **lk)
         # Backward from the forward result, started at the original positions: a consistent track
         # converges there without the coarse levels (the same keep/drop decision for 99.96% of the
@@ -173,8 +144,6 @@ class Frontend:
         b = opt.border_px
         inside = (p1[:, 0] >= b) & (p1[:, 0] <= w - 1 - b) & (p1[:, 1] >= b) & (p1[:, 1] <= h - 1 - b)
         keep = (st1.ravel() == 1) & (st0.ravel() == 1) & (fb < opt.fb_max_px) & inside
-        if opt.gain_compensation:
-            self.gain = _exposure_ratio(prev, raw, uv0[keep], p1[keep])
         return keep, p1[keep]
 
     def _cell(self, uv: np.ndarray, w: int, h: int) -> np.ndarray:
