@@ -453,7 +453,8 @@ class Odometry:
             # the noise position_sigma_per_speed_s is given for). Independent sources: they add in
             # quadrature; a height source's noise moves the position along the translation only.
             tilt_rad = frame.interpolation_sigma_rad if rp.attitude_resolved else math.hypot(*self._view_attitude_sigmas_rad(kf, frame))
-            track_noise = min(max(rp.residual_rms_rad * self._focal_px / opt.track_noise_px, 0.5), 2.0)
+            resid_px = rp.residual_rms_rad * self._focal_px if math.isfinite(rp.residual_rms_rad) else math.inf
+            track_noise = min(max(resid_px / opt.track_noise_px, 0.5), 2.0)  # unknown: the most
             c2_m = float(np.linalg.norm(m.c2_m))
             unresolved = math.hypot(
                 m.scale.spread * c2_m,
