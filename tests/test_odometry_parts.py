@@ -284,8 +284,9 @@ def test_a_new_keyframe_goes_where_the_filter_puts_its_frame_when_that_is_the_be
 def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_the_translation() -> None:
     """docs/odometry.md, Covariance. At 3 m/s the motion term is position_sigma_per_speed_s * 3 m/s
     times the tracks' noise over track_noise_px (0.1 px), counted from half to twice it: 4.5 mm for
-    tracks at 0.02 px, 18 mm at 1 px or an unknown noise. A height source's 1% moves a frame 4 m north of its keyframe by
-    4 cm north and not at all east or down; the votes' spread (here 0) would count everywhere."""
+    tracks at 0.02 px, 18 mm at 1 px or an unknown noise. A height source's 1% moves a frame 4 m
+    north of its keyframe by 4 cm north and not at all east or down; the votes' spread (here 0) would
+    count everywhere."""
     sc = load_scenario("square")
     vo = Odometry(sc.camera.camera_model(), sc.camera.R_body_cam())
     opt = vo.options
