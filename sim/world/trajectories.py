@@ -339,6 +339,9 @@ class YawSpinSpec:
     rate_deg_s: float = bounded(120.0, "cruise yaw rate", gt=0)
     turns: float = bounded(2.0, "number of full turns", gt=0)
     ramp_s: float = bounded(1.0, "time to reach the yaw rate, and to stop", gt=0)
+    drift_m: float = bounded(0.0, "amplitude of the horizontal drift while spinning (as a hover's)", ge=0)
+    drift_period_s: float = bounded(12.0, "typical period of the drift", gt=0)
+    seed: int = bounded(0, "seed of the drift's phases", ge=0)
 
 
 @dataclass(frozen=True)
@@ -411,29 +414,50 @@ def make_trajectory(spec: TrajectorySpec) -> Trajectory:
         def still(ph: float):
             return np.array([0.0, 0.0, z]), np.zeros(3), np.zeros(3)
 
-        return PhaseTrajectory(
-            still, _Phase(2 * np.pi * spec.turns, np.radians(spec.rate_deg_s), spec.ramp_s), yaw=lambda ph: (_wrap(ph), 1.0)
-        )
+        spin = PhaseTrajectory(still, _Phase(2 * np.pi * spec.turns, np.radians(spec.rate_deg_s), spec.ramp_s), yaw=lambda ph: (_wrap(ph), 1.0))
+        return _Drifting(spin, _Drift(np.zeros(3), spec.drift_m, spec.drift_period_s, spec.seed)) if spec.drift_m > 0 else spin
     raise TypeError(f"make_trajectory: unknown spec {type(spec).__name__}")
 
 
+class _Drift:
+    """A position-holding drone's slow wander about ``center_ned_m``: two sines per axis (vertical a
+    fifth of the horizontal), random periods and phases from the seed, exactly at the centre at t = 0."""
+
+    def __init__(self, center_ned_m: np.ndarray, drift_m: float, period_s: float, seed: int) -> None:
+        rng = np.random.default_rng(seed)
+        self._w = 2 * np.pi / (period_s * rng.uniform(0.6, 1.6, (3, 2)))
+        self._phases = rng.uniform(0, 2 * np.pi, (3, 2))
+        self._amps = drift_m / 2 * np.array([[1.0, 1.0], [1.0, 1.0], [0.2, 0.2]]) * rng.uniform(0.7, 1.0, (3, 2))
+        self._base = center_ned_m - (self._amps * np.sin(self._phases)).sum(axis=1)
+
+    def at(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(p_ned_m, v_ned_m_s, a_ned_m_s2) at ``t_s``."""
+        arg = self._w * t_s + self._phases
+        A, w = self._amps, self._w
+        return self._base + (A * np.sin(arg)).sum(axis=1), (A * w * np.cos(arg)).sum(axis=1), -(A * w * w * np.sin(arg)).sum(axis=1)
+
+
 class HoverTrajectory(Trajectory):
-    """Hover at (0, 0, -altitude) with a slow drift: two sines per axis (vertical a fifth of the
-    horizontal), random periods and phases from the seed, starting exactly at the hover point."""
+    """Hover at (0, 0, -altitude) with a slow drift (:class:`_Drift`)."""
 
     def __init__(self, spec: HoverSpec) -> None:
-        rng = np.random.default_rng(spec.seed)
-        self._w = 2 * np.pi / (spec.drift_period_s * rng.uniform(0.6, 1.6, (3, 2)))
-        self._phases = rng.uniform(0, 2 * np.pi, (3, 2))
-        self._amps = spec.drift_m / 2 * np.array([[1.0, 1.0], [1.0, 1.0], [0.2, 0.2]]) * rng.uniform(0.7, 1.0, (3, 2))
-        self._base = np.array([0.0, 0.0, -spec.altitude_m]) - (self._amps * np.sin(self._phases)).sum(axis=1)
+        self._drift = _Drift(np.array([0.0, 0.0, -spec.altitude_m]), spec.drift_m, spec.drift_period_s, spec.seed)
         self._yaw = float(np.radians(spec.yaw_deg))
         self.duration_s = spec.duration_s
 
     def kinematics(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
-        arg = self._w * t_s + self._phases
-        A, w = self._amps, self._w
-        p = self._base + (A * np.sin(arg)).sum(axis=1)
-        v = (A * w * np.cos(arg)).sum(axis=1)
-        a = -(A * w * w * np.sin(arg)).sum(axis=1)
+        p, v, a = self._drift.at(t_s)
         return p, v, a, self._yaw, 0.0
+
+
+class _Drifting(Trajectory):
+    """A path with a hover's drift (:class:`_Drift` about the origin) added to it."""
+
+    def __init__(self, path: Trajectory, drift: _Drift) -> None:
+        self._path, self._drift = path, drift
+        self.duration_s = path.duration_s
+
+    def kinematics(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+        p, v, a, yaw, yaw_rate = self._path.kinematics(t_s)
+        dp, dv, da = self._drift.at(t_s)
+        return p + dp, v + dv, a + da, yaw, yaw_rate
