@@ -53,6 +53,9 @@ class Keyframe:
         fc_yaw_rad: the flight controller's yaw at this frame (NaN if unknown).
         attitude_sigma_rad: the roll/pitch uncertainty of its level frame (1 sigma), what the relative
             pose's attitude prior takes for this view.
+        unmeasured_m: how far it may be from where it is placed by translations the images did not
+            resolve (1 sigma, m): keyframes made in a turn on the spot stay where the last one was,
+            each within what its parallax could hide, and that adds up until a translation is measured.
     """
 
     seq: int
@@ -64,6 +67,7 @@ class Keyframe:
     yaw_rad: float
     fc_yaw_rad: float
     attitude_sigma_rad: float = 0.0
+    unmeasured_m: float = 0.0
 
     def match(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Indices (into this keyframe, into ``ids``) of the tracks both have; ``ids`` increasing."""

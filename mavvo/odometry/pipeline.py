@@ -68,7 +68,7 @@ _TRUSTED_SCALE = frozenset({ScaleSource.RANGEFINDER, ScaleSource.ALTITUDE, Scale
 # An untrusted scale source -> the reason the frame is degraded.
 _UNTRUSTED_SCALE_REASON = {ScaleSource.HELD: StateReason.SCALE_HELD, ScaleSource.ASSUMED: StateReason.SCALE_ASSUMED}
 # Frames whose keyframe goes where the filter puts them (Odometry._keyframe_position).
-_FILTER_PLACES_KEYFRAME = frozenset({StateReason.NONE, *_UNTRUSTED_SCALE_REASON.values()})
+_FILTER_PLACES_KEYFRAME = frozenset({StateReason.NONE, StateReason.FEW_INLIERS, *_UNTRUSTED_SCALE_REASON.values()})
 _BASELINE_FACTOR_MIN = 0.5  # a new keyframe's depths follow the filter's baseline within a factor of 2
 _REFERENCE_DEPTH_M = 10.0  # the scene depth position_sigma_m is given for
 _STILL_PARALLAX_PX = 1.0  # median parallax below this and nothing triangulated: the camera has not moved
@@ -395,7 +395,11 @@ class Odometry:
             self.filter.shift_yaw(nudge)  # a correction of the frame's heading, not a measurement to gate
         # The new keyframe keeps its level frame as vision corrected it.
         f_kf = f_lvl @ tilt_rotation(m.relpose.tilt2_rad).T
-        self.chain.push(Keyframe(frame.seq, frame.t_exposure_s, tracks.ids, f_kf, depth, p_kf, yaw, frame.yaw_rad, self._attitude_sigma_rad(frame)), self.reset_counter)
+        unmeasured = self._unresolved_baseline_m(kf, m) if m.scale is None else 0.0
+        self.chain.push(
+            Keyframe(frame.seq, frame.t_exposure_s, tracks.ids, f_kf, depth, p_kf, yaw, frame.yaw_rad, self._attitude_sigma_rad(frame), unmeasured),
+            self.reset_counter,
+        )
         self._last_yaw_2_1 = 0.0
         known = np.isfinite(depth)
         self._metric_interval = m.scale is not None and self._trusted(m.scale) and np.count_nonzero(known) >= self.options.scale.min_points
@@ -414,7 +418,10 @@ class Odometry:
           one), so the carried scale does not take up the error the position left behind;
         - a held or assumed scale: the measured length is a guess from the scene depth (in a turn on
           the spot, a translation the images barely resolve moved the frame 16 cm); the depths stay
-          as measured, in the same guessed units.
+          as measured, in the same guessed units;
+        - few inliers: the translation rests on few points (in a fast turn, 53 inliers put a frame
+          0.3 m off, and the keyframes of the turn on the spot after it stayed there); the filter
+          weighed it by its inflated sigma. The depths stay as measured.
         Other degraded frames keep their raw measurement: their sigma is inflated by the quality cap,
         so the filter's estimate lags (docs/odometry.md). Without a translation (mostly a turn on the
         spot) the keyframe stays where the old one was: the filter's coasted position would let its
@@ -464,14 +471,20 @@ class Odometry:
             along_m, along_dir = m.scale.sensor_spread * c2_m, m.p_ned_m - kf.p_ned_m
         elif rp.reason == RelposeFailure.PURE_ROTATION or m.parallax_px < _STILL_PARALLAX_PX:
             # No parallax the images resolve (the relative pose says pure rotation, or under a pixel
-            # with nothing triangulated): the frame is where its keyframe is, within the baseline the
-            # parallax left after the rotation stands for at the scene's depth.
-            unresolved = depth * m.parallax_px / self._focal_px
+            # with nothing triangulated): the frame is where its keyframe is.
+            unresolved = self._unresolved_baseline_m(kf, m)
         else:
             # Parallax, but too few points to triangulate: the translation is not measured.
             p_meas, unresolved = None, 0.0
         iso_m = math.hypot(opt.position_sigma_m * max(depth / _REFERENCE_DEPTH_M, 0.2), unresolved)
         return p_meas, iso_m**2 * np.eye(3) + _along(along_dir, along_m)
+
+    def _unresolved_baseline_m(self, kf: Keyframe, m: _Measurement) -> float:
+        """How far a frame placed at its keyframe for want of a measured translation may be from it
+        (1 sigma, m): the baseline the parallax left after the rotation stands for at the scene's
+        depth, and what the keyframe's own place did not measure (``Keyframe.unmeasured_m``)."""
+        depth = self._scene_depth_m or self.options.scale.initial_depth_m
+        return math.hypot(depth * m.parallax_px / self._focal_px, kf.unmeasured_m)
 
     def _trusted(self, scale: ScaleEstimate) -> bool:
         """Metric: a measured source, or the scene depth held from one while the interval is metric."""
