@@ -467,6 +467,7 @@ class Odometry:
                 m.scale.spread * c2_m,
                 opt.position_sigma_per_speed_s * float(np.linalg.norm(self.filter.velocity_ned_m_s)) * track_noise,
                 depth * tilt_rad,
+                kf.unmeasured_m,  # measured from a keyframe whose own place was not
             )
             along_m, along_dir = m.scale.sensor_spread * c2_m, m.p_ned_m - kf.p_ned_m
         elif rp.reason == RelposeFailure.PURE_ROTATION or m.parallax_px < _STILL_PARALLAX_PX:
