@@ -283,8 +283,8 @@ def test_a_new_keyframe_goes_where_the_filter_puts_its_frame_when_that_is_the_be
 
 def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_the_translation() -> None:
     """docs/odometry.md, Covariance. At 3 m/s the motion term is position_sigma_per_speed_s * 3 m/s
-    times the tracks' noise over track_noise_px (0.1 px), counted from half to twice it: 4.5 mm for
-    tracks at 0.02 px, 18 mm at 1 px or an unknown noise. A height source's 1% moves a frame 4 m
+    times the tracks' noise over track_noise_px (0.1 px), counted from half to ten times it: 4.5 mm for
+    tracks at 0.02 px, 45 mm at 0.5 px, 90 mm at 1 px and more or an unknown noise. A height source's 1% moves a frame 4 m
     north of its keyframe by 4 cm north and not at all east or down; the votes' spread (here 0) would
     count everywhere."""
     sc = load_scenario("square")
@@ -305,7 +305,7 @@ def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_
         return cov
 
     floor_sq = opt.position_sigma_m**2  # the scene 10 m away (initial_depth_m)
-    for track_px, factor in ((0.02, 0.5), (0.1, 1.0), (1.0, 2.0), (math.nan, 2.0)):
+    for track_px, factor in ((0.02, 0.5), (0.1, 1.0), (0.5, 5.0), (1.0, 10.0), (3.0, 10.0), (math.nan, 10.0)):
         expected = floor_sq + (opt.position_sigma_per_speed_s * 3.0 * factor) ** 2
         np.testing.assert_allclose(noise(track_px, 0.0), expected * np.eye(3), rtol=1e-9, atol=1e-15)
     extra = noise(0.1, 0.01) - noise(0.1, 0.0)

@@ -71,6 +71,10 @@ _UNTRUSTED_SCALE_REASON = {ScaleSource.HELD: StateReason.SCALE_HELD, ScaleSource
 _FILTER_PLACES_KEYFRAME = frozenset({StateReason.NONE, StateReason.FEW_INLIERS, *_UNTRUSTED_SCALE_REASON.values()})
 _BASELINE_FACTOR_MIN = 0.5  # a new keyframe's depths follow the filter's baseline within a factor of 2
 _REFERENCE_DEPTH_M = 10.0  # the scene depth position_sigma_m is given for
+# The motion term follows the tracks' noise within these multiples of track_noise_px: capped at 2x, the
+# `faults` camera's tracks dragged by its auto-exposure (residuals up to 0.9 px) were sent with a 2 cm sigma
+# while the position moved 0.1 m (one draw at 93.1% inside the 99% ellipse; 95.0% at 10x).
+_TRACK_NOISE_MIN, _TRACK_NOISE_MAX = 0.5, 10.0
 _STILL_PARALLAX_PX = 1.0  # median parallax below this and nothing triangulated: the camera has not moved
 # No parallax and less turn than this against the keyframe: standing still, not a degraded pure rotation.
 _STATIONARY_YAW_RAD = math.radians(2.0)
@@ -90,7 +94,7 @@ class OdometryOptions:
     good_inliers: int = bounded(120, "inliers for full quality", ge=5, le=5000)
     max_failed_frames: int = bounded(5, "frames in a row without a pose before the keyframe is given up", ge=1, le=1000)
     position_sigma_m: float = bounded(0.0008, "vision position noise from the image at full quality with the scene 10 m away (it scales with the depth, down to a fifth of it); the other terms: docs/odometry.md", gt=0, le=100)
-    position_sigma_per_speed_s: float = bounded(0.003, "vision position noise per m/s of speed with the tracks' noise at track_noise_px (the translation's direction and length errors grow with the motion and the noise; counted from half to twice this noise), seconds", ge=0, le=10)
+    position_sigma_per_speed_s: float = bounded(0.003, "vision position noise per m/s of speed with the tracks' noise at track_noise_px (the translation's direction and length errors grow with the motion and the noise; counted from half to ten times this noise), seconds", ge=0, le=10)
     track_noise_px: float = bounded(0.1, "the tracks' noise (RMS of the relative pose's inlier residuals) position_sigma_per_speed_s is given for", gt=0, le=10)
     yaw_sigma_deg: float = bounded(0.3, "vision yaw noise at full quality", gt=0, le=180)
     attitude_sigma_deg: float = bounded(0.2, "roll/pitch uncertainty reported in the covariance", gt=0, le=90)
@@ -461,7 +465,7 @@ class Odometry:
             # quadrature; a height source's noise moves the position along the translation only.
             tilt_rad = frame.interpolation_sigma_rad if rp.attitude_resolved else math.hypot(*self._view_attitude_sigmas_rad(kf, frame))
             resid_px = rp.residual_rms_rad * self._focal_px if math.isfinite(rp.residual_rms_rad) else math.inf
-            track_noise = min(max(resid_px / opt.track_noise_px, 0.5), 2.0)  # unknown: the most
+            track_noise = min(max(resid_px / opt.track_noise_px, _TRACK_NOISE_MIN), _TRACK_NOISE_MAX)  # unknown: the most
             c2_m = float(np.linalg.norm(m.c2_m))
             unresolved = math.hypot(
                 m.scale.spread * c2_m,
