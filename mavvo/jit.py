@@ -29,11 +29,19 @@ _KERNELS: list[Any] = []  # every kernel made, for refresh_cache
 _STAMP_FILE = "mavvo-kernels.sha256"
 
 
-def kernel(fn: F) -> F:
-    """``fn`` compiled in nopython mode, cached, releasing the GIL while it runs."""
-    compiled = numba.njit(cache=True, nogil=True)(fn)
-    _KERNELS.append(compiled)
-    return compiled  # type: ignore[no-any-return]
+def kernel(fn: F | None = None, *, fastmath: bool | set[str] = False, inline: bool = False) -> Any:
+    """``fn`` compiled in nopython mode, cached, releasing the GIL while it runs. ``@kernel`` or
+    ``@kernel(fastmath=..., inline=...)``: LLVM's fast-math flags for that kernel (a set such as
+    ``{"reassoc"}`` lets it vectorise a sum; say beside the kernel why it is safe there); ``inline``
+    puts a small per-element kernel into each kernel calling it before compilation, so that the
+    caller's loop is compiled, and vectorised, as one."""
+
+    def wrap(f: F) -> F:
+        compiled = numba.njit(cache=True, nogil=True, fastmath=fastmath, inline="always" if inline else "never")(f)
+        _KERNELS.append(compiled)
+        return compiled  # type: ignore[no-any-return]
+
+    return wrap if fn is None else wrap(fn)
 
 
 def refresh_cache() -> list[Path]:

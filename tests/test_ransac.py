@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mavvo.estimation.ransac import RansacOptions, lo_ransac, required_iterations
+from mavvo.estimation.ransac import CostsFromResiduals, RansacOptions, lo_ransac, required_iterations
 
 
-class Location:
+class Location(CostsFromResiduals):
     """Model: one number (M, 1); a sample's model is its mean; refinement: the inliers' mean."""
 
     def __init__(self, x: np.ndarray, sample_size: int) -> None:
@@ -21,9 +21,11 @@ class Location:
     def generate(self, samples: np.ndarray) -> np.ndarray:
         return self.x[samples].mean(axis=1, keepdims=True)
 
-    def residuals_sq(self, models: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
-        x = self.x if rows is None else self.x[rows]
-        return (x[None, :] - models[:, :1]) ** 2
+    def residuals_sq(self, models: np.ndarray) -> np.ndarray:
+        return (self.x[None, :] - models[:, :1]) ** 2
+
+    def residuals_on(self, models: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        return (self.x[rows][None, :] - models[:, :1]) ** 2
 
     def refine(self, model: np.ndarray, inliers: np.ndarray) -> np.ndarray:
         assert inliers.any(), "refine is called only with inliers"
@@ -77,3 +79,14 @@ def test_no_model_from_any_sample_is_none_with_no_inliers():
 
     res = lo_ransac(Nothing(np.arange(10.0), 3), RansacOptions(max_iterations=50), 0.1, np.random.default_rng(0))
     assert res.model is None and not res.inliers.any() and res.stats.iterations == 50
+
+
+def test_samples_hold_distinct_indices_and_follow_the_seed():
+    """Every drawn sample has distinct indices in range, even where repeats are likely (n = 4)."""
+    from mavvo.estimation.ransac import draw_samples
+
+    for n, size in ((4, 3), (5, 5), (300, 3)):
+        idx = draw_samples(np.random.default_rng(1), n, 500, size)
+        assert idx.shape == (500, size) and idx.min() >= 0 and idx.max() < n
+        assert all(len(set(row)) == size for row in idx.tolist())
+        assert np.array_equal(idx, draw_samples(np.random.default_rng(1), n, 500, size))

@@ -1,8 +1,8 @@
 """The two-view models :func:`mavvo.estimation.ransac.lo_ransac` estimates, on level-frame bearings.
 
 Each is an :class:`mavvo.estimation.ransac.Estimator`: a sample size, a batched generator from a
-minimal solver, squared residuals from :mod:`mavvo.geometry.residuals` (so their errors compare under
-one noise sigma for model selection), and a refinement on inliers.
+minimal solver, MSAC costs and squared residuals from :mod:`mavvo.geometry.residuals` (so their errors
+compare under one noise sigma for model selection), and a refinement on inliers.
 
 - :class:`UprightEssential`: ``E = [t]x Rz(yaw)``, 3 points (the paper's solver, batched), or 4 or 5
   (its 4-point and linear 5-point); refined by Gauss-Newton on the upright manifold, plus the 4-point
@@ -32,7 +32,8 @@ from mavvo.geometry.ground_2pt import solve_ground_2pt_samples
 from mavvo.geometry.upright_3pt import solve_samples as solve_upright_3pt_samples
 from mavvo.geometry.upright_pose import upright_pose_kernel
 from mavvo.geometry.refine import fit_ground_similarity, fit_rotation, refine_upright, upright_vector
-from mavvo.geometry.residuals import ground_sq, rotation_sq, sampson_sq_upright
+from mavvo.geometry.residuals import ground_sq, rotation_sq, sampson_msac_upright, sampson_sq_upright
+from mavvo.estimation.ransac import CostsFromResiduals
 from mavvo.jit import kernel
 
 __all__ = ["UprightEssential", "GroundHomography", "PureRotation", "upright_e", "decompose_upright", "yaw_of"]
@@ -99,7 +100,8 @@ class UprightEssential:
         self.sample_size = SAMPLE_SIZE[solver]
         self.solver, self.nonminimal, self.lo_steps = solver, nonminimal, lo_steps
         self.yaw_prior_rad, self.yaw_tolerance_rad = yaw_prior_rad, yaw_tolerance_rad
-        self._sub: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (rows, f1, f2 of them): the loop's fixed subset
+        self._xyz = (np.ascontiguousarray(f1.T), np.ascontiguousarray(f2.T))  # (3, N) each: the scoring kernel's layout
+        self._sub: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (rows, f1, f2 of them as (3, n)): the loop's fixed subset
 
     def generate(self, samples: np.ndarray) -> np.ndarray:
         f1, f2 = self.f1, self.f2
@@ -114,12 +116,15 @@ class UprightEssential:
             e = e[_near_yaw(e, float(self.yaw_prior_rad), float(self.yaw_tolerance_rad))]
         return e
 
-    def residuals_sq(self, models: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+    def costs(self, models: np.ndarray, thr_sq: float, rows: np.ndarray | None = None) -> np.ndarray:
         if rows is None:
-            return sampson_sq_upright(models, self.f1, self.f2)
+            return sampson_msac_upright(models, *self._xyz, thr_sq)
         if self._sub is None or self._sub[0] is not rows:
-            self._sub = (rows, self.f1[rows], self.f2[rows])
-        return sampson_sq_upright(models, self._sub[1], self._sub[2])
+            self._sub = (rows, np.ascontiguousarray(self._xyz[0][:, rows]), np.ascontiguousarray(self._xyz[1][:, rows]))
+        return sampson_msac_upright(models, self._sub[1], self._sub[2], thr_sq)
+
+    def residuals_sq(self, models: np.ndarray) -> np.ndarray:
+        return sampson_sq_upright(models, self.f1, self.f2)
 
     def refine(self, model: np.ndarray, inliers: np.ndarray) -> np.ndarray:
         f1, f2 = self.f1[inliers], self.f2[inliers]
@@ -135,7 +140,7 @@ class UprightEssential:
         return np.array(out).reshape(-1, 6)
 
 
-class GroundHomography:
+class GroundHomography(CostsFromResiduals):
     """The ground-plane homography ``x_2 ~ H x_1`` of known gravity (see the module docstring); data
     are the correspondences given, which the caller picks below the horizon in both views."""
 
@@ -149,9 +154,10 @@ class GroundHomography:
         H, valid = solve_ground_2pt_samples(self.f1[samples], self.f2[samples])
         return H[valid]
 
-    def residuals_sq(self, models: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
-        if rows is None:
-            return ground_sq(models, self.f1, self.f2)
+    def residuals_sq(self, models: np.ndarray) -> np.ndarray:
+        return ground_sq(models, self.f1, self.f2)
+
+    def residuals_on(self, models: np.ndarray, rows: np.ndarray) -> np.ndarray:
         return ground_sq(models, self.f1[rows], self.f2[rows])
 
     def refine(self, model: np.ndarray, inliers: np.ndarray) -> np.ndarray:
@@ -161,7 +167,7 @@ class GroundHomography:
         return ground_homography_from_similarity(np.array(fit[0]), np.array(fit[1]))[None]
 
 
-class PureRotation:
+class PureRotation(CostsFromResiduals):
     """A rotation without baseline, ``f2 = R f1`` (see the module docstring). Points along the vertical
     in either view say nothing about yaw and are not sampled."""
 
@@ -179,9 +185,10 @@ class PureRotation:
         pick = pick[np.isin(pick, self.usable)]
         return np.array([rot_z(y) for y in np.angle(self._h2[pick] * np.conj(self._h1[pick]))]).reshape(-1, 3, 3)
 
-    def residuals_sq(self, models: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
-        if rows is None:
-            return rotation_sq(models, self.f1, self.f2)
+    def residuals_sq(self, models: np.ndarray) -> np.ndarray:
+        return rotation_sq(models, self.f1, self.f2)
+
+    def residuals_on(self, models: np.ndarray, rows: np.ndarray) -> np.ndarray:
         return rotation_sq(models, self.f1[rows], self.f2[rows])
 
     def refine(self, model: np.ndarray, inliers: np.ndarray) -> np.ndarray:

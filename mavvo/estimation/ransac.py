@@ -1,7 +1,8 @@
 """One LO-RANSAC loop over a small estimator interface (the shape of PoseLib's ``ransac_impl.h``).
 
 An :class:`Estimator` says how many data points it has and how many a sample takes, generates models
-from a block of samples, gives the squared residuals of models, and refines one model on its inliers.
+from a block of samples, gives the MSAC costs and the squared residuals of models, and refines one
+model on its inliers.
 :func:`lo_ransac` does the rest, the same way for every model:
 
 1. samples come in blocks (``first_block``, then as many as the stopping rule still needs, at least
@@ -28,9 +29,12 @@ from typing import Protocol
 
 import numpy as np
 
+from mavvo.jit import kernel
 from mavvo.options import bounded
 
-__all__ = ["Estimator", "RansacOptions", "RansacStats", "RansacResult", "lo_ransac", "required_iterations", "draw_samples", "msac_cost"]
+__all__ = [
+    "Estimator", "CostsFromResiduals", "RansacOptions", "RansacStats", "RansacResult", "lo_ransac", "required_iterations", "draw_samples", "msac_cost",
+]
 
 
 class Estimator(Protocol):
@@ -43,8 +47,13 @@ class Estimator(Protocol):
         """Models (M, ...) from samples (B, sample_size) of data indices; M may be 0 or exceed B."""
         ...
 
-    def residuals_sq(self, models: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
-        """Squared residuals (M, N) of models (M, ...) on all data, or (M, len(rows)) on ``rows``."""
+    def costs(self, models: np.ndarray, thr_sq: float, rows: np.ndarray | None = None) -> np.ndarray:
+        """MSAC costs (M,) of models (M, ...) on all data, or on ``rows``; inf for a degenerate model.
+        The scoring's hot path: an estimator may compute them without the residuals."""
+        ...
+
+    def residuals_sq(self, models: np.ndarray) -> np.ndarray:
+        """Squared residuals (M, N) of models (M, ...) on all data."""
         ...
 
     def refine(self, model: np.ndarray, inliers: np.ndarray) -> np.ndarray:
@@ -119,16 +128,44 @@ def draw_samples(rng: np.random.Generator, n: int, count: int, size: int) -> np.
     """(count, size) indices into range(n), distinct within each row."""
     idx = rng.integers(0, n, (count, size))
     while True:
-        s = np.sort(idx, axis=1)
-        bad = np.any(s[:, 1:] == s[:, :-1], axis=1)
-        if not bad.any():
+        bad = _rows_with_repeats(idx)
+        k = int(np.count_nonzero(bad))
+        if not k:
             return idx
-        idx[bad] = rng.integers(0, n, (int(bad.sum()), size))
+        idx[bad] = rng.integers(0, n, (k, size))
+
+
+@kernel
+def _rows_with_repeats(idx: np.ndarray) -> np.ndarray:
+    """(count,) bool: the rows of idx (count, size) that hold some index twice."""
+    out = np.zeros(idx.shape[0], dtype=np.bool_)
+    for r in range(idx.shape[0]):
+        for a in range(idx.shape[1]):
+            for b in range(a):
+                if idx[r, a] == idx[r, b]:
+                    out[r] = True
+    return out
 
 
 def msac_cost(err_sq: np.ndarray, thr_sq: float) -> np.ndarray:
     """MSAC cost along the last axis: ``sum(min(err^2, thr^2))``."""
     return np.minimum(err_sq, thr_sq).sum(axis=-1)
+
+
+class CostsFromResiduals:
+    """:meth:`Estimator.costs` from the estimator's residuals, for a model without a scoring kernel
+    of its own: ``residuals_sq`` on all data, ``residuals_on`` on a subset of rows."""
+
+    def residuals_sq(self, models: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def residuals_on(self, models: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def costs(self, models: np.ndarray, thr_sq: float, rows: np.ndarray | None = None) -> np.ndarray:
+        c = msac_cost(self.residuals_sq(models) if rows is None else self.residuals_on(models, rows), thr_sq)
+        c[~np.isfinite(c)] = math.inf  # a degenerate model (NaN) never wins
+        return c
 
 
 class _Best:
@@ -157,14 +194,13 @@ def lo_ransac(est: Estimator, options: RansacOptions, threshold: float, rng: np.
         """Score candidates on all points; keep the best if it beats the current one."""
         nonlocal scored
         scored += len(candidates)
-        err = est.residuals_sq(candidates)
-        costs = msac_cost(err, thr_sq)
-        costs[~np.isfinite(costs)] = math.inf  # a degenerate model (NaN) never wins
+        costs = est.costs(candidates, thr_sq)
         k = int(np.argmin(costs))
-        if costs[k] >= best.cost:
+        if not costs[k] < best.cost:
             return False
-        best.model, best.cost, best.err_sq = candidates[k : k + 1], float(costs[k]), err[k]
-        best.inliers = int(np.count_nonzero(err[k] < thr_sq))
+        best.model, best.cost = candidates[k : k + 1], float(costs[k])
+        best.err_sq = est.residuals_sq(best.model)[0]
+        best.inliers = int(np.count_nonzero(best.err_sq < thr_sq))
         return True
 
     while drawn < min(max(needed, opt.min_iterations), opt.max_iterations):
@@ -179,7 +215,7 @@ def lo_ransac(est: Estimator, options: RansacOptions, threshold: float, rng: np.
         improved = False
         if len(hyp):
             if rows is not None and len(hyp) > opt.full_scores_per_block:
-                pre = msac_cost(est.residuals_sq(hyp, rows), thr_sq)
+                pre = est.costs(hyp, thr_sq, rows)
                 hyp = hyp[np.argsort(pre, kind="stable")[: opt.full_scores_per_block]]
             improved = offer(hyp)
         t2 = clock()
