@@ -220,6 +220,61 @@ def test_the_refinement_ends_at_the_minimum_of_the_sampson_cost(free_tilt: bool)
                 assert cost(x + sign * 2e-5 * d) >= at * (1.0 - 1e-9)
 
 
+def test_the_gauss_newton_rows_are_the_derivatives_of_the_sampson_residual() -> None:
+    """The compiled rows of one Gauss-Newton step against central differences of the signed Sampson
+    residual r = n / sqrt(den) on the tilt-corrected bearings (unweighted: no robust loss, unit noise).
+    The tilt rows are derivatives for a small rotation on top of the current correction, which is a
+    move of d itself where d = 0: they are checked there, yaw and translation with tilts set."""
+    from mavvo.geometry.refine import _upright_rows, tilt_matrix
+
+    rng = np.random.default_rng(5)
+    s = make_scene(rng, 40, motion="random", mount="forward", pixel_noise_px=0.5, imu_noise_rad=np.radians(0.3), focal_px=FOCAL_PX)
+    x = np.array([yaw_of(s.R_2_1) + 0.01, *s.t_2_1, 0.004, -0.003, 0.002, 0.005])
+    t = x[1:4]
+    b1 = np.cross(t, [1.0, 0.0, 0.0] if abs(t[0]) < 0.9 else [0.0, 1.0, 0.0])
+    b1 /= np.linalg.norm(b1)
+    b2 = np.cross(t, b1)
+
+    def residuals(y: np.ndarray) -> np.ndarray:
+        g1 = s.f1_lvl @ tilt_rotation(y[4:6]).T
+        g2 = s.f2_lvl @ tilt_rotation(y[6:8]).T
+        c, sn = math.cos(y[0]), math.sin(y[0])
+        tt = y[1:4] / np.linalg.norm(y[1:4])
+        E = np.array([[0, -tt[2], tt[1]], [tt[2], 0, -tt[0]], [-tt[1], tt[0], 0]]) @ np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1.0]])
+        n = np.einsum("ij,jk,ik->i", g2, E, g1)
+        den = np.sum((g1 @ E.T) ** 2, axis=1) + np.sum((g2 @ E) ** 2, axis=1) - 2 * n**2
+        return n / np.sqrt(den)
+
+    h = 1e-6
+    moves = [np.r_[1.0, np.zeros(7)], np.r_[0.0, b1, np.zeros(4)], np.r_[0.0, b2, np.zeros(4)]] + [np.r_[np.zeros(4), np.eye(4)[k]] for k in range(4)]
+    untilted = np.r_[x[:4], np.zeros(4)]
+    for at, rows in ((x, range(3)), (untilted, range(7))):
+        J, res = _upright_rows(at, tilt_matrix(at[4], at[5]), tilt_matrix(at[6], at[7]), s.f1_lvl, s.f2_lvl, 1.0, 0.0)
+        assert res == pytest.approx(residuals(at), abs=1e-12)
+        for k in rows:
+            numeric = (residuals(at + h * moves[k]) - residuals(at - h * moves[k])) / (2 * h)
+            assert np.abs(numeric).max() > 1e-3  # the move changes the residuals
+            assert J[k] == pytest.approx(numeric, abs=1e-7 * max(1.0, np.abs(numeric).max())), f"row {k}"
+
+
+def test_the_msac_scoring_kernel_sums_the_capped_sampson_errors() -> None:
+    """The sampling's scoring (no residuals stored, a sum the compiler may reorder) against the
+    residuals capped and summed; a model with a NaN or an infinite entry costs inf."""
+    from mavvo.geometry.residuals import sampson_msac_upright
+
+    rng = np.random.default_rng(8)
+    s, _ = _scene(8, n=300, outliers=0.3, motion="forward", mount="forward")
+    e = np.array([upright_e(yaw_of(s.R_2_1), s.t_2_1)] + [upright_e(y, t / np.linalg.norm(t)) for y, t in zip(rng.uniform(-3, 3, 5), rng.normal(size=(5, 3)))])
+    e = np.vstack([e, e[:2]])
+    e[-2, 3], e[-1, 0] = np.nan, np.inf
+    thr_sq = THRESHOLD_RAD**2
+    costs = sampson_msac_upright(e, np.ascontiguousarray(s.f1_lvl.T), np.ascontiguousarray(s.f2_lvl.T), thr_sq)
+    expected = np.minimum(sampson_sq_upright(e[:-2], s.f1_lvl, s.f2_lvl), thr_sq).sum(axis=1)
+    assert costs[:-2] == pytest.approx(expected, rel=1e-12)
+    assert costs[0] < 0.5 * costs[1:-2].min()  # the true model has most points inside
+    assert np.isinf(costs[-2:]).all()
+
+
 def test_pixel_entry_returns_the_camera_pose() -> None:
     scene, outlier = _scene(12, motion="sideways", mount="forward", imu_noise_rad=0.0)
     cam = CameraModel(640, 480, FOCAL_PX, FOCAL_PX, 320.0, 240.0)

@@ -41,9 +41,9 @@ from mavvo.estimation.general5pt import estimate_general_relpose, estimate_groun
 from mavvo.estimation.ransac import RansacOptions, RansacResult, RansacStats, lo_ransac, required_iterations
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import as_rotation, rot_z
-from mavvo.geometry.refine import fit_rotation, gauss_newton_upright, refine_upright, tilt_matrix, tilt_rotation, upright_vector
-from mavvo.geometry.residuals import UNMAPPABLE_SQ, ground_sq, rotation_sq, sampson_sq_kernel, sampson_sq_upright
-from mavvo.geometry.upright_pose import behind_upright
+from mavvo.geometry.refine import gauss_newton_upright, kabsch, refine_upright, rotate_row, tilt_matrix, tilt_rotation, upright_tuple
+from mavvo.geometry.residuals import UNMAPPABLE_SQ, ground_sq, rotation_sq, rotation_sq_point, sampson_sq_point, sampson_sq_upright
+from mavvo.geometry.upright_pose import point_behind
 from mavvo.jit import kernel
 from mavvo.geometry import as_bearing_pair, ground_pose_from_homography
 
@@ -264,15 +264,50 @@ def _gric(err_sq: np.ndarray, sigma_sq: float, model: str) -> float:
     return float(rho.sum() + math.log(_GRIC_R) * d * n + math.log(_GRIC_R * n) * k)
 
 
-def _refit_rotation(R: np.ndarray | None, f1: np.ndarray, f2: np.ndarray, thr_sq: float, rounds: int = 2) -> np.ndarray | None:
-    """Re-select the inliers of a rotation and refit it on them, ``rounds`` times."""
-    for _ in range(rounds if R is not None else 0):
-        inl = rotation_sq(R, f1, f2) < thr_sq
-        refit = fit_rotation(f1[inl], f2[inl])
-        if refit is None:
+@kernel
+def _all_alike(f1: np.ndarray, f2: np.ndarray, tol: float) -> bool:
+    """True when every row of f1 is within ``tol`` of f1's first row, and so for f2 (one point, repeated)."""
+    for f in (f1, f2):
+        for i in range(1, f.shape[0]):
+            if abs(f[i, 0] - f[0, 0]) + abs(f[i, 1] - f[0, 1]) + abs(f[i, 2] - f[0, 2]) > tol:
+                return False
+    return True
+
+
+def _rotation_model(f1: np.ndarray, f2: np.ndarray, rows: np.ndarray, thr_sq: float) -> np.ndarray | None:
+    """The pure rotation (3, 3) fitted on ``rows`` (indices), then twice re-selected among all points
+    and refitted; None when the first fit has fewer than two distinct rays."""
+    R = _rotation_model_kernel(f1, f2, rows, thr_sq, 2)
+    return None if np.isnan(R[0, 0]) else R
+
+
+@kernel
+def _rotation_model_kernel(f1: np.ndarray, f2: np.ndarray, rows: np.ndarray, thr_sq: float, rounds: int) -> np.ndarray:
+    """:func:`_rotation_model` (NaN for None)."""
+    R = kabsch(f1[rows], f2[rows])
+    for _ in range(rounds if not np.isnan(R[0, 0]) else 0):
+        inl = np.empty(f1.shape[0], dtype=np.bool_)
+        for i in range(f1.shape[0]):
+            inl[i] = rotation_sq_point(R, f1, f2, i) < thr_sq
+        refit = kabsch(f1[inl], f2[inl])
+        if np.isnan(refit[0, 0]):
             break
         R = refit
     return R
+
+
+@kernel
+def _yaw_parallax_rad(yaw: float, f1: np.ndarray, f2: np.ndarray, rows: np.ndarray) -> float:
+    """Median over ``rows`` (indices) of the chord |f2 - Rz(yaw) f1|: the flow that a rotation about z
+    leaves, about the parallax angle for small angles (radians); 0 without rows."""
+    if rows.shape[0] == 0:
+        return 0.0
+    R = np.zeros((3, 3))
+    R[0, 0], R[0, 1], R[1, 0], R[1, 1], R[2, 2] = math.cos(yaw), -math.sin(yaw), math.sin(yaw), math.cos(yaw), 1.0
+    chord = np.empty(rows.shape[0])
+    for k in range(rows.shape[0]):
+        chord[k] = math.sqrt(2.0 * rotation_sq_point(R, f1, f2, rows[k]))
+    return float(np.median(chord))
 
 
 def _ground_model(f1: np.ndarray, f2: np.ndarray, candidates: np.ndarray, opt: RelposeOptions, threshold_rad: float, rng: np.random.Generator) -> np.ndarray | None:
@@ -373,8 +408,7 @@ def estimate_upright_relpose(
     s = SAMPLE_SIZE[opt.minimal_solver]
     if n < s:
         return _failure(RelposeFailure.TOO_FEW_POINTS, n)
-    spread = max(np.linalg.norm(f1 - f1.mean(axis=0), axis=1).max(), np.linalg.norm(f2 - f2.mean(axis=0), axis=1).max())
-    if spread < 1e-9:
+    if _all_alike(f1, f2, 1e-9):
         return _failure(RelposeFailure.DEGENERATE_POINTS, n)
 
     if attitude_sigma_rad is None and opt.tilt_sigma_rad is not None:
@@ -430,7 +464,7 @@ def _select(
     sigma_sq = sigma**2
     inl_idx = np.nonzero(err_e < thr_sq)[0]
     gric = {"essential": _gric(err_e[inl_idx], sigma_sq, "essential")}
-    R_rot = _refit_rotation(fit_rotation(f1[inl_idx], f2[inl_idx]), f1, f2, thr_sq)
+    R_rot = _rotation_model(f1, f2, inl_idx, thr_sq)
     rotation = None if R_rot is None else _Fit("rotation", yaw_of(R_rot), np.zeros(3), rotation_sq(R_rot, f1, f2), None, tilt1, tilt2, correction)
     if rotation is not None:
         gric["rotation"] = _gric(rotation.err_sq[inl_idx], sigma_sq, "rotation")
@@ -439,8 +473,7 @@ def _select(
         # "A pixel" is the threshold, or ten noise sigmas where the tracks are that much finer.
         # Measured about z only: roll and pitch are known, and a free tilt would pass off a nadir
         # camera's image shift as rotation.
-        err_yaw = rotation_sq(rot_z(rotation.yaw), f1[inl_idx], f2[inl_idx])
-        parallax = float(np.median(np.sqrt(2.0 * err_yaw))) if len(inl_idx) else 0.0
+        parallax = _yaw_parallax_rad(rotation.yaw, f1, f2, inl_idx)
         if parallax < opt.min_parallax_ratio * min(max_err_rad, _PARALLAX_NOISE_SIGMAS * sigma):
             return rotation, essential, sigma, gric
     ground = None
@@ -488,7 +521,7 @@ def _refine(
     if attitude_sigma_rad is None:
         return _refine_uncorrected(f1, f2, yaw, t, max_err_rad, opt.refine_steps), _Correction.AS_GIVEN
     inl = run.err_sq < max_err_rad**2  # the points the hypothesis fits closely: outliers would inflate it
-    parallax = float(np.median(np.sqrt(2.0 * rotation_sq(rot_z(yaw), f1[inl], f2[inl])))) if inl.any() else 0.0
+    parallax = _yaw_parallax_rad(yaw, f1, f2, np.flatnonzero(inl))
     relative_sigma = math.hypot(*attitude_sigma_rad)
     corrected = _refine_with_attitude(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, opt.refine_steps)
     if parallax < _PLANE_START_PARALLAX_SIGMAS * relative_sigma:
@@ -633,13 +666,27 @@ def _corrected_err_sq(x: np.ndarray, f1: np.ndarray, f2: np.ndarray, max_err_rad
     not the pose: where it would reject most of the inliers, the pose is a twin (over flat ground with
     a pixel of parallax, a vertical translation with the yaw off by pi fits as well), which the pure
     rotation rule and the decomposition deal with, and the errors are left as they are."""
-    g1 = f1 @ tilt_matrix(x[4], x[5]).T
-    g2 = f2 @ tilt_matrix(x[6], x[7]).T
-    err = sampson_sq_kernel(upright_vector(x[0], x[1:4]).reshape(1, 6), g1, g2)[0]
-    behind = behind_upright(x[0], x[1:4], g1, g2, max_err_rad)
-    inl = err < max_err_rad * max_err_rad
-    if 2 * np.count_nonzero(behind & inl) < np.count_nonzero(inl):
-        err[behind] = UNMAPPABLE_SQ
+    T1, T2 = tilt_matrix(x[4], x[5]), tilt_matrix(x[6], x[7])
+    e = upright_tuple(x[0], x[1], x[2], x[3])
+    c, s = math.cos(x[0]), math.sin(x[0])
+    min_det = math.sin(max_err_rad) ** 2  # less parallax than the threshold: the side is noise
+    max_sq = max_err_rad * max_err_rad
+    n = f1.shape[0]
+    err = np.empty(n)
+    behind = np.empty(n, dtype=np.bool_)
+    inliers = behind_inliers = 0
+    for i in range(n):
+        p0, p1, p2 = rotate_row(T1, f1, i)
+        q0, q1, q2 = rotate_row(T2, f2, i)
+        err[i] = sampson_sq_point(e, p0, p1, p2, q0, q1, q2)
+        behind[i] = point_behind(c, s, x[1], x[2], x[3], p0, p1, p2, q0, q1, q2, min_det)
+        inl = err[i] < max_sq
+        inliers += inl
+        behind_inliers += inl and behind[i]
+    if 2 * behind_inliers < inliers:
+        for i in range(n):
+            if behind[i]:
+                err[i] = UNMAPPABLE_SQ
     return err
 
 

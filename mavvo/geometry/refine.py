@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mavvo.geometry.residuals import sampson_sq_kernel
+from mavvo.geometry.residuals import sampson_sq_point
 from mavvo.jit import kernel
 
 __all__ = ["UprightFit", "tilt_rotation", "refine_upright", "fit_ground_similarity", "fit_rotation"]
@@ -103,8 +103,21 @@ def refine_upright(
 @kernel
 def upright_vector(yaw: float, t: np.ndarray) -> np.ndarray:
     """e (6,) = (E13, E21, E22, E23, E31, E32) of ``E = [t]x Rz(yaw)``."""
+    return np.array(upright_tuple(yaw, t[0], t[1], t[2]))
+
+
+@kernel(inline=True)
+def upright_tuple(yaw: float, t0: float, t1: float, t2: float) -> tuple[float, float, float, float, float, float]:
+    """:func:`upright_vector` as a tuple of scalars (for per-point loops)."""
     c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([t[1], t[2] * c, -t[2] * s, -t[0], -t[1] * c + t[0] * s, t[1] * s + t[0] * c])
+    return (t1, t2 * c, -t2 * s, -t0, -t1 * c + t0 * s, t1 * s + t0 * c)
+
+
+@kernel(inline=True)
+def rotate_row(R: np.ndarray, f: np.ndarray, i: int) -> tuple[float, float, float]:
+    """``R @ f[i]`` for R (3, 3) and f (N, 3), as scalars."""
+    x, y, z = f[i, 0], f[i, 1], f[i, 2]
+    return R[0, 0] * x + R[0, 1] * y + R[0, 2] * z, R[1, 0] * x + R[1, 1] * y + R[1, 2] * z, R[2, 0] * x + R[2, 1] * y + R[2, 2] * z
 
 
 @kernel
@@ -148,11 +161,120 @@ def _solve_spd(A: np.ndarray, b: np.ndarray) -> bool:
 
 
 @kernel
+def _tangent_basis(t0: float, t1: float, t2: float) -> tuple[float, float, float, float, float, float]:
+    """Tangent basis of the unit t: b1 = t x helper (normalised), b2 = t x b1."""
+    if abs(t0) < 0.9:
+        b10, b11, b12 = 0.0, t2, -t1  # t x e_x
+    else:
+        b10, b11, b12 = -t2, 0.0, t0  # t x e_y
+    nb = math.sqrt(b10 * b10 + b11 * b11 + b12 * b12)
+    b10, b11, b12 = b10 / nb, b11 / nb, b12 / nb
+    return b10, b11, b12, t1 * b12 - t2 * b11, t2 * b10 - t0 * b12, t0 * b11 - t1 * b10
+
+
+# Reassociation and contraction only (no assumption on NaN or inf): the per-point loop then runs on
+# several points at once; the rounding differs from the plain loop by a few ulp.
+@kernel(fastmath={"reassoc", "contract", "nsz"})
+def _upright_rows(x: np.ndarray, T1: np.ndarray, T2: np.ndarray, f1: np.ndarray, f2: np.ndarray, noise_w: float, robust_c: float) -> tuple[np.ndarray, np.ndarray]:
+    """The weighted Jacobian J (7, N) of the Sampson residuals at x = (yaw, t, d1, d2) with respect to
+    (yaw, t along the tangent basis b1, b2, d1, d2), and the weighted residuals (N,): the rows of one
+    Gauss-Newton step of :func:`gauss_newton_upright` (its caller drops the tilt rows when they are fixed).
+
+    T1, T2: the tilt rotations of d1, d2; f1, f2 (N, 3) the level bearings. Weights: the Cauchy IRLS
+    weight of ``robust_c`` (none when 0) times ``noise_w``."""
+    yaw, t0, t1, t2 = x[0], x[1], x[2], x[3]
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    b10, b11, b12, b20, b21, b22 = _tangent_basis(t0, t1, t2)
+    # E = [t]x Rz: rows of Rz are (cy, -sy, 0), (sy, cy, 0), (0, 0, 1)
+    E00, E01, E02 = -t2 * sy, -t2 * cy, t1
+    E10, E11, E12 = t2 * cy, -t2 * sy, -t0
+    E20, E21 = -t1 * cy + t0 * sy, t1 * sy + t0 * cy
+    A00, A01, A02, A10, A11, A12, A20, A21, A22 = T1[0, 0], T1[0, 1], T1[0, 2], T1[1, 0], T1[1, 1], T1[1, 2], T1[2, 0], T1[2, 1], T1[2, 2]
+    B00, B01, B02, B10, B11, B12, B20, B21, B22 = T2[0, 0], T2[0, 1], T2[0, 2], T2[1, 0], T2[1, 1], T2[1, 2], T2[2, 0], T2[2, 1], T2[2, 2]
+    inv_c = 1.0 / robust_c if robust_c > 0.0 else 0.0  # 0: the Cauchy weight below is 1
+    N = f1.shape[0]
+    J = np.empty((7, N))
+    res = np.empty(N)
+    for i in range(N):
+        x1, y1, z1 = f1[i, 0], f1[i, 1], f1[i, 2]
+        x2, y2, z2 = f2[i, 0], f2[i, 1], f2[i, 2]
+        p0 = A00 * x1 + A01 * y1 + A02 * z1  # f1c = T1 f1
+        p1 = A10 * x1 + A11 * y1 + A12 * z1
+        p2 = A20 * x1 + A21 * y1 + A22 * z1
+        q0 = B00 * x2 + B01 * y2 + B02 * z2  # f2c = T2 f2
+        q1 = B10 * x2 + B11 * y2 + B12 * z2
+        q2 = B20 * x2 + B21 * y2 + B22 * z2
+        g0, g1, g2 = cy * p0 - sy * p1, sy * p0 + cy * p1, p2  # g = Rz f1c
+        a0 = E00 * p0 + E01 * p1 + E02 * p2  # E f1c = t x g
+        a1 = E10 * p0 + E11 * p1 + E12 * p2
+        a2 = E20 * p0 + E21 * p1
+        c0 = E00 * q0 + E10 * q1 + E20 * q2  # E^T f2c
+        c1 = E01 * q0 + E11 * q1 + E21 * q2
+        c2 = E02 * q0 + E12 * q1
+        n = q0 * a0 + q1 * a1 + q2 * a2  # f2c . (t x g)
+        # Sampson scale: the tangent gradients of n at both bearings.
+        den = max(a0 * a0 + a1 * a1 + a2 * a2 + c0 * c0 + c1 * c1 + c2 * c2 - 2.0 * n * n, 1e-30)
+        inv_s = 1.0 / math.sqrt(den)
+        # d n / d yaw = (t . g) f2_z - t_z (g . f2)   (d g / d yaw = e_z x g)
+        tg = t0 * g0 + t1 * g1 + t2 * g2
+        tq = t0 * q0 + t1 * q1 + t2 * q2
+        j0 = tg * q2 - t2 * (g0 * q0 + g1 * q1 + g2 * q2)
+        k0, k1, k2 = g1 * q2 - g2 * q1, g2 * q0 - g0 * q2, g0 * q1 - g1 * q0  # g x f2c: d n / d t
+        j1 = k0 * b10 + k1 * b11 + k2 * b12
+        j2 = k0 * b20 + k1 * b21 + k2 * b22
+        w0, w1, w2 = q1 * t2 - q2 * t1, q2 * t0 - q0 * t2, q0 * t1 - q1 * t0  # f2c x t
+        # d n / d d1: (Rz (e x f1c)) . (f2c x t) for e = e_x (0, -p2, p1) and e_y (p2, 0, -p0)
+        ux0, ux1, ux2 = sy * p2, -cy * p2, p1
+        uy0, uy1, uy2 = cy * p2, sy * p2, -p0
+        j3 = ux0 * w0 + ux1 * w1 + ux2 * w2
+        j4 = uy0 * w0 + uy1 * w1 + uy2 * w2
+        # d n / d d2: (e x f2c) . E f1c
+        j5 = -q2 * a1 + q1 * a2
+        j6 = q2 * a0 - q0 * a2
+        # The Sampson scale moves with the pose too: r = n / sqrt(den), so dr = (dn - n/(2 den) dden) / sqrt(den).
+        # With unit t, g and f2c, den = 2 - (t.g)^2 - (t.f2c)^2 - 2 n^2. Held fixed instead, the steps
+        # settle where sum n dn / den = 0, off the Sampson minimum by the n^2 dden terms: on the
+        # forward flight's pairs 0.40 deg of median translation error where the minimum has 0.36.
+        h = n / (2.0 * den)
+        j0 -= h * (-2.0 * tg * (g0 * t1 - g1 * t0) - 4.0 * n * j0)  # d(t.g)/d yaw = (g x t)_z
+        j1 -= h * (-2.0 * tg * (b10 * g0 + b11 * g1 + b12 * g2) - 2.0 * tq * (b10 * q0 + b11 * q1 + b12 * q2) - 4.0 * n * j1)
+        j2 -= h * (-2.0 * tg * (b20 * g0 + b21 * g1 + b22 * g2) - 2.0 * tq * (b20 * q0 + b21 * q1 + b22 * q2) - 4.0 * n * j2)
+        j3 -= h * (-2.0 * tg * (t0 * ux0 + t1 * ux1 + t2 * ux2) - 4.0 * n * j3)
+        j4 -= h * (-2.0 * tg * (t0 * uy0 + t1 * uy1 + t2 * uy2) - 4.0 * n * j4)
+        j5 -= h * (-2.0 * tq * (t2 * q1 - t1 * q2) - 4.0 * n * j5)  # e_x x f2c = (0, -q2, q1)
+        j6 -= h * (-2.0 * tq * (t0 * q2 - t2 * q0) - 4.0 * n * j6)  # e_y x f2c = (q2, 0, -q0)
+        r = n * inv_s
+        # Cauchy IRLS: weight 1 / (1 + r^2/c^2) on the squared residual, its root on the rows.
+        rc = r * inv_c
+        wgt = inv_s * noise_w / math.sqrt(1.0 + rc * rc)
+        res[i] = r * noise_w / math.sqrt(1.0 + rc * rc)
+        J[0, i], J[1, i], J[2, i], J[3, i], J[4, i], J[5, i], J[6, i] = j0 * wgt, j1 * wgt, j2 * wgt, j3 * wgt, j4 * wgt, j5 * wgt, j6 * wgt
+    return J, res
+
+
+@kernel(fastmath={"reassoc", "contract", "nsz"})  # sums that may be reassociated (vectorised), nothing else
+def _normal_equations(J: np.ndarray, res: np.ndarray, JtJ: np.ndarray, Jtr: np.ndarray) -> None:
+    """J^T J (n, n) and J^T r (n,) of the first n rows of J (>= n, N) and r (N,), written in place."""
+    n = JtJ.shape[0]
+    for a in range(n):
+        acc = 0.0
+        for i in range(res.shape[0]):
+            acc += J[a, i] * res[i]
+        Jtr[a] = acc
+        for b in range(a + 1):
+            acc = 0.0
+            for i in range(res.shape[0]):
+                acc += J[a, i] * J[b, i]
+            JtJ[a, b] = acc
+            JtJ[b, a] = acc
+
+
+@kernel
 def gauss_newton_upright(
     x: np.ndarray, f1: np.ndarray, f2: np.ndarray, iterations: int, with_tilt: bool, prior_w: np.ndarray, noise_w: float, robust_c: float
 ) -> int:
     """The steps of :func:`refine_upright` on x = (yaw, t (3), d1 (2), d2 (2)), updated in place; the
-    number of steps taken. Per point the Jacobian row is accumulated straight into J^T J and J^T r.
+    number of steps taken; the rows of each step from :func:`_upright_rows`.
 
     A step is taken only where it lowers the cost (:func:`_upright_cost`), halved up to
     ``_MAX_HALVINGS`` times: with the roll/pitch free, a lateral translation over flat ground and a
@@ -162,89 +284,17 @@ def gauss_newton_upright(
     or a climb over flat ground."""
     n_params = 7 if with_tilt else 3
     steps = 0
-    row = np.zeros(7)
     x0 = x.copy()
     cost = _upright_cost(x, f1, f2, with_tilt, prior_w, noise_w, robust_c)
     for it in range(1, iterations + 1):
-        yaw, t0, t1, t2 = x[0], x[1], x[2], x[3]
+        t0, t1, t2 = x[1], x[2], x[3]
         T1 = tilt_matrix(x[4], x[5])
         T2 = tilt_matrix(x[6], x[7])
-        cy, sy = math.cos(yaw), math.sin(yaw)
-        # E = [t]x Rz: rows of Rz are (cy, -sy, 0), (sy, cy, 0), (0, 0, 1)
-        E = np.array([[-t2 * sy, -t2 * cy, t1], [t2 * cy, -t2 * sy, -t0], [-t1 * cy + t0 * sy, t1 * sy + t0 * cy, 0.0]])
-        # Tangent basis of t: b1 = t x helper (normalised), b2 = t x b1.
-        if abs(t0) < 0.9:
-            b10, b11, b12 = 0.0, t2, -t1  # t x e_x
-        else:
-            b10, b11, b12 = -t2, 0.0, t0  # t x e_y
-        nb = math.sqrt(b10 * b10 + b11 * b11 + b12 * b12)
-        b10, b11, b12 = b10 / nb, b11 / nb, b12 / nb
-        b20, b21, b22 = t1 * b12 - t2 * b11, t2 * b10 - t0 * b12, t0 * b11 - t1 * b10
-        JtJ = np.zeros((n_params, n_params))
-        Jtr = np.zeros(n_params)
-        for i in range(f1.shape[0]):
-            p0 = T1[0, 0] * f1[i, 0] + T1[0, 1] * f1[i, 1] + T1[0, 2] * f1[i, 2]  # f1c = T1 f1
-            p1 = T1[1, 0] * f1[i, 0] + T1[1, 1] * f1[i, 1] + T1[1, 2] * f1[i, 2]
-            p2 = T1[2, 0] * f1[i, 0] + T1[2, 1] * f1[i, 1] + T1[2, 2] * f1[i, 2]
-            q0 = T2[0, 0] * f2[i, 0] + T2[0, 1] * f2[i, 1] + T2[0, 2] * f2[i, 2]  # f2c = T2 f2
-            q1 = T2[1, 0] * f2[i, 0] + T2[1, 1] * f2[i, 1] + T2[1, 2] * f2[i, 2]
-            q2 = T2[2, 0] * f2[i, 0] + T2[2, 1] * f2[i, 1] + T2[2, 2] * f2[i, 2]
-            g0, g1, g2 = cy * p0 - sy * p1, sy * p0 + cy * p1, p2  # g = Rz f1c
-            a0 = E[0, 0] * p0 + E[0, 1] * p1 + E[0, 2] * p2  # E f1c = t x g
-            a1 = E[1, 0] * p0 + E[1, 1] * p1 + E[1, 2] * p2
-            a2 = E[2, 0] * p0 + E[2, 1] * p1
-            c0 = E[0, 0] * q0 + E[1, 0] * q1 + E[2, 0] * q2  # E^T f2c
-            c1 = E[0, 1] * q0 + E[1, 1] * q1 + E[2, 1] * q2
-            c2 = E[0, 2] * q0 + E[1, 2] * q1
-            n = q0 * a0 + q1 * a1 + q2 * a2  # f2c . (t x g)
-            # Sampson scale: the tangent gradients of n at both bearings, held fixed within a step.
-            den = a0 * a0 + a1 * a1 + a2 * a2 + c0 * c0 + c1 * c1 + c2 * c2 - 2.0 * n * n
-            inv_s = 1.0 / math.sqrt(max(den, 1e-30))
-            # d n / d yaw = (t . g) f2_z - t_z (g . f2)   (d g / d yaw = e_z x g)
-            row[0] = (t0 * g0 + t1 * g1 + t2 * g2) * q2 - t2 * (g0 * q0 + g1 * q1 + g2 * q2)
-            k0, k1, k2 = g1 * q2 - g2 * q1, g2 * q0 - g0 * q2, g0 * q1 - g1 * q0  # g x f2c: d n / d t
-            row[1] = k0 * b10 + k1 * b11 + k2 * b12
-            row[2] = k0 * b20 + k1 * b21 + k2 * b22
-            if with_tilt:
-                w0, w1, w2 = q1 * t2 - q2 * t1, q2 * t0 - q0 * t2, q0 * t1 - q1 * t0  # f2c x t
-                # d n / d d1: (Rz (e x f1c)) . (f2c x t) for e = e_x (0, -p2, p1) and e_y (p2, 0, -p0)
-                ux0, ux1, ux2 = cy * 0.0 - sy * (-p2), sy * 0.0 + cy * (-p2), p1
-                uy0, uy1, uy2 = cy * p2, sy * p2, -p0
-                row[3] = ux0 * w0 + ux1 * w1 + ux2 * w2
-                row[4] = uy0 * w0 + uy1 * w1 + uy2 * w2
-                # d n / d d2: (e x f2c) . E f1c
-                row[5] = -q2 * a1 + q1 * a2
-                row[6] = q2 * a0 - q0 * a2
-            # The Sampson scale moves with the pose too: r = n / sqrt(den), so dr = (dn - n/(2 den) dden) / sqrt(den).
-            # With unit t, g and f2c, den = 2 - (t.g)^2 - (t.f2c)^2 - 2 n^2. Held fixed instead, the steps
-            # settle where sum n dn / den = 0, off the Sampson minimum by the n^2 dden terms: on the
-            # forward flight's pairs 0.40 deg of median translation error where the minimum has 0.36.
-            tg = t0 * g0 + t1 * g1 + t2 * g2
-            tq = t0 * q0 + t1 * q1 + t2 * q2
-            h = n / (2.0 * max(den, 1e-30))
-            row[0] -= h * (-2.0 * tg * (g0 * t1 - g1 * t0) - 4.0 * n * row[0])  # d(t.g)/d yaw = (g x t)_z
-            row[1] -= h * (-2.0 * tg * (b10 * g0 + b11 * g1 + b12 * g2) - 2.0 * tq * (b10 * q0 + b11 * q1 + b12 * q2) - 4.0 * n * row[1])
-            row[2] -= h * (-2.0 * tg * (b20 * g0 + b21 * g1 + b22 * g2) - 2.0 * tq * (b20 * q0 + b21 * q1 + b22 * q2) - 4.0 * n * row[2])
-            if with_tilt:
-                row[3] -= h * (-2.0 * tg * (t0 * ux0 + t1 * ux1 + t2 * ux2) - 4.0 * n * row[3])
-                row[4] -= h * (-2.0 * tg * (t0 * uy0 + t1 * uy1 + t2 * uy2) - 4.0 * n * row[4])
-                row[5] -= h * (-2.0 * tq * (t2 * q1 - t1 * q2) - 4.0 * n * row[5])  # e_x x f2c = (0, -q2, q1)
-                row[6] -= h * (-2.0 * tq * (t0 * q2 - t2 * q0) - 4.0 * n * row[6])  # e_y x f2c = (q2, 0, -q0)
-            r = n * inv_s
-            wgt = inv_s
-            if robust_c > 0.0:
-                # Cauchy IRLS: weight 1 / (1 + r^2/c^2) on the squared residual, its root on the rows.
-                sw = 1.0 / math.sqrt(1.0 + (r / robust_c) ** 2)
-                wgt *= sw
-                r *= sw
-            if with_tilt:
-                wgt *= noise_w
-                r *= noise_w
-            for a in range(n_params):
-                ja = row[a] * wgt
-                Jtr[a] += ja * r
-                for b in range(a + 1):
-                    JtJ[a, b] += ja * row[b] * wgt
+        b10, b11, b12, b20, b21, b22 = _tangent_basis(t0, t1, t2)
+        J, res = _upright_rows(x, T1, T2, f1, f2, noise_w if with_tilt else 1.0, robust_c)
+        JtJ = np.empty((n_params, n_params))
+        Jtr = np.empty(n_params)
+        _normal_equations(J, res, JtJ, Jtr)
         if with_tilt:  # the prior rows: prior_w * d, Jacobian diag(prior_w)
             for a in range(4):
                 JtJ[3 + a, 3 + a] += prior_w[a] * prior_w[a]
@@ -252,8 +302,6 @@ def gauss_newton_upright(
         trace = 0.0
         for a in range(n_params):
             trace += JtJ[a, a]
-            for b in range(a):
-                JtJ[b, a] = JtJ[a, b]
         for a in range(n_params):
             JtJ[a, a] += 1e-12 * trace
         if not _solve_spd(JtJ, Jtr):
@@ -300,14 +348,14 @@ def _upright_cost(x: np.ndarray, f1: np.ndarray, f2: np.ndarray, with_tilt: bool
     with the tilts free, plus the prior's sum (prior_w d)^2."""
     T1 = tilt_matrix(x[4], x[5])
     T2 = tilt_matrix(x[6], x[7])
-    e = upright_vector(x[0], x[1:4])
-    g1 = f1 @ T1.T
-    g2 = f2 @ T2.T
-    err_sq = sampson_sq_kernel(e.reshape(1, 6), g1, g2)[0]
+    e = upright_tuple(x[0], x[1], x[2], x[3])
     total = 0.0
     c_sq = robust_c * robust_c
-    for i in range(err_sq.shape[0]):
-        total += c_sq * math.log1p(err_sq[i] / c_sq) if robust_c > 0.0 else err_sq[i]
+    for i in range(f1.shape[0]):
+        p0, p1, p2 = rotate_row(T1, f1, i)
+        q0, q1, q2 = rotate_row(T2, f2, i)
+        err_sq = sampson_sq_point(e, p0, p1, p2, q0, q1, q2)
+        total += c_sq * math.log1p(err_sq / c_sq) if robust_c > 0.0 else err_sq
     if with_tilt:
         total *= noise_w * noise_w
         for a in range(4):
@@ -365,12 +413,12 @@ def fit_rotation(f1: np.ndarray, f2: np.ndarray) -> np.ndarray | None:
     The full rotation rather than a yaw: when the roll/pitch of the two views carry errors, a camera
     that only turns still shows a small tilt between the level frames. Compiled.
     """
-    R = _kabsch(np.ascontiguousarray(f1, dtype=np.float64), np.ascontiguousarray(f2, dtype=np.float64))
+    R = kabsch(np.ascontiguousarray(f1, dtype=np.float64), np.ascontiguousarray(f2, dtype=np.float64))
     return None if np.isnan(R[0, 0]) else R
 
 
 @kernel
-def _kabsch(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
+def kabsch(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
     """:func:`fit_rotation`; NaN where it gives None."""
     if f1.shape[0] < 2:
         return np.full((3, 3), np.nan)

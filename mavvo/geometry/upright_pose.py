@@ -65,18 +65,24 @@ def nearest_upright(e: np.ndarray) -> tuple[float, np.ndarray]:
     return yaw, _translation_for_yaw(e, yaw)
 
 
-@kernel
-def _midpoint_depths(c: float, s: float, t: np.ndarray, f1: np.ndarray, f2: np.ndarray, i: int) -> tuple[float, float, float]:
-    """Point i's midpoint triangulation for R = Rz(yaw) (c, s its cosine and sine): its depths along
-    f1 and along f2, each times ``det``, and ``det`` = sin^2 of the parallax times |f1|^2 |f2|^2."""
-    a0, a1, a2 = c * f1[i, 0] - s * f1[i, 1], s * f1[i, 0] + c * f1[i, 1], f1[i, 2]
-    b0, b1, b2 = f2[i, 0], f2[i, 1], f2[i, 2]
+@kernel(inline=True)
+def midpoint_depths(c: float, s: float, t0: float, t1: float, t2: float, x1: float, y1: float, z1: float, x2: float, y2: float, z2: float) -> tuple[float, float, float]:
+    """The midpoint triangulation of f1 = (x1, y1, z1), f2 = (x2, y2, z2) for R = Rz(yaw) (c, s its
+    cosine and sine) and t: its depths along f1 and along f2, each times ``det``, and ``det`` =
+    sin^2 of the parallax times |f1|^2 |f2|^2."""
+    a0, a1, a2 = c * x1 - s * y1, s * x1 + c * y1, z1
     aa = a0 * a0 + a1 * a1 + a2 * a2
-    bb = b0 * b0 + b1 * b1 + b2 * b2
-    ab = a0 * b0 + a1 * b1 + a2 * b2
-    at = a0 * t[0] + a1 * t[1] + a2 * t[2]
-    bt = b0 * t[0] + b1 * t[1] + b2 * t[2]
+    bb = x2 * x2 + y2 * y2 + z2 * z2
+    ab = a0 * x2 + a1 * y2 + a2 * z2
+    at = a0 * t0 + a1 * t1 + a2 * t2
+    bt = x2 * t0 + y2 * t1 + z2 * t2
     return -at * bb + ab * bt, aa * bt - ab * at, aa * bb - ab * ab
+
+
+@kernel(inline=True)
+def _row_depths(c: float, s: float, t: np.ndarray, f1: np.ndarray, f2: np.ndarray, i: int) -> tuple[float, float, float]:
+    """:func:`midpoint_depths` of row i of f1, f2 (N, 3)."""
+    return midpoint_depths(c, s, t[0], t[1], t[2], f1[i, 0], f1[i, 1], f1[i, 2], f2[i, 0], f2[i, 1], f2[i, 2])
 
 
 @kernel
@@ -85,7 +91,7 @@ def _count_in_front(yaw: float, t: np.ndarray, f1: np.ndarray, f2: np.ndarray) -
     c, s = math.cos(yaw), math.sin(yaw)
     count = 0
     for i in range(f1.shape[0]):
-        d1, d2, det = _midpoint_depths(c, s, t, f1, f2, i)
+        d1, d2, det = _row_depths(c, s, t, f1, f2, i)
         if det > 1e-12 and d1 > 0.0 and d2 > 0.0:
             count += 1
     return count
@@ -99,9 +105,15 @@ def behind_upright(yaw: float, t: np.ndarray, f1: np.ndarray, f2: np.ndarray, mi
     min_det = math.sin(min_parallax_rad) ** 2
     out = np.zeros(f1.shape[0], dtype=np.bool_)
     for i in range(f1.shape[0]):
-        d1, d2, det = _midpoint_depths(c, s, t, f1, f2, i)
-        out[i] = det > min_det and (d1 <= 0.0 or d2 <= 0.0)
+        out[i] = point_behind(c, s, t[0], t[1], t[2], f1[i, 0], f1[i, 1], f1[i, 2], f2[i, 0], f2[i, 1], f2[i, 2], min_det)
     return out
+
+
+@kernel(inline=True)
+def point_behind(c: float, s: float, t0: float, t1: float, t2: float, x1: float, y1: float, z1: float, x2: float, y2: float, z2: float, min_det: float) -> bool:
+    """:func:`behind_upright` of one point, ``min_det`` the sine of the least parallax squared."""
+    d1, d2, det = midpoint_depths(c, s, t0, t1, t2, x1, y1, z1, x2, y2, z2)
+    return det > min_det and (d1 <= 0.0 or d2 <= 0.0)
 
 
 @kernel
