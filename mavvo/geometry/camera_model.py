@@ -12,11 +12,13 @@ the origin at the centre of the top-left pixel, as in OpenCV.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 from typing import Literal
 
 import numpy as np
 
+from mavvo.jit import kernel
 from mavvo.options import bounded
 
 ModelName = Literal["pinhole", "fisheye"]
@@ -111,6 +113,8 @@ class CameraModel(CameraIntrinsics):
         uv = np.asarray(uv_px, dtype=float)
         if uv.ndim != 2 or uv.shape[1] != 2:
             raise ValueError(f"uv_px: expected an (N,2) array of pixels, got shape {uv.shape}")
+        if self.model == "pinhole" and not any(self.distortion):  # every frame's tracks: one compiled pass
+            return _pinhole_bearings(np.ascontiguousarray(uv), self.fx_px, self.fy_px, self.cx_px, self.cy_px)
         xd = np.stack([(uv[:, 0] - self.cx_px) / self.fx_px, (uv[:, 1] - self.cy_px) / self.fy_px], axis=1)
         if self.model == "pinhole":
             xu = self._undistort_radtan(xd)
@@ -193,3 +197,14 @@ class CameraModel(CameraIntrinsics):
             scale = np.where(rxy > 1e-15, theta_d / np.where(rxy > 1e-15, rxy, 1.0), 0.0)
             xd = f[:, :2] * scale[:, None]
         return np.stack([self.fx_px * xd[:, 0] + self.cx_px, self.fy_px * xd[:, 1] + self.cy_px], axis=1)
+
+
+@kernel
+def _pinhole_bearings(uv: np.ndarray, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """Unit bearings (N, 3) of pixels uv (N, 2) through an undistorted pinhole."""
+    out = np.empty((uv.shape[0], 3))
+    for i in range(uv.shape[0]):
+        x, y = (uv[i, 0] - cx) / fx, (uv[i, 1] - cy) / fy
+        norm = math.sqrt(x * x + y * y + 1.0)
+        out[i, 0], out[i, 1], out[i, 2] = x / norm, y / norm, 1.0 / norm
+    return out

@@ -28,7 +28,11 @@ for malformed input (wrong shape, non-finite values, zero-length bearings, too f
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+
+from mavvo.jit import kernel
 
 
 # The det cubic of the 4-point, or the 5th singular value of the linear 5-point, vanishes on a
@@ -53,12 +57,30 @@ def as_bearings(name: str, f: object, min_rows: int, exact_rows: int | None = No
         raise ValueError(f"{name}: expected exactly {exact_rows} bearings, got {n}")
     if n < min_rows:
         raise ValueError(f"{name}: expected at least {min_rows} bearings, got {n}")
-    if not np.all(np.isfinite(arr)):
+    unit = np.empty((n, 3))
+    bad = _unit_rows(np.ascontiguousarray(arr), unit)
+    if bad == -2:
         raise ValueError(f"{name}: bearings must be finite, got NaN or inf")
-    norms = np.linalg.norm(arr, axis=1)
-    if np.any(norms < 1e-12):
-        raise ValueError(f"{name}: bearings must have non-zero length, row {int(np.argmin(norms))} is zero")
-    return arr / norms[:, None]
+    if bad >= 0:
+        raise ValueError(f"{name}: bearings must have non-zero length, row {bad} is zero")
+    return unit
+
+
+@kernel
+def _unit_rows(f: np.ndarray, out: np.ndarray) -> int:
+    """Rows of f (N, 3) scaled to unit length into out; -1 when all are finite and non-zero, else -2
+    for a non-finite value, or the index of the first row shorter than 1e-12."""
+    zero = -1
+    for i in range(f.shape[0]):
+        x, y, z = f[i, 0], f[i, 1], f[i, 2]
+        if not (abs(x) < np.inf and abs(y) < np.inf and abs(z) < np.inf):
+            return -2
+        norm = math.sqrt(x * x + y * y + z * z)
+        if norm < 1e-12:
+            zero = i if zero < 0 else zero
+            continue
+        out[i, 0], out[i, 1], out[i, 2] = x / norm, y / norm, z / norm
+    return zero
 
 
 def as_bearing_pair(

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mavvo.jit import kernel
+
 # Camera mountings (R_body_cam). Nadir: looking down, image top towards the nose.
 R_BODY_CAM_NADIR = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 # Forward: looking along the nose, image right towards the right wing.
@@ -116,11 +118,29 @@ def angle_between_rad(a: np.ndarray, b: np.ndarray) -> float:
 def as_rotation(name: str, R: np.ndarray, tol: float = 1e-6) -> np.ndarray:
     """R as a float (3,3) array; ValueError naming ``name`` unless it is a finite rotation matrix."""
     arr = np.asarray(R, dtype=float)
-    if arr.shape != (3, 3) or not np.all(np.isfinite(arr)):
+    if arr.shape != (3, 3):
         raise ValueError(f"{name}: expected a finite (3,3) rotation matrix, got shape {arr.shape}")
-    if np.abs(arr @ arr.T - np.eye(3)).max() > tol or np.linalg.det(arr) < 0:
+    defect = _rotation_defect(np.ascontiguousarray(arr))
+    if not defect < np.inf:
+        raise ValueError(f"{name}: expected a finite (3,3) rotation matrix, got NaN or inf")
+    if defect > tol:
         raise ValueError(f"{name}: expected a rotation matrix (orthonormal, det +1)")
     return arr
+
+
+@kernel
+def _rotation_defect(R: np.ndarray) -> float:
+    """max |R R^T - I| of a (3, 3) matrix, at least 2 if its determinant is negative, inf if not finite.
+    Compiled: every relative pose checks two rotations."""
+    worst = 0.0
+    for i in range(3):
+        for j in range(3):
+            if not abs(R[i, j]) < np.inf:
+                return np.inf
+            dot = R[i, 0] * R[j, 0] + R[i, 1] * R[j, 1] + R[i, 2] * R[j, 2]
+            worst = max(worst, abs(dot - (1.0 if i == j else 0.0)))
+    det = R[0, 0] * (R[1, 1] * R[2, 2] - R[1, 2] * R[2, 1]) - R[0, 1] * (R[1, 0] * R[2, 2] - R[1, 2] * R[2, 0]) + R[0, 2] * (R[1, 0] * R[2, 1] - R[1, 1] * R[2, 0])
+    return max(worst, 2.0) if det < 0.0 else worst
 
 
 def quat_wxyz_from_R(R: np.ndarray) -> np.ndarray:
