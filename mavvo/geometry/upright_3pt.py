@@ -206,8 +206,12 @@ def _constraint_values_at_padua(basis: np.ndarray) -> np.ndarray:
     out = np.empty(40)
     for p in range(10):
         a, b = _PADUA[p, 0], _PADUA[p, 1]
-        ev = a * basis[0] + b * basis[1] + basis[2]
-        q, d, tr, ti = _qdt(ev)
+        # e(a, b) entry by entry: no temporary arrays per point
+        q, d, tr, ti = _qdt_of(
+            a * basis[0, 0] + b * basis[1, 0] + basis[2, 0], a * basis[0, 1] + b * basis[1, 1] + basis[2, 1],
+            a * basis[0, 2] + b * basis[1, 2] + basis[2, 2], a * basis[0, 3] + b * basis[1, 3] + basis[2, 3],
+            a * basis[0, 4] + b * basis[1, 4] + basis[2, 4], a * basis[0, 5] + b * basis[1, 5] + basis[2, 5],
+        )
         out[p], out[10 + p], out[20 + p], out[30 + p] = q, d, tr, ti
     return out
 
@@ -215,7 +219,13 @@ def _constraint_values_at_padua(basis: np.ndarray) -> np.ndarray:
 @kernel
 def _qdt(e: np.ndarray) -> tuple[float, float, float, float]:
     """Q, D, Re T, Im T of e (6,) (:mod:`mavvo.geometry.essential`), in real arithmetic."""
-    br, ar, ai, bi, gr, gi = e[0], e[2], e[1], e[3], e[4], e[5]  # beta = E13 + i E23, alpha = E22 + i E21, gamma = E31 + i E32
+    return _qdt_of(e[0], e[1], e[2], e[3], e[4], e[5])
+
+
+@kernel(inline=True)
+def _qdt_of(e13: float, e21: float, e22: float, e23: float, e31: float, e32: float) -> tuple[float, float, float, float]:
+    """:func:`_qdt` of the entries of e."""
+    br, ar, ai, bi, gr, gi = e13, e22, e21, e23, e31, e32  # beta = E13 + i E23, alpha = E22 + i E21, gamma = E31 + i E32
     q = br * br + bi * bi - gr * gr - gi * gi
     pr, pi = ar * gr - ai * gi, ar * gi + ai * gr  # alpha gamma
     d = pr * br + pi * bi  # Re(alpha gamma conj(beta))
@@ -284,17 +294,16 @@ def _distinct_epipolar_planes(e: np.ndarray, X1: np.ndarray) -> bool:
     plane, and a solver may return a member of that continuum. Its epipolar lines E f1 coincide.
     """
     e13, e21, e22, e23, e31, e32 = e[0], e[1], e[2], e[3], e[4], e[5]
-    lines = np.empty((3, 3))
-    for j in range(3):
-        x, y, z = X1[j, 0], X1[j, 1], X1[j, 2]
-        lines[j, 0] = e22 * x - e21 * y + e13 * z
-        lines[j, 1] = e21 * x + e22 * y + e23 * z
-        lines[j, 2] = e31 * x + e32 * y
-    sq0 = lines[0, 0] ** 2 + lines[0, 1] ** 2 + lines[0, 2] ** 2
+    u0 = e22 * X1[0, 0] - e21 * X1[0, 1] + e13 * X1[0, 2]  # E f1 of the first point
+    u1 = e21 * X1[0, 0] + e22 * X1[0, 1] + e23 * X1[0, 2]
+    u2 = e31 * X1[0, 0] + e32 * X1[0, 1]
+    sq0 = u0 * u0 + u1 * u1 + u2 * u2
     for j in (1, 2):
+        x, y, z = X1[j, 0], X1[j, 1], X1[j, 2]
+        v0, v1, v2 = e22 * x - e21 * y + e13 * z, e21 * x + e22 * y + e23 * z, e31 * x + e32 * y
         # sin^2 of the angle between two lines is (|u|^2 |v|^2 - (u.v)^2) / (|u|^2 |v|^2); zero lines count as coincident.
-        norms = sq0 * (lines[j, 0] ** 2 + lines[j, 1] ** 2 + lines[j, 2] ** 2)
-        dot = lines[0, 0] * lines[j, 0] + lines[0, 1] * lines[j, 1] + lines[0, 2] * lines[j, 2]
+        norms = sq0 * (v0 * v0 + v1 * v1 + v2 * v2)
+        dot = u0 * v0 + u1 * v1 + u2 * v2
         if norms - dot * dot > _MIN_EPIPOLAR_PLANE_ANGLE**2 * norms:
             return True
     return False
@@ -304,10 +313,11 @@ def _distinct_epipolar_planes(e: np.ndarray, X1: np.ndarray) -> bool:
 def _maybe_near_vertical(basis: np.ndarray) -> bool:
     """Cheap and conservative: the null space, basis (3, 6), may pass within ``_NEAR_VERTICAL`` of
     E13 = E23 = E31 = E32 = 0 (its 4x3 restriction has a small singular value)."""
-    V = np.empty((3, 4))
+    G = np.zeros((3, 3))  # Gram matrix of the rows' E13, E23, E31, E32; det = product of squared singular values
     for r in range(3):
-        V[r, 0], V[r, 1], V[r, 2], V[r, 3] = basis[r, 0], basis[r, 3], basis[r, 4], basis[r, 5]
-    G = V @ V.T  # Gram matrix; det = product of squared singular values
+        for c in range(3):
+            for m in (0, 3, 4, 5):
+                G[r, c] += basis[r, m] * basis[c, m]
     det = (
         G[0, 0] * (G[1, 1] * G[2, 2] - G[1, 2] * G[2, 1])
         - G[0, 1] * (G[1, 0] * G[2, 2] - G[1, 2] * G[2, 0])
