@@ -21,18 +21,13 @@ from typing import Literal
 
 import numpy as np
 
-from mavvo.geometry import (
-    essential_to_vector,
-    ground_homography_from_similarity,
-    solve_upright_4pt,
-    solve_upright_linear5pt,
-)
+from mavvo.geometry import essential_to_vector, solve_upright_4pt, solve_upright_linear5pt
 from mavvo.geometry.frames import rot_z
-from mavvo.geometry.ground_2pt import solve_ground_2pt_samples
+from mavvo.geometry.ground_2pt import homography_from_similarity, solve_ground_2pt_samples
 from mavvo.geometry.upright_3pt import solve_samples as solve_upright_3pt_samples
 from mavvo.geometry.upright_pose import upright_pose_kernel
-from mavvo.geometry.refine import fit_ground_similarity, fit_rotation, refine_upright, upright_vector
-from mavvo.geometry.residuals import ground_sq, rotation_sq, sampson_msac_upright, sampson_sq_upright
+from mavvo.geometry.refine import fit_rotation, gauss_newton_upright, ground_similarity, upright_vector
+from mavvo.geometry.residuals import ground_msac, ground_sq, rotation_sq, sampson_msac_upright, sampson_sq_upright
 from mavvo.estimation.ransac import CostsFromResiduals
 from mavvo.jit import kernel
 
@@ -84,6 +79,23 @@ def _near_yaw(e: np.ndarray, prior: float, tol: float) -> np.ndarray:
     return out
 
 
+@kernel
+def _decompose_and_refine(e: np.ndarray, f1: np.ndarray, f2: np.ndarray, steps: int) -> np.ndarray:
+    """The upright e (6,) refitted on the inliers f1, f2 (N, 3): decomposed with cheirality
+    (:func:`decompose_upright`), then ``steps`` Gauss-Newton steps on yaw and translation (none with
+    fewer than 3 points); empty (0,) without inliers or for e = 0. One compiled call per local
+    optimisation."""
+    n = math.sqrt(np.sum(e * e))
+    if f1.shape[0] == 0 or not n > 0.0:
+        return np.zeros(0)
+    yaw, t = upright_pose_kernel(e / n, f1, f2)
+    x = np.zeros(8)
+    x[0], x[1:4] = yaw, t
+    if f1.shape[0] >= 3:
+        gauss_newton_upright(x, f1, f2, steps, False, np.zeros(4), 1.0, 0.0)
+    return upright_vector(math.atan2(math.sin(x[0]), math.cos(x[0])), x[1:4])
+
+
 class UprightEssential:
     """The upright essential matrix between two level frames (see the module docstring).
 
@@ -133,38 +145,52 @@ class UprightEssential:
             solve = solve_upright_4pt if self.nonminimal == "4pt" else solve_upright_linear5pt
             e = essential_to_vector(solve(f1, f2))
             out += list(e / np.linalg.norm(e, axis=1, keepdims=True))
-        pose = decompose_upright(model[0], f1, f2)
-        if pose is not None and self.lo_steps > 0:
-            fit = refine_upright(*pose, f1, f2, iterations=self.lo_steps)
-            out.append(upright_e(fit.yaw_rad, fit.t_2_1))
+        if self.lo_steps > 0:
+            e = _decompose_and_refine(np.ascontiguousarray(model[0], dtype=np.float64), f1, f2, self.lo_steps)
+            if e.size:
+                out.append(e)
         return np.array(out).reshape(-1, 6)
 
 
-class GroundHomography(CostsFromResiduals):
+@kernel
+def _ground_refit(f1: np.ndarray, f2: np.ndarray, inliers: np.ndarray) -> np.ndarray:
+    """The ground homography (3, 3) fitted on the inliers ((N,) bool) in closed form
+    (:func:`~mavvo.geometry.refine.fit_ground_similarity`); NaN where that has no answer."""
+    H = np.full((3, 3), np.nan)
+    ok, m, tau = ground_similarity(f1[inliers], f2[inliers])
+    if ok:
+        homography_from_similarity(m, tau, H)
+    return H
+
+
+class GroundHomography:
     """The ground-plane homography ``x_2 ~ H x_1`` of known gravity (see the module docstring); data
     are the correspondences given, which the caller picks below the horizon in both views."""
 
     sample_size = 2
 
     def __init__(self, f1: np.ndarray, f2: np.ndarray) -> None:
-        self.f1, self.f2 = f1, f2
+        self.f1, self.f2 = np.ascontiguousarray(f1), np.ascontiguousarray(f2)
         self.num_data = len(f1)
+        self._sub: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (rows, f1, f2 of them): the loop's fixed subset
 
     def generate(self, samples: np.ndarray) -> np.ndarray:
         H, valid = solve_ground_2pt_samples(self.f1[samples], self.f2[samples])
         return H[valid]
 
+    def costs(self, models: np.ndarray, thr_sq: float, rows: np.ndarray | None = None) -> np.ndarray:
+        if rows is None:
+            return ground_msac(models, self.f1, self.f2, thr_sq)
+        if self._sub is None or self._sub[0] is not rows:
+            self._sub = (rows, self.f1[rows], self.f2[rows])
+        return ground_msac(models, self._sub[1], self._sub[2], thr_sq)
+
     def residuals_sq(self, models: np.ndarray) -> np.ndarray:
         return ground_sq(models, self.f1, self.f2)
 
-    def residuals_on(self, models: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        return ground_sq(models, self.f1[rows], self.f2[rows])
-
     def refine(self, model: np.ndarray, inliers: np.ndarray) -> np.ndarray:
-        fit = fit_ground_similarity(self.f1[inliers], self.f2[inliers])
-        if fit is None:
-            return np.zeros((0, 3, 3))
-        return ground_homography_from_similarity(np.array(fit[0]), np.array(fit[1]))[None]
+        H = _ground_refit(self.f1, self.f2, inliers)
+        return np.zeros((0, 3, 3)) if np.isnan(H[0, 0]) else H[None]
 
 
 class PureRotation(CostsFromResiduals):

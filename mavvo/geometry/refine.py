@@ -371,12 +371,12 @@ def fit_ground_similarity(f1: np.ndarray, f2: np.ndarray) -> tuple[complex, comp
     :func:`mavvo.geometry.ground_2pt.ground_homography_from_similarity`, or None when fewer than two distinct
     points lie below the horizon. Compiled.
     """
-    ok, m, tau = _ground_similarity(np.ascontiguousarray(f1, dtype=np.float64), np.ascontiguousarray(f2, dtype=np.float64))
+    ok, m, tau = ground_similarity(np.ascontiguousarray(f1, dtype=np.float64), np.ascontiguousarray(f2, dtype=np.float64))
     return (complex(m), complex(tau)) if ok else None
 
 
 @kernel
-def _ground_similarity(f1: np.ndarray, f2: np.ndarray) -> tuple[bool, complex, complex]:
+def ground_similarity(f1: np.ndarray, f2: np.ndarray) -> tuple[bool, complex, complex]:
     sw = 0.0
     m1 = m2 = 0j
     count = 0

@@ -12,7 +12,7 @@ import numpy as np
 
 from mavvo.jit import kernel
 
-__all__ = ["sampson_sq_upright", "sampson_msac_upright", "ground_sq", "rotation_sq"]
+__all__ = ["sampson_sq_upright", "sampson_msac_upright", "ground_sq", "ground_msac", "rotation_sq"]
 
 # Squared residual returned where a model cannot map a point at all (ground point above the horizon).
 UNMAPPABLE_SQ = 1e6
@@ -119,20 +119,44 @@ def _per_model(fn, M: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
 def _ground_sq(H: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
     out = np.empty((H.shape[0], f1.shape[0]))
     for m in range(H.shape[0]):
-        h = H[m]
         for i in range(f1.shape[0]):
-            x, y, z = f1[i, 0], f1[i, 1], f1[i, 2]
-            g0 = h[0, 0] * x + h[0, 1] * y + h[0, 2] * z  # g = H f1
-            g1 = h[1, 0] * x + h[1, 1] * y + h[1, 2] * z
-            g2 = h[2, 0] * x + h[2, 1] * y + h[2, 2] * z
-            b0, b1, b2 = f2[i, 0], f2[i, 1], f2[i, 2]
-            n_sq = g0 * g0 + g1 * g1 + g2 * g2
-            # |g x f2|^2 / |g|^2 = sin^2 of the angle, precise also for tiny angles
-            c0, c1, c2 = g1 * b2 - g2 * b1, g2 * b0 - g0 * b2, g0 * b1 - g1 * b0
-            if n_sq > 0.0 and g0 * b0 + g1 * b1 + g2 * b2 > 0.0 and z > 0.0:
-                out[m, i] = 0.5 * (c0 * c0 + c1 * c1 + c2 * c2) / n_sq
-            else:
-                out[m, i] = UNMAPPABLE_SQ
+            out[m, i] = ground_sq_point(H[m], f1, f2, i)
+    return out
+
+
+@kernel(inline=True)
+def ground_sq_point(h: np.ndarray, f1: np.ndarray, f2: np.ndarray, i: int) -> float:
+    """:func:`ground_sq` of one homography h (3, 3) on row i of f1, f2 (N, 3)."""
+    x, y, z = f1[i, 0], f1[i, 1], f1[i, 2]
+    g0 = h[0, 0] * x + h[0, 1] * y + h[0, 2] * z  # g = H f1
+    g1 = h[1, 0] * x + h[1, 1] * y + h[1, 2] * z
+    g2 = h[2, 0] * x + h[2, 1] * y + h[2, 2] * z
+    b0, b1, b2 = f2[i, 0], f2[i, 1], f2[i, 2]
+    n_sq = g0 * g0 + g1 * g1 + g2 * g2
+    # |g x f2|^2 / |g|^2 = sin^2 of the angle, precise also for tiny angles
+    c0, c1, c2 = g1 * b2 - g2 * b1, g2 * b0 - g0 * b2, g0 * b1 - g1 * b0
+    if n_sq > 0.0 and g0 * b0 + g1 * b1 + g2 * b2 > 0.0 and z > 0.0:
+        return 0.5 * (c0 * c0 + c1 * c1 + c2 * c2) / n_sq
+    return UNMAPPABLE_SQ
+
+
+def ground_msac(H: np.ndarray, f1: np.ndarray, f2: np.ndarray, thr_sq: float) -> np.ndarray:
+    """MSAC costs (M,) of ground homographies H (M, 3, 3) on f1, f2 (N, 3): :func:`ground_sq` capped at
+    ``thr_sq`` and summed, without storing the errors; inf for a homography with a non-finite entry."""
+    return _ground_msac_kernel(np.ascontiguousarray(H, dtype=np.float64).reshape(-1, 3, 3), f1, f2, float(thr_sq))
+
+
+@kernel
+def _ground_msac_kernel(H: np.ndarray, f1: np.ndarray, f2: np.ndarray, thr_sq: float) -> np.ndarray:
+    out = np.empty(H.shape[0])
+    for m in range(H.shape[0]):
+        if not np.all(np.isfinite(H[m])):
+            out[m] = np.inf
+            continue
+        acc = 0.0
+        for i in range(f1.shape[0]):
+            acc += min(ground_sq_point(H[m], f1, f2, i), thr_sq)
+        out[m] = acc
     return out
 
 
