@@ -255,13 +255,22 @@ def _frozen(a: np.ndarray) -> np.ndarray:
     return a
 
 
-def _gric(err_sq: np.ndarray, sigma_sq: float, model: str) -> float:
+def _gric(err_sq: np.ndarray, rows: np.ndarray, sigma_sq: float, model: str) -> float:
+    """GRIC of a model with squared errors err_sq (N,) over the points ``rows`` (indices); inf without any."""
     d, k = _GRIC_DK[model]
-    n = len(err_sq)
+    return _gric_kernel(err_sq, rows, sigma_sq, d, k)
+
+
+@kernel
+def _gric_kernel(err_sq: np.ndarray, rows: np.ndarray, sigma_sq: float, d: int, k: int) -> float:
+    n = rows.shape[0]
     if n == 0:
         return math.inf  # nothing to judge the model by
-    rho = np.minimum(err_sq / sigma_sq, _GRIC_LAMBDA3 * (_GRIC_R - d))
-    return float(rho.sum() + math.log(_GRIC_R) * d * n + math.log(_GRIC_R * n) * k)
+    cap = _GRIC_LAMBDA3 * (_GRIC_R - d)
+    rho = 0.0
+    for i in rows:
+        rho += min(err_sq[i] / sigma_sq, cap)
+    return rho + math.log(_GRIC_R) * d * n + math.log(_GRIC_R * n) * k
 
 
 @kernel
@@ -463,11 +472,11 @@ def _select(
     # for the others), so gross outliers, which fit none of them, would otherwise decide the choice.
     sigma_sq = sigma**2
     inl_idx = np.nonzero(err_e < thr_sq)[0]
-    gric = {"essential": _gric(err_e[inl_idx], sigma_sq, "essential")}
+    gric = {"essential": _gric(err_e, inl_idx, sigma_sq, "essential")}
     R_rot = _rotation_model(f1, f2, inl_idx, thr_sq)
     rotation = None if R_rot is None else _Fit("rotation", yaw_of(R_rot), np.zeros(3), rotation_sq(R_rot, f1, f2), None, tilt1, tilt2, correction)
     if rotation is not None:
-        gric["rotation"] = _gric(rotation.err_sq[inl_idx], sigma_sq, "rotation")
+        gric["rotation"] = _gric(rotation.err_sq, inl_idx, sigma_sq, "rotation")
         # Below about a pixel of parallax a translation direction is noise, and a near-vertical one
         # leaves yaw ambiguous by pi (E = [t]x Rz(yaw) is the same for yaw + pi when t is along z).
         # "A pixel" is the threshold, or ten noise sigmas where the tracks are that much finer.
@@ -480,11 +489,12 @@ def _select(
     if opt.model in ("auto", "ground"):
         H = _ground_model(f1, f2, inl_idx, opt, max_err_rad, rng)
         if H is not None:
-            gric["ground"] = _gric(ground_sq(H, f1[inl_idx], f2[inl_idx]), sigma_sq, "ground")
+            err_g = ground_sq(H, f1, f2)
+            gric["ground"] = _gric(err_g, inl_idx, sigma_sq, "ground")
             R, t_per_h = ground_pose_from_homography(H)
             nt = float(np.linalg.norm(t_per_h))
             if nt > 0:
-                ground = _Fit("ground", yaw_of(R), t_per_h / nt, ground_sq(H, f1, f2), t_per_h, tilt1, tilt2, correction)
+                ground = _Fit("ground", yaw_of(R), t_per_h / nt, err_g, t_per_h, tilt1, tilt2, correction)
     if opt.model == "auto":
         allowed: tuple[str, ...] = ("essential", "ground", "rotation")
     elif opt.model == "ground" and "ground" in gric:
@@ -754,10 +764,22 @@ def _robust_sigma(err_sq_inliers: np.ndarray, max_err_rad: float) -> float:
     return float(_robust_sigma_kernel(np.ascontiguousarray(err_sq_inliers, dtype=np.float64), float(max_err_rad)))
 
 
+@kernel
+def _error_sums(err_sq: np.ndarray, thr_sq: float) -> tuple[int, float, float]:
+    """Of squared errors (N,): the count under ``thr_sq``, the sum capped at it (MSAC), the sum of those under it."""
+    k, capped, inlier = 0, 0.0, 0.0
+    for v in err_sq:
+        if v < thr_sq:
+            k += 1
+            inlier += v
+        capped += min(v, thr_sq)
+    return k, capped, inlier
+
+
 def _result(fit: _Fit, thr_sq: float, iterations: int, stats: RelposeStats) -> UprightRelpose:
     err_sq = fit.err_sq
     inl = err_sq < thr_sq
-    k = int(np.count_nonzero(inl))
+    k, capped_sum, inlier_sum = _error_sums(err_sq, thr_sq)
     n = len(err_sq)
     translation = fit.model in ("essential", "ground", "general")
     return UprightRelpose(
@@ -771,8 +793,8 @@ def _result(fit: _Fit, thr_sq: float, iterations: int, stats: RelposeStats) -> U
         inliers=_frozen(inl),
         num_inliers=k,
         inlier_ratio=k / n if n else 0.0,
-        score=float(np.minimum(err_sq, thr_sq).sum() / (thr_sq * n)) if n else 1.0,
-        residual_rms_rad=float(np.sqrt(np.mean(err_sq[inl]))) if k else float("nan"),
+        score=capped_sum / (thr_sq * n) if n else 1.0,
+        residual_rms_rad=math.sqrt(inlier_sum / k) if k else float("nan"),
         iterations=iterations,
         tilt1_rad=_frozen(fit.tilt1),
         tilt2_rad=_frozen(fit.tilt2),
