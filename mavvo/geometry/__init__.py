@@ -1,6 +1,6 @@
 """Geometry: frames and rotations, camera models, polynomial roots, the paper's solvers (one per
-module), residuals and least-squares refinement. Pure numpy (OpenCV only for distortion); imports
-nothing of mavvo but ``mavvo.errors``, ``mavvo.options`` and ``mavvo.types``."""
+module), residuals and least-squares refinement, medians. numpy, OpenCV and compiled kernels
+(``mavvo.jit``); imports nothing else of mavvo but ``mavvo.errors``, ``mavvo.options`` and ``mavvo.types``."""
 
 from mavvo.geometry.essential import (
     alpha_beta_gamma,

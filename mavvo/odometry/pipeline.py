@@ -53,6 +53,7 @@ from mavvo.geometry.camera_model import CameraModel
 from mavvo.options import bounded
 from mavvo.odometry.filter import FilterOptions, PoseFilter, Update, wrap_angle
 from mavvo.geometry.frames import R_lvl_body, R_lvl_cam, as_rotation, euler321_from_R
+from mavvo.geometry.medians import median
 from mavvo.geometry.refine import tilt_rotation
 from mavvo.odometry.frontend import Frontend, FrontendOptions, Tracks
 from mavvo.odometry.keyframes import Keyframe, KeyframeChain, KeyframeOptions, carry_depths, keyframe_reason
@@ -337,9 +338,9 @@ class Odometry:
                 d2[valid] = scale.baseline_m * lam2[valid]
                 depth2[inl] = d2
                 if self._trusted(scale):
-                    self._scene_depth_m = float(np.median(scale.baseline_m * lam1[valid]))
+                    self._scene_depth_m = median(scale.baseline_m * lam1[valid])
         p, yaw = kf.pose_of(c2, rp.yaw_rad)
-        parallax_px = float(np.median(par[inl])) * self._focal_px
+        parallax_px = median(par[inl]) * self._focal_px
         return _Measurement(p, yaw, rp, scale, c2, parallax_px, depth2, par, (roll2, pitch2))
 
     def _accept(self, frame: PairedFrame, tracks: Tracks, f_lvl: np.ndarray, kf: Keyframe, i_kf: np.ndarray, i_cur: np.ndarray, m: _Measurement) -> PoseEstimate:
@@ -408,7 +409,7 @@ class Odometry:
         known = np.isfinite(depth)
         self._metric_interval = m.scale is not None and self._trusted(m.scale) and np.count_nonzero(known) >= self.options.scale.min_points
         if np.any(known):
-            self._scene_depth_m = float(np.median(depth[known]))
+            self._scene_depth_m = median(depth[known])
 
     def _keyframe_position(self, kf: Keyframe, m: _Measurement, reason: StateReason) -> tuple[np.ndarray, float]:
         """Where a new keyframe made from the measured frame goes, and the factor its baseline (and so

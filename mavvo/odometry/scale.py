@@ -33,6 +33,7 @@ from typing import Literal
 
 import numpy as np
 
+from mavvo.geometry.medians import median, weighted_median
 from mavvo.options import bounded
 from mavvo.types import ScaleSource
 
@@ -110,12 +111,6 @@ def triangulate_unit(
     return lam1, lam2, parallax, valid
 
 
-def _weighted_median(x: np.ndarray, w: np.ndarray) -> float:
-    order = np.argsort(x)
-    cw = np.cumsum(w[order])
-    return float(x[order][np.searchsorted(cw, 0.5 * cw[-1])])
-
-
 def ground_depth(points_lvl: np.ndarray, weights: np.ndarray, min_points: int) -> tuple[float, float] | None:
     """Depth of a horizontal ground plane below view 1, from triangulated points (level frame, z down).
 
@@ -130,8 +125,8 @@ def ground_depth(points_lvl: np.ndarray, weights: np.ndarray, min_points: int) -
     if np.count_nonzero(below) < min_points:
         return None
     z, w = points_lvl[below, 2], weights[below]
-    d = _weighted_median(z, w)
-    spread = float(np.median(np.abs(z - d))) / d
+    d = weighted_median(z, w)
+    spread = median(np.abs(z - d)) / d
     return d, spread
 
 
@@ -194,12 +189,12 @@ def estimate_scale(
         if len(depth_unit) < options.min_points:
             return None
         r = np.log(carried_depth_m / depth_unit)
-        med = float(np.median(r))
+        med = median(r)
         ok = np.abs(r - med) < np.log(options.max_depth_ratio)
         if np.count_nonzero(ok) < options.min_points:
             return None
-        med = float(np.median(r[ok]))
-        return ScaleEstimate(float(np.exp(med)), ScaleSource.CARRIED, int(np.count_nonzero(ok)), float(np.median(np.abs(r[ok] - med))))
+        med = median(r[ok])
+        return ScaleEstimate(float(np.exp(med)), ScaleSource.CARRIED, int(np.count_nonzero(ok)), median(np.abs(r[ok] - med)))
 
     def fixed() -> ScaleEstimate | None:
         return from_height(options.fixed_height_m, ScaleSource.FIXED, 0.0)
@@ -222,5 +217,5 @@ def scale_from_scene_depth(points_lvl: np.ndarray, scene_depth_m: float, source:
     (the last metric frame's, or ``initial_depth_m`` before any); None with too few points."""
     if len(points_lvl) < min_points:
         return None
-    depth = float(np.median(np.linalg.norm(points_lvl, axis=1)))
+    depth = median(np.linalg.norm(points_lvl, axis=1))
     return ScaleEstimate(scene_depth_m / depth, source, len(points_lvl), 1.0)
