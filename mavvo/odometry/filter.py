@@ -31,6 +31,7 @@ __all__ = ["FilterOptions", "PoseFilter", "Update", "chi2_cdf", "chi2_quantile",
 _DIM_X, _DIM_Z = 8, 4
 _H = np.zeros((_DIM_Z, _DIM_X))
 _H[0, 0] = _H[1, 1] = _H[2, 2] = _H[3, 6] = 1.0
+_PAIRS = ((0, 3), (1, 4), (2, 5), (6, 7))  # (value, rate) state pairs: north, east, down, yaw
 
 
 class Update(enum.Enum):
@@ -123,11 +124,12 @@ class PoseFilter:
             return
         F = np.eye(_DIM_X)
         F[0, 3] = F[1, 4] = F[2, 5] = F[6, 7] = dt
-        q = np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
+        # White acceleration over dt on each (position, velocity) pair and on (yaw, yaw rate):
+        # q = [[dt^4/4, dt^3/2], [dt^3/2, dt^2]] times the acceleration's variance.
         Q = np.zeros((_DIM_X, _DIM_X))
-        for i in range(3):
-            Q[np.ix_([i, i + 3], [i, i + 3])] = q * self.options.accel_sigma_m_s2**2
-        Q[6:8, 6:8] = q * self.options.yaw_accel_sigma_rad_s2**2
+        for (i, j), var in zip(_PAIRS, (self.options.accel_sigma_m_s2**2,) * 3 + (self.options.yaw_accel_sigma_rad_s2**2,)):
+            Q[i, i], Q[i, j], Q[j, j] = var * dt**4 / 4, var * dt**3 / 2, var * dt**2
+            Q[j, i] = Q[i, j]
         self._x = F @ self._x  # x = F x
         self._P = F @ self._P @ F.T + Q  # P = F P F' + Q
         self._t_s = float(t_s)
