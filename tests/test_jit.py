@@ -62,15 +62,37 @@ def _warm(cache: Path | None) -> subprocess.CompletedProcess:
     return proc
 
 
+# A few frames of a simulated flight through the whole odometry (frontend, relative pose, scale).
+_FLIGHT = """
+from mavvo.odometry.pipeline import Odometry
+from sim.scenarios.loader import load_scenario
+from sim.scenarios.paired_frames import PairedSequence
+scenario = load_scenario("survey")
+seq = PairedSequence(scenario)
+vo = Odometry(scenario.camera.camera_model(), seq.R_body_cam)
+estimates = 0
+for i, frame in enumerate(seq):
+    estimates += vo.step(frame) is not None
+    if i == 12:
+        break
+print(estimates)
+"""
+
+
 def test_a_warm_cache_is_loaded_without_compiling_anything_again():
     """make test warms the cache first; a new process (a service starting) then writes nothing to it: every
-    kernel can be cached and is found."""
+    kernel can be cached and is found, and the warm-up reaches every kernel the odometry runs."""
     cache = Path(os.environ["NUMBA_CACHE_DIR"]) if os.environ.get("NUMBA_CACHE_DIR") else ROOT / "mavvo"
     _warm(None)
     before = _cache_files(cache)
     assert len(before) >= 20, "the kernels' cache files"
     _warm(None)
     assert _cache_files(cache) == before
+    flight = subprocess.run([sys.executable, "-c", _FLIGHT], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert flight.returncode == 0, flight.stderr
+    assert int(flight.stdout) >= 5  # the frames went through the relative pose
+    new = sorted(str(p.relative_to(cache)) for p in set(_cache_files(cache)) - set(before))
+    assert not new, f"compiled after the warm-up: {new}"
 
 
 @pytest.mark.slow  # compiles every kernel: about a minute

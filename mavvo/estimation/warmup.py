@@ -1,4 +1,4 @@
-"""Compile every kernel of the relative pose once, so the cache holds them before the service starts.
+"""Compile every kernel of mavvo once, so the cache holds them before the service starts.
 
     python -m mavvo.estimation.warmup
 
@@ -14,8 +14,10 @@ import time
 
 import numpy as np
 
-from mavvo.estimation.relpose import RelposeOptions, estimate_upright_relpose
+from mavvo.estimation.relpose import RelposeOptions, estimate_relpose_known_gravity, estimate_upright_relpose
 from mavvo.geometry import solve_upright_3pt
+from mavvo.geometry.camera_model import CameraModel
+from mavvo.geometry.medians import median, weighted_median
 from mavvo.jit import refresh_cache
 
 __all__ = ["warm_kernels"]
@@ -33,7 +35,8 @@ def _scene(rng: np.random.Generator, n: int, ground: bool) -> tuple[np.ndarray, 
 
 def warm_kernels() -> float:
     """Run the relative pose on small synthetic scenes through every path (exact and uncertain
-    attitude, a 3-D scene, flat ground, a pure rotation, the yaw prior): each kernel is compiled, or
+    attitude, a 3-D scene, flat ground, a pure rotation, the yaw prior, pixels in), and the medians:
+    each kernel is compiled, or
     loaded from the cache (first emptied of kernels compiled from other sources: :func:`refresh_cache`).
     Returns the CPU seconds it took."""
     t0 = time.process_time()
@@ -45,6 +48,13 @@ def warm_kernels() -> float:
             estimate_upright_relpose(f1, f2, max_err_rad=0.002, attitude_sigma_rad=sigma, yaw_prior_rad=0.1)
         estimate_upright_relpose(f1, f1, max_err_rad=0.002, options=RelposeOptions())  # no baseline
     solve_upright_3pt(f1[:3], f2[:3])
+    # The pixel entry (bearings of an undistorted pinhole, the rotation checks), as the frontend and
+    # the odometry use them, and the medians of the odometry and the scale.
+    camera = CameraModel(640, 480, 500.0, 500.0, 320.0, 240.0)
+    uv = 500.0 * f1[:, :2] / f1[:, 2:] + np.array([320.0, 240.0])
+    estimate_relpose_known_gravity(uv, uv + 3.0, camera, np.eye(3), np.eye(3))
+    median(f1[:, 0])
+    weighted_median(f1[:, 0], f1[:, 2])
     return time.process_time() - t0
 
 
