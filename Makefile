@@ -46,7 +46,7 @@ test: $(STAMP)
 # The long runs make test skips (about 15 minutes): the solver soak, the survey and faults flights,
 # the fault suite's real-time cases, 1200 fuzzed settings files, make install into a staging folder.
 soak: $(STAMP)
-	$(BIN)/python -m pytest -q -m slow
+	$(BIN)/python -m pytest -q -m slow -rP
 
 # Every shipped scenario over five draws of its noise (about 12 minutes on 2 cores): what the vehicle
 # would feel, median and range; writes the tables into docs/service.md.

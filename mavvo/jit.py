@@ -46,15 +46,20 @@ def kernel(fn: F | None = None, *, fastmath: bool | set[str] = False, inline: bo
 
 def refresh_cache() -> list[Path]:
     """Empty mavvo's entries in every kernel cache directory whose stamp is not the digest of the
-    kernel sources loaded now, and stamp it; the cache files removed. Call it before the first kernel
-    runs. Nothing to do with ``NUMBA_DISABLE_JIT=1``; a directory that cannot be written is left as
-    numba found it (numba then looks elsewhere for a writable one)."""
+    kernel sources loaded now, and stamp it; the cache files removed. Call it before the kernels are
+    used; the entries of a kernel this process already compiled (a frame rotation checked while
+    starting up) are of the sources loaded now and stay. Nothing to do with ``NUMBA_DISABLE_JIT=1``;
+    a directory that cannot be written is left as numba found it (numba then looks elsewhere for a
+    writable one)."""
     caches = [k._cache for k in _KERNELS if hasattr(k, "_cache")]
     if not caches:
         return []
     sources = sorted({Path(f) for k in _KERNELS if (f := inspect.getsourcefile(k.py_func))})
     digest = hashlib.sha256(b"".join(p.read_bytes() for p in sources)).hexdigest()
     stems = {p.stem for p in sources}
+    # <module>.<function>-<line>: how numba names a kernel's cache files (then .py<version>...)
+    fresh = {f"{Path(inspect.getsourcefile(k.py_func) or '').stem}.{k.py_func.__qualname__}-{k.py_func.__code__.co_firstlineno}"
+             for k in _KERNELS if getattr(k, "signatures", None)}
     removed: list[Path] = []
     for cache_dir in sorted({Path(c.cache_path) for c in caches}):
         stamp = cache_dir / _STAMP_FILE
@@ -62,7 +67,7 @@ def refresh_cache() -> list[Path]:
             if stamp.is_file() and stamp.read_text().strip() == digest:
                 continue
             for f in sorted(cache_dir.glob("*.nb[ic]")):
-                if f.name.split(".", 1)[0] in stems:  # <module>.<function>-<line>.py<version>...
+                if f.name.split(".", 1)[0] in stems and f.name.split(".py", 1)[0] not in fresh:
                     f.unlink()
                     removed.append(f)
             cache_dir.mkdir(parents=True, exist_ok=True)

@@ -95,13 +95,27 @@ def test_a_warm_cache_is_loaded_without_compiling_anything_again():
     assert not new, f"compiled after the warm-up: {new}"
 
 
+def _sim(cache: Path, out: Path) -> dict:
+    """``mavvo sim`` (the service against the simulator, lockstep) on 3 s of the hover with this kernel cache."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
+    env.pop("NUMBA_DISABLE_JIT", None)
+    proc = subprocess.run([sys.executable, "-m", "mavvo", "sim", "--scenario", "hover", "--duration", "3", "--json", "--out", str(out)],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout)
+
+
 @pytest.mark.slow  # compiles every kernel: about a minute
-def test_a_cold_cache_is_filled_and_then_used(tmp_path):
-    _warm(tmp_path)
-    filled = _cache_files(tmp_path)
-    assert len(filled) >= 20
-    _warm(tmp_path)
-    assert _cache_files(tmp_path) == filled
+def test_the_service_starts_with_a_cold_cache_fills_it_and_then_uses_it(tmp_path):
+    """The daemon warms the kernels before READY=1: started on an empty cache it compiles them all
+    into it and estimates; started again it compiles nothing and estimates the same (lockstep)."""
+    cache = tmp_path / "cache"
+    cold = _sim(cache, tmp_path / "cold")
+    filled = _cache_files(cache)
+    assert len(filled) >= 20 and cold["estimates_received"] > 10
+    warm = _sim(cache, tmp_path / "warm")
+    assert _cache_files(cache) == filled
+    assert warm["estimates_received"] == cold["estimates_received"] and warm["ate_rmse_m"] == cold["ate_rmse_m"]
 
 
 # Two modules of kernels, the second calling the first (numba compiles the callee into the caller).

@@ -131,4 +131,6 @@ def test_long_flight_with_recurring_faults(tmp_path: Path) -> None:
     assert len(samples) >= 30
     third = len(samples) // 3
     growth = np.median(samples[2 * third :]) - np.median(samples[third : 2 * third])
+    # The figure docs/benchmarks.md quotes ("make soak" shows it: pytest -rP).
+    print(f"resident memory: {np.median(samples[third : 2 * third]):.0f} MiB in the second third, {growth:+.1f} MiB in the last; peak {max(samples):.0f} MiB")
     assert growth < 50.0, f"resident memory grew by {growth:.0f} MiB"
