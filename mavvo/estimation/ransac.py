@@ -69,7 +69,7 @@ class RansacOptions:
     confidence: float = bounded(0.99, "probability that an all-inlier sample was drawn when sampling stops", gt=0, lt=1)
     max_iterations: int = bounded(200, "most samples per estimate", ge=1, le=100000)
     min_iterations: int = bounded(0, "fewest samples per estimate (0: the stopping rule alone decides)", ge=0, le=100000)
-    first_block: int = bounded(16, "samples in the first batch (one batched solver call); later batches are sized to what the stopping rule still needs", ge=1, le=100000)
+    first_block: int = bounded(64, "samples in the first batch; later batches are sized to what the stopping rule still needs", ge=1, le=100000)
     min_block: int = bounded(8, "the smallest later batch", ge=1, le=100000)
     preemptive_points: int = bounded(96, "models are first scored on a fixed random subset of this many points", ge=1, le=100000)
     full_scores_per_block: int = bounded(3, "models of a batch, best on the subset, that are scored on all points", ge=1, le=100000)
