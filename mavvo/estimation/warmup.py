@@ -18,6 +18,7 @@ from mavvo.estimation.relpose import RelposeOptions, estimate_relpose_known_grav
 from mavvo.geometry import solve_upright_3pt
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.medians import median, weighted_median
+from mavvo.geometry.triangulation import triangulate_midpoints
 from mavvo.jit import refresh_cache
 
 __all__ = ["warm_kernels"]
@@ -49,12 +50,13 @@ def warm_kernels() -> float:
         estimate_upright_relpose(f1, f1, max_err_rad=0.002, options=RelposeOptions())  # no baseline
     solve_upright_3pt(f1[:3], f2[:3])
     # The pixel entry (bearings of an undistorted pinhole, the rotation checks), as the frontend and
-    # the odometry use them, and the medians of the odometry and the scale.
+    # the odometry use them, the medians and the triangulation of the odometry and the scale.
     camera = CameraModel(640, 480, 500.0, 500.0, 320.0, 240.0)
     uv = 500.0 * f1[:, :2] / f1[:, 2:] + np.array([320.0, 240.0])
     estimate_relpose_known_gravity(uv, uv + 3.0, camera, np.eye(3), np.eye(3))
     median(f1[:, 0])
     weighted_median(f1[:, 0], f1[:, 2])
+    triangulate_midpoints(f1, f2, np.eye(3), np.array([1.0, 0.0, 0.0]), 0.001)
     return time.process_time() - t0
 
 

@@ -34,6 +34,7 @@ from typing import Literal
 import numpy as np
 
 from mavvo.geometry.medians import median, weighted_median
+from mavvo.geometry.triangulation import triangulate_midpoints
 from mavvo.options import bounded
 from mavvo.types import ScaleSource
 
@@ -99,16 +100,8 @@ def triangulate_unit(
         and along f2; the rotation-compensated angle between the rays; valid where the parallax is
         enough and the point lies in front of both views.
     """
-    a = f1_lvl @ R_2_1.T  # view 1's rays in view 2's orientation
-    c = np.einsum("ij,ij->i", a, f2_lvl)
-    parallax = np.arccos(np.clip(c, -1.0, 1.0))
-    at = a @ t_2_1
-    ft = f2_lvl @ t_2_1
-    denom = np.maximum(1.0 - c * c, 1e-300)
-    lam1 = (c * ft - at) / denom
-    lam2 = ft + c * lam1
-    valid = (parallax >= min_parallax_rad) & (lam1 > 0) & (lam2 > 0)
-    return lam1, lam2, parallax, valid
+    f1, f2 = np.ascontiguousarray(f1_lvl, dtype=np.float64), np.ascontiguousarray(f2_lvl, dtype=np.float64)
+    return triangulate_midpoints(f1, f2, np.ascontiguousarray(R_2_1, dtype=np.float64), np.ascontiguousarray(t_2_1, dtype=np.float64), float(min_parallax_rad))
 
 
 def ground_depth(points_lvl: np.ndarray, weights: np.ndarray, min_points: int) -> tuple[float, float] | None:
