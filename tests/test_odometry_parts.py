@@ -310,3 +310,20 @@ def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_
         np.testing.assert_allclose(noise(track_px, 0.0), expected * np.eye(3), rtol=1e-9, atol=1e-15)
     extra = noise(0.1, 0.01) - noise(0.1, 0.0)
     np.testing.assert_allclose(extra, np.diag([0.04**2, 0.0, 0.0]), atol=1e-12)
+
+
+def test_a_keyframe_matches_the_ids_it_shares_with_a_frame():
+    """Against numpy's intersection, on increasing ids as the frontend gives them: lost tracks, new
+    ones, none shared, all shared."""
+    rng = np.random.default_rng(12)
+    for kf_ids, cur_ids in [
+        (np.sort(rng.choice(500, 200, replace=False)), np.sort(rng.choice(500, 220, replace=False))),
+        (np.arange(10), np.arange(10, 20)),
+        (np.arange(10), np.arange(10)),
+        (np.array([3, 7, 9]), np.array([1, 7, 8, 9, 12])),
+    ]:
+        kf = Keyframe(0, 0.0, kf_ids, np.zeros((len(kf_ids), 3)), np.zeros(len(kf_ids)), np.zeros(3), 0.0, 0.0)
+        i_kf, i_cur = kf.match(cur_ids)
+        _, want_kf, want_cur = np.intersect1d(kf_ids, cur_ids, return_indices=True)
+        assert np.array_equal(i_kf, want_kf) and np.array_equal(i_cur, want_cur)
+        assert np.array_equal(kf_ids[i_kf], cur_ids[i_cur])

@@ -10,6 +10,8 @@ rotation matrices here are active (``rot_z(yaw) @ v`` turns v by +yaw about z).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from mavvo.jit import kernel
@@ -22,19 +24,19 @@ R_BODY_CAM_FORWARD = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]
 
 def rot_x(angle_rad: float) -> np.ndarray:
     """(3,3) rotation by ``angle_rad`` about x."""
-    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
     return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
 def rot_y(angle_rad: float) -> np.ndarray:
     """(3,3) rotation by ``angle_rad`` about y."""
-    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
 def rot_z(angle_rad: float) -> np.ndarray:
     """(3,3) rotation by ``angle_rad`` about z."""
-    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
@@ -49,14 +51,14 @@ def euler321_from_R(R_ned_body: np.ndarray) -> tuple[float, float, float]:
 
     At pitch = +-90 deg (gimbal lock) roll is set to 0 and the rotation about z goes to yaw.
     """
-    R = as_rotation("R_ned_body", R_ned_body)
-    pitch = float(np.arcsin(np.clip(-R[2, 0], -1.0, 1.0)))
-    if abs(R[2, 0]) < 1.0 - 1e-12:
-        roll = float(np.arctan2(R[2, 1], R[2, 2]))
-        yaw = float(np.arctan2(R[1, 0], R[0, 0]))
+    R = as_rotation("R_ned_body", R_ned_body).tolist()  # scalar math from here: numpy's costs microseconds a call
+    pitch = math.asin(min(max(-R[2][0], -1.0), 1.0))
+    if abs(R[2][0]) < 1.0 - 1e-12:
+        roll = math.atan2(R[2][1], R[2][2])
+        yaw = math.atan2(R[1][0], R[0][0])
     else:
         roll = 0.0
-        yaw = float(np.arctan2(-R[0, 1], R[1, 1]))
+        yaw = math.atan2(-R[0][1], R[1][1])
     return roll, pitch, yaw
 
 

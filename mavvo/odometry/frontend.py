@@ -55,7 +55,7 @@ class Tracks:
     """The live tracks of one frame.
 
     Attributes:
-        ids: (N,) int64 track ids, increasing with creation, unique over the frontend's life.
+        ids: (N,) int64 track ids in increasing order (by creation), unique over the frontend's life.
         uv_px: (N,2) float64 pixel positions (distorted image coordinates).
         f_cam: (N,3) unit bearings in the camera frame (distortion removed).
         tracked: how many of the N were tracked from the previous frame (the rest are new).
@@ -107,7 +107,7 @@ class Frontend:
         f_cam = self.camera.pixels_to_bearings(uv64)
         # A pixel the camera model cannot undistort (the corners of a strongly distorted lens) has no
         # bearing: its track is dropped here, so no NaN ever reaches a keyframe or the estimator.
-        valid = np.all(np.isfinite(f_cam), axis=1)
+        valid = np.isfinite(f_cam.sum(axis=1))
         if not np.all(valid):
             self.dropped_unmappable += int(np.count_nonzero(~valid))
             ids, uv, uv64, f_cam = ids[valid], uv[valid], uv64[valid], f_cam[valid]
@@ -139,7 +139,8 @@ class Frontend:
         lk["maxLevel"] = opt.klt_back_levels
         p0b, st0, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
         p1 = p1.reshape(-1, 2)
-        fb = np.linalg.norm(p0b.reshape(-1, 2) - uv0, axis=1)
+        d = p0b.reshape(-1, 2) - uv0
+        fb = np.hypot(d[:, 0], d[:, 1])
         h, w = cur.shape
         b = opt.border_px
         inside = (p1[:, 0] >= b) & (p1[:, 0] <= w - 1 - b) & (p1[:, 1] >= b) & (p1[:, 1] <= h - 1 - b)

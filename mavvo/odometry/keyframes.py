@@ -70,9 +70,12 @@ class Keyframe:
     unmeasured_m: float = 0.0
 
     def match(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Indices (into this keyframe, into ``ids``) of the tracks both have; ``ids`` increasing."""
-        _, i_kf, i_cur = np.intersect1d(self.ids, ids, assume_unique=True, return_indices=True)
-        return i_kf, i_cur
+        """Indices (into this keyframe, into ``ids``) of the tracks both have; both id arrays increasing (as :class:`~mavvo.odometry.frontend.Tracks` gives them)."""
+        # Both increasing: where each current id would go among the keyframe's, kept where it is there.
+        pos = np.searchsorted(self.ids, ids)
+        found = pos < len(self.ids)
+        found[found] = self.ids[pos[found]] == ids[found]
+        return pos[found], np.flatnonzero(found)
 
     def pose_of(self, c2_lvl_m: np.ndarray, yaw_2_1_rad: float) -> tuple[np.ndarray, float]:
         """World (position, heading) of a frame at ``c2_lvl_m`` with relative yaw ``yaw_2_1_rad``."""

@@ -142,11 +142,10 @@ class _NoPose:
 
 def _along(direction: np.ndarray, sigma_m: float) -> np.ndarray:
     """(3,3) covariance of an error of ``sigma_m`` (1 sigma) along ``direction`` (none where it is zero)."""
-    n = float(np.linalg.norm(direction))
-    if n == 0.0 or sigma_m == 0.0:
+    n_sq = float(direction @ direction)
+    if n_sq == 0.0 or sigma_m == 0.0:
         return np.zeros((3, 3))
-    u = direction / n
-    return sigma_m**2 * np.outer(u, u)
+    return (sigma_m**2 / n_sq) * np.outer(direction, direction)
 
 
 @dataclass
