@@ -3,10 +3,9 @@
 Pixels in, tracks out. Each track keeps one id for as long as it lives, so the odometry can match a
 frame against its keyframe by id. Per frame:
 
-1. the previous frame's tracks are followed into the new image with pyramidal Lucas-Kanade; the half
-   (``fb_check_share``) the forward pass matched worst are then followed back (from their old
-   positions, at full resolution by default); a track survives when it converges forward, the
-   round trip of a checked one returns within ``fb_max_px``, and it stays ``border_px`` inside the image;
+1. the previous frame's tracks are followed into the new image with pyramidal Lucas-Kanade, then
+   followed back (from their old positions, at full resolution by default); a track survives when both directions converge, the round trip returns within
+   ``fb_max_px`` and it stays ``border_px`` inside the image;
 2. when fewer than ``redetect_fraction`` of ``max_features`` survive, FAST corners are detected in the
    grid cells that have lost theirs: at most ``max_features / cells`` per cell, the strongest first, and
    none within ``min_distance_px`` of a live track or of each other.
@@ -17,7 +16,6 @@ model, so lens distortion is handled without undistorting images.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import cv2
@@ -48,9 +46,6 @@ class FrontendOptions:
     fb_max_px: float = bounded(0.5, "largest forward-backward round-trip error of a surviving track", gt=0, le=50)
     klt_back_levels: int = bounded(
         0, "pyramid levels of the backward check, which starts at the tracks' old positions (0: full resolution only, a third of the forward cost)", ge=0, le=6
-    )
-    fb_check_share: float = bounded(
-        0.5, "share of the tracks checked backward, those the forward pass fitted worst (1: all; the rest pass unchecked)", gt=0, le=1
     )
     border_px: int = bounded(8, "tracks this close to the image edge are dropped", ge=0, le=500)
 
@@ -136,33 +131,20 @@ class Frontend:
         opt = self.options
         p0 = uv0.reshape(-1, 1, 2)
         lk = dict(winSize=self._win, maxLevel=opt.klt_levels, criteria=self._criteria)
-        p1, st1, err = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, **lk)
-        forward = st1.ravel() == 1
-        # The backward check where it pays: on the tracks whose windows the forward pass matched
-        # worst (its mean absolute difference, err). The tracks it drops are nearly all among them:
-        # on 400 frames of the forward, faults and survey flights, 97%, 100% and 100% of its drops
-        # lie above the frame's median error, and checking that half costs half as much.
-        check = forward.copy()
-        k = int(np.count_nonzero(forward))
-        if opt.fb_check_share < 1.0 and k:
-            e = err.ravel()
-            first = k - max(1, math.ceil(opt.fb_check_share * k))  # the checked ones: from this rank on
-            check &= e >= np.partition(e[forward], first)[first]
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, **lk)
         # Backward from the forward result, started at the original positions: a consistent track
         # converges there without the coarse levels (the same keep/drop decision for 99.96% of the
         # tracks of a survey flight as with all levels, at a third of the cost); one that is not
         # stays off and is dropped.
-        back = np.ones(len(uv0), bool)
-        if check.any():
-            lk["maxLevel"] = opt.klt_back_levels
-            p0b, st0, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1[check], p0[check].copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-            d = p0b.reshape(-1, 2) - uv0[check]
-            back[check] = (st0.ravel() == 1) & (np.hypot(d[:, 0], d[:, 1]) < opt.fb_max_px)
+        lk["maxLevel"] = opt.klt_back_levels
+        p0b, st0, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
         p1 = p1.reshape(-1, 2)
+        d = p0b.reshape(-1, 2) - uv0
+        fb = np.hypot(d[:, 0], d[:, 1])
         h, w = cur.shape
         b = opt.border_px
         inside = (p1[:, 0] >= b) & (p1[:, 0] <= w - 1 - b) & (p1[:, 1] >= b) & (p1[:, 1] <= h - 1 - b)
-        keep = forward & back & inside
+        keep = (st1.ravel() == 1) & (st0.ravel() == 1) & (fb < opt.fb_max_px) & inside
         return keep, p1[keep]
 
     def _cell(self, uv: np.ndarray, w: int, h: int) -> np.ndarray:
