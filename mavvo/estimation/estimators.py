@@ -155,7 +155,7 @@ class UprightEssential:
 @kernel
 def _ground_refit(f1: np.ndarray, f2: np.ndarray, inliers: np.ndarray) -> np.ndarray:
     """The ground homography (3, 3) fitted on the inliers ((N,) bool) in closed form
-    (:func:`~mavvo.geometry.refine.fit_ground_similarity`); NaN where that has no answer."""
+    (:func:`~mavvo.geometry.refine.ground_similarity`); NaN where that has no answer."""
     H = np.full((3, 3), np.nan)
     ok, m, tau = ground_similarity(f1[inliers], f2[inliers])
     if ok:

@@ -4,7 +4,7 @@
   degrees of freedom of E, 4 parameters with the scale of t fixed) on Sampson errors; optionally the
   roll and pitch of both views move too, held by a Gaussian prior of the IMU's sigma, and a Cauchy
   loss keeps far points from pulling.
-- :func:`fit_ground_similarity`: the ground-plane homography in closed form (weighted least squares).
+- :func:`ground_similarity`: the ground-plane homography in closed form (weighted least squares).
 - :func:`fit_rotation`: the pure rotation (no baseline) in closed form.
 
 Conventions as in :mod:`mavvo.geometry.essential`: ``x_2 = R_2_1 @ x_1 + t_2_1``, ``R_2_1 = Rz(yaw)``. A tilt
@@ -22,7 +22,7 @@ import numpy as np
 from mavvo.geometry.residuals import sampson_sq_point
 from mavvo.jit import kernel
 
-__all__ = ["UprightFit", "tilt_rotation", "refine_upright", "fit_ground_similarity", "fit_rotation"]
+__all__ = ["UprightFit", "tilt_rotation", "refine_upright", "ground_similarity", "fit_rotation"]
 
 @dataclass(frozen=True)
 class UprightFit:
@@ -363,20 +363,15 @@ def _upright_cost(x: np.ndarray, f1: np.ndarray, f2: np.ndarray, with_tilt: bool
     return total
 
 
-def fit_ground_similarity(f1: np.ndarray, f2: np.ndarray) -> tuple[complex, complex] | None:
-    """Ground homography by weighted least squares on the level image planes.
-
-    Fits ``u2 = m u1 + tau`` (complex, ``u = (x + i y) / z``) with weights ``z2^2`` so that the
-    residuals approximate angles. Returns (m, tau) for
-    :func:`mavvo.geometry.ground_2pt.ground_homography_from_similarity`, or None when fewer than two distinct
-    points lie below the horizon. Compiled.
-    """
-    ok, m, tau = ground_similarity(np.ascontiguousarray(f1, dtype=np.float64), np.ascontiguousarray(f2, dtype=np.float64))
-    return (complex(m), complex(tau)) if ok else None
-
-
 @kernel
 def ground_similarity(f1: np.ndarray, f2: np.ndarray) -> tuple[bool, complex, complex]:
+    """Ground homography by weighted least squares on the level image planes of bearings f1, f2 (N, 3).
+
+    Fits ``u2 = m u1 + tau`` (complex, ``u = (x + i y) / z``) with weights ``z2^2`` so that the
+    residuals approximate angles: (True, m, tau) for
+    :func:`mavvo.geometry.ground_2pt.homography_from_similarity`, or (False, 0, 0) when fewer than two
+    distinct points lie below the horizon.
+    """
     sw = 0.0
     m1 = m2 = 0j
     count = 0
