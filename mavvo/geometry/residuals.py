@@ -23,7 +23,7 @@ def sampson_sq_upright(e: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndar
 
     For upright E given by e = (E13, E21, E22, E23, E31, E32) the epipolar residual r = f2 E f1 and
     the gradients E f1, E^T f2; on the sphere the gradient of r is projected onto the tangent planes of
-    both bearings: ``err^2 = r^2 / (|E f1|^2 + |E^T f2|^2 - 2 r^2)``. Compiled (the scoring's kernel).
+    both bearings: ``err^2 = r^2 / (|E f1|^2 + |E^T f2|^2 - 2 r^2)``. Compiled (the sampling scores with :func:`sampson_msac_upright`).
     """
     return sampson_sq_kernel(np.ascontiguousarray(e, dtype=np.float64).reshape(-1, 6), np.ascontiguousarray(f1, dtype=np.float64),
                                np.ascontiguousarray(f2, dtype=np.float64))
