@@ -100,8 +100,10 @@ def triangulate_unit(
         and along f2; the rotation-compensated angle between the rays; valid where the parallax is
         enough and the point lies in front of both views.
     """
-    f1, f2 = np.ascontiguousarray(f1_lvl, dtype=np.float64), np.ascontiguousarray(f2_lvl, dtype=np.float64)
-    return triangulate_midpoints(f1, f2, np.ascontiguousarray(R_2_1, dtype=np.float64), np.ascontiguousarray(t_2_1, dtype=np.float64), float(min_parallax_rad))
+    # Writable copies: the relative pose's outputs are read-only, and numba compiles read-only arrays
+    # as a type of their own, which the warm-up would not have seen.
+    f1, f2 = np.array(f1_lvl, dtype=np.float64, order="C"), np.array(f2_lvl, dtype=np.float64, order="C")
+    return triangulate_midpoints(f1, f2, np.array(R_2_1, dtype=np.float64, order="C"), np.array(t_2_1, dtype=np.float64, order="C"), float(min_parallax_rad))
 
 
 def ground_depth(points_lvl: np.ndarray, weights: np.ndarray, min_points: int) -> tuple[float, float] | None:
