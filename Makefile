@@ -67,7 +67,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/relpose.py --threads --markdown docs/benchmarks.md
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/relpose_flight.py --markdown docs/benchmarks.md --plots docs/img
 	OMP_NUM_THREADS=1 $(BIN)/python benchmarks/render.py --markdown docs/benchmarks.md
-	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/pipeline.py --markdown docs/benchmarks.md
+	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/pipeline.py --threads --markdown docs/benchmarks.md
 
 # Install on the companion computer (sudo make install): the package into a venv made in PREFIX (never
 # a copied one), the settings under ETCDIR (kept if present), the unit, the mavvo user; then check-config

@@ -273,10 +273,10 @@ def test_a_second_stop_signal_skips_the_drain():
     release = threading.Event()
 
     class Stuck:
-        def track(self, image) -> None:
+        def track(self, image):
             release.wait()
 
-        def step(self, frame):
+        def step(self, frame, tracks=None):
             release.wait()
 
         def restart(self) -> None:

@@ -394,13 +394,13 @@ def test_a_bug_inside_the_odometry_restarts_tracking_not_the_service():
         def __init__(self) -> None:
             self.steps, self.restarts = 0, 0
 
-        def step(self, frame):
+        def step(self, frame, tracks=None):
             self.steps += 1
             if self.steps == 2:
                 raise RuntimeError("index out of range somewhere deep")
             return None
 
-        def track(self, image) -> None:
+        def track(self, image):
             pass
 
         def restart(self) -> None:

@@ -202,16 +202,22 @@ class Odometry:
         self.chain.drop()
         self._failed_in_row = 0
 
-    def track(self, image: np.ndarray) -> None:
-        """Track features into a frame that has no attitude (a short gap in the flight controller's
-        stream): no pose, but the tracks live on, so the next paired frame still matches its keyframe."""
-        self.frontend.process(image)
+    def track(self, image: np.ndarray) -> Tracks:
+        """Track features into ``image``: for a frame that has no attitude (a short gap in the flight
+        controller's stream: no pose, but the tracks live on, so the next paired frame still matches
+        its keyframe), or ahead of :meth:`step`, which then takes the tracks."""
+        return self.frontend.process(image)
 
-    def step(self, frame: PairedFrame) -> PoseEstimate | None:
-        """One frame (exposure times increasing). None until the first frame with enough features."""
+    def step(self, frame: PairedFrame, tracks: Tracks | None = None) -> PoseEstimate | None:
+        """One frame (exposure times increasing). None until the first frame with enough features.
+
+        ``tracks``: what :meth:`track` returned for ``frame.image`` when the caller tracked it already
+        (:class:`mavvo.odometry.ahead.TrackAhead`, on another thread); tracked here otherwise.
+        """
         if not (math.isfinite(frame.roll_rad) and math.isfinite(frame.pitch_rad)):
             raise ValueError(f"frame {frame.seq}: roll_rad and pitch_rad must be finite, got {frame.roll_rad}, {frame.pitch_rad}")
-        tracks = self.frontend.process(frame.image)
+        if tracks is None:
+            tracks = self.track(frame.image)
         f_lvl = tracks.f_cam @ R_lvl_cam(frame.roll_rad, frame.pitch_rad, self.R_body_cam).T
         kf = self.chain.current
         if kf is None:

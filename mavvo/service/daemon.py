@@ -5,7 +5,8 @@
 - The camera thread reads the frame source into a :class:`mavvo.service.camera.FrameQueue` (real time: the
   newest frames, older ones dropped and counted; lockstep simulation: every frame, in order).
 - The worker pairs each frame with roll/pitch at its exposure, runs :meth:`mavvo.odometry.pipeline.Odometry.step`
-  and sends the estimate: VISION_POSITION_ESTIMATE (capped at ``output.max_rate_hz``), optionally
+  (the tracking of the next queued frame meanwhile on a helper thread, :mod:`mavvo.odometry.ahead`,
+  unless ``service.track_ahead`` is off) and sends the estimate: VISION_POSITION_ESTIMATE (capped at ``output.max_rate_hz``), optionally
   VISION_SPEED_ESTIMATE and ODOMETRY, nothing while failed.
 - The calling thread supervises: SIGTERM/SIGINT set the stop flag (a second one skips the drain;
   SIGHUP reopens the recording; handlers only set flags and are restored afterwards), systemd
@@ -41,6 +42,8 @@ from mavvo.service.camera import FrameQueue, FrameSource, SourceFactory, open_so
 from mavvo.errors import CameraEnded, CameraLost, FrameRefused
 from mavvo.service.latency import LatencyStats, LatencyTracker
 from mavvo.service.link import Link, SystemStatus
+from mavvo.odometry.ahead import TrackAhead
+from mavvo.odometry.frontend import Tracks
 from mavvo.odometry.pipeline import Odometry
 from mavvo.service.recorder import Recorder, RecordingError
 from mavvo.service.settings import ServiceConfig, config_yaml
@@ -200,6 +203,9 @@ class Daemon:
         self._reset_counter: int | None = None
         self._errors_logged: Counter[str] = Counter()
         self.odometry = Odometry(config.camera.camera_model(), config.mounting.rotation(), config.odometry, reset_counter=self._first_reset_counter())
+        # The odometry is looked up at each call: a test may put another in its place.
+        self._ahead = TrackAhead(lambda image: self.odometry.track(image), thread=config.service.track_ahead)
+        self._next_frame: Frame | None = None  # taken from the queue by the worker, its tracking started
         self._state_lock = threading.Lock()
         self._skipped_at_last_report = 0
         self._first_paired_s: float | None = None  # host time of the first paired frame: the heading wait starts there
@@ -440,7 +446,7 @@ class Daemon:
         try:
             while not self.stop_event.is_set():
                 self.turns["worker"] += 1
-                frame = self.frames.get(0.1)
+                frame, self._next_frame = self._next_frame or self.frames.get(0.1), None
                 if frame is None:
                     if self._camera_done.is_set() and self.frames.empty():
                         return
@@ -453,6 +459,7 @@ class Daemon:
                 finally:
                     self.counters["frames_done"] += 1
         finally:
+            self._ahead.close()
             self._worker_done.set()
 
     # ------------------------------------------------------------------ one frame
@@ -481,7 +488,7 @@ class Daemon:
             frame.image, frame.t_exposure_s, frame.seq, p.roll_rad, p.pitch_rad, fc_yaw, p.range_m, p.height_m, fc_p, p.attitude_gap_s, p.interpolation_sigma_rad,
         )
         try:
-            est = self.odometry.step(paired)
+            est = self.odometry.step(paired, self._tracks(frame))
         except ValueError as e:  # a malformed image (wrong size, not grey 8-bit)
             self.counters["bad_frames"] += 1
             self._log_error("frame", e)
@@ -509,10 +516,21 @@ class Daemon:
 
     def _track_only(self, frame: Frame) -> None:
         try:
-            self.odometry.track(frame.image)
+            self._tracks(frame)
         except ValueError as e:
             self.counters["bad_frames"] += 1
             self._log_error("frame", e)
+
+    def _tracks(self, frame: Frame) -> Tracks:
+        """The frame's tracks; then the next queued frame, if one is there, is taken from the queue
+        and starts being tracked on the helper thread while this one is estimated."""
+        tracks = self._ahead.tracks(frame.image)
+        self.counters["tracked_ahead"] = self._ahead.ahead
+        if self._next_frame is None:
+            self._next_frame = self.frames.get_nowait()
+        if self._next_frame is not None:
+            self._ahead.start(self._next_frame.image)
+        return tracks
 
     def _heading_ready(self, yaw_settled: bool, t_s: float) -> bool:
         """The first estimate waits until the flight controller's yaw has settled (north is taken from

@@ -80,6 +80,7 @@ class ServiceOptions:
     shutdown_drain_s: float = bounded(2.0, "on stop, wait at most this long for the current frame and the queued messages", gt=0, le=60)
     state_file: str = bounded("/var/lib/mavvo/state.json", "where the last reset_counter is kept, so a restarted service starts with one the flight controller has not seen (empty: derived from the clock)")
     heading_wait_max_s: float = bounded(30.0, "wait at most this long for the flight controller's yaw to settle before the first estimate (0: do not wait)", ge=0, le=600)
+    track_ahead: bool = bounded(True, "track the next frame on a second thread while the current one is estimated, when frames queue up (the same estimates; faster on two or more cores)")
 
 
 @dataclass(frozen=True)
