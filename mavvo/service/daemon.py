@@ -6,8 +6,8 @@
   newest frames, older ones dropped and counted; lockstep simulation: every frame, in order).
 - The worker pairs each frame with roll/pitch at its exposure, runs :meth:`mavvo.odometry.pipeline.Odometry.step`
   (the tracking of the next queued frame meanwhile on a helper thread, :mod:`mavvo.odometry.ahead`,
-  unless ``service.track_ahead`` is off) and sends the estimate: VISION_POSITION_ESTIMATE (capped at ``output.max_rate_hz``), optionally
-  VISION_SPEED_ESTIMATE and ODOMETRY, nothing while failed.
+  unless ``service.track_ahead`` is off) and sends the estimate: VISION_POSITION_ESTIMATE (capped at
+  ``output.max_rate_hz``), optionally VISION_SPEED_ESTIMATE and ODOMETRY, nothing while failed.
 - The calling thread supervises: SIGTERM/SIGINT set the stop flag (a second one skips the drain;
   SIGHUP reopens the recording; handlers only set flags and are restored afterwards), systemd
   READY/WATCHDOG/STOPPING (WATCHDOG only while every thread's loop turns), STATUSTEXT on state changes
@@ -446,7 +446,8 @@ class Daemon:
         try:
             while not self.stop_event.is_set():
                 self.turns["worker"] += 1
-                frame, self._next_frame = self._next_frame or self.frames.get(0.1), None
+                frame = self._next_frame or self.frames.get(0.1)  # a frame taken out early goes first
+                self._next_frame = None
                 if frame is None:
                     if self._camera_done.is_set() and self.frames.empty():
                         return
