@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import subprocess
+import sys
 import threading
 
 import cv2
@@ -17,6 +19,7 @@ from mavvo.service.settings import ServiceConfig
 from sim.scenarios.loader import load_scenario
 from sim.scenarios.paired_frames import PairedSequence
 from sim.scenarios.service_run import config_for
+from sim.world.clock import LockstepClock
 
 W, H = 320, 240
 
@@ -113,17 +116,25 @@ def test_a_malformed_image_tracked_ahead_raises_when_its_tracks_are_asked_for():
         ahead.close()
 
 
+def test_a_helper_stuck_inside_the_tracker_does_not_keep_the_process_from_exiting():
+    """systemd restarts a service that exits; one that hangs on its way out it has to kill. A
+    ThreadPoolExecutor's thread (joined at exit) made this process hang; the helper is a daemon thread."""
+    code = (
+        "import threading, numpy as np\n"
+        "from mavvo.odometry.ahead import TrackAhead\n"
+        "ahead = TrackAhead(lambda image: threading.Event().wait())\n"
+        "assert ahead.start(np.zeros((8, 8), np.uint8))\n"
+        "print('started', flush=True)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "started"
+
+
 def _run_queued(track_ahead: bool, paired) -> tuple[list, dict[str, int]]:
     """The daemon on frames that are all queued before it starts (so each frame's successor waits in
     the queue), the flight controller's attitude fed directly; (estimates, counters)."""
     from mavvo.service.daemon import Daemon
-
-    class Clock:
-        realtime = False
-        t = 0.0
-
-        def now_s(self) -> float:
-            return self.t
 
     scenario = load_scenario("hover")
     base = config_for(scenario, ServiceConfig(), "udpout:127.0.0.1:9")
@@ -132,13 +143,13 @@ def _run_queued(track_ahead: bool, paired) -> tuple[list, dict[str, int]]:
     for pf in paired:
         source.push(pf.image, pf.t_exposure_s, pf.seq)
     source.end()
-    clock = Clock()
+    clock = LockstepClock()
     got: list = []
     d = Daemon(cfg, source=source, clock=clock, on_estimate=got.append)
     times = np.array([pf.t_exposure_s for pf in paired])
     for t_ms in range(0, int(1000 * times[-1]) + 50, 10):  # boot clock = host clock; each frame's roll/pitch around it
-        clock.t = t_ms * 1e-3
-        pf = paired[int(np.argmin(np.abs(times - clock.t)))]
+        clock.advance_to(t_ms * 1e-3)
+        pf = paired[int(np.argmin(np.abs(times - clock.now_s())))]
         d.fc.on_attitude(t_ms, pf.roll_rad, pf.pitch_rad, pf.yaw_rad, body_rates_rad_s=(0.0, 0.0, 0.0))
     summary = d.run()
     return got, summary.counters

@@ -12,7 +12,9 @@ threads).
 
 from __future__ import annotations
 
-from concurrent.futures import Future, ThreadPoolExecutor
+import queue
+import threading
+from concurrent.futures import Future
 from typing import Callable
 
 import numpy as np
@@ -44,16 +46,32 @@ class TrackAhead:
     def __init__(self, track: Callable[[np.ndarray], Tracks], *, thread: bool = True) -> None:
         self._track = track
         self.ahead = 0
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mavvo-track") if thread else None
+        # A daemon thread, not a ThreadPoolExecutor's: those are joined at interpreter exit, so a
+        # helper stuck inside OpenCV would keep the service from exiting for systemd to restart it.
+        self._jobs: queue.SimpleQueue[tuple[np.ndarray, Future[Tracks]] | None] | None = queue.SimpleQueue() if thread else None
+        self._helper: threading.Thread | None = None
         self._pending: tuple[np.ndarray, Future[Tracks]] | None = None
 
     def start(self, image: np.ndarray) -> bool:
         """Start tracking ``image``, the next one :meth:`tracks` will be asked for. Returns whether
         the helper took it (not without a helper thread, nor while another image is pending)."""
-        if self._pool is None or self._pending is not None:
+        if self._jobs is None or self._pending is not None:
             return False
-        self._pending = (image, self._pool.submit(self._track, image))
+        if self._helper is None:
+            self._helper = threading.Thread(target=self._serve, args=(self._jobs,), name="mavvo-track", daemon=True)
+            self._helper.start()
+        self._pending = (image, Future())
+        self._jobs.put(self._pending)
         return True
+
+    def _serve(self, jobs: queue.SimpleQueue[tuple[np.ndarray, Future[Tracks]] | None]) -> None:
+        """The helper thread: track each image handed over, until the None that :meth:`close` sends."""
+        while (job := jobs.get()) is not None:
+            image, future = job
+            try:
+                future.set_result(self._track(image))
+            except BaseException as e:  # noqa: BLE001 - handed to the caller, who raises it in tracks()
+                future.set_exception(e)
 
     def tracks(self, image: np.ndarray) -> Tracks:
         """The tracks of ``image`` ((H,W) uint8); raises what the tracker raises (a ValueError for a
@@ -74,6 +92,6 @@ class TrackAhead:
         if self._pending is not None:
             self._pending[1].exception()  # its error, if any, belongs to a frame nobody asked for
             self._pending = None
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-            self._pool = None
+        if self._jobs is not None:
+            self._jobs.put(None)
+            self._jobs = None

@@ -114,13 +114,6 @@ class FrameQueue:
         except queue.Empty:
             return None
 
-    def get_nowait(self) -> Frame | None:
-        """The oldest queued frame, or None at once when there is none."""
-        try:
-            return self._q.get_nowait()
-        except queue.Empty:
-            return None
-
     def empty(self) -> bool:
         return self._q.empty()
 

@@ -528,7 +528,7 @@ class Daemon:
         tracks = self._ahead.tracks(frame.image)
         self.counters["tracked_ahead"] = self._ahead.ahead
         if self._next_frame is None:
-            self._next_frame = self.frames.get_nowait()
+            self._next_frame = self.frames.get(0.0)  # returns at once: None when nothing waits
         if self._next_frame is not None:
             self._ahead.start(self._next_frame.image)
         return tracks
