@@ -653,7 +653,9 @@ def _refine_with_attitude(
     if tilt2 is not None:
         x[6:8] = tilt2
     _attitude_rounds(x, f1, f2, sigmas, sample_thr, max_err_rad, steps, _TILT_ROUNDS)
-    return float(np.arctan2(np.sin(x[0]), np.cos(x[0]))), x[1:4].copy(), x[4:6].copy(), x[6:8].copy()
+    # The Sampson cost cannot tell t from -t: the sign is decided again on the corrected bearings
+    # (decided on the given ones, a relative tilt error larger than the parallax can flip it).
+    return _in_front((float(np.arctan2(np.sin(x[0]), np.cos(x[0]))), x[1:4].copy(), x[4:6].copy(), x[6:8].copy()), f1, f2, max_err_rad)
 
 
 @kernel
