@@ -43,7 +43,7 @@ from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import as_rotation, rot_z
 from mavvo.geometry.refine import gauss_newton_upright, kabsch, refine_upright, rotate_row, tilt_matrix, tilt_rotation, upright_tuple
 from mavvo.geometry.residuals import UNMAPPABLE_SQ, ground_sq, rotation_sq, rotation_sq_point, sampson_sq_point, sampson_sq_upright
-from mavvo.geometry.upright_pose import point_behind
+from mavvo.geometry.upright_pose import behind_upright, point_behind
 from mavvo.jit import kernel
 from mavvo.geometry import as_bearing_pair, ground_pose_from_homography
 
@@ -97,6 +97,9 @@ _CAUCHY_NOISE_SIGMAS = 2.385
 # A median parallax under min_parallax_ratio times the threshold, or times this many noise sigmas
 # when that is less, is a pure rotation.
 _PARALLAX_NOISE_SIGMAS = 10.0
+# The refined translation's sign is reversed where it puts at least this fraction of its inliers
+# behind a view and the reverse puts none (where both put some, neither is in the data).
+_SIGN_MIN_BEHIND = 0.05
 # Refinements whose translations are further apart than this are two answers, not one.
 _OTHER_ANSWER_DEG = 10.0
 # The ground homography's start is tried with less median parallax than this many relative attitude
@@ -653,9 +656,23 @@ def _refine_with_attitude(
     if tilt2 is not None:
         x[6:8] = tilt2
     _attitude_rounds(x, f1, f2, sigmas, sample_thr, max_err_rad, steps, _TILT_ROUNDS)
-    # The Sampson cost cannot tell t from -t: the sign is decided again on the corrected bearings
-    # (decided on the given ones, a relative tilt error larger than the parallax can flip it).
-    return _in_front((float(np.arctan2(np.sin(x[0]), np.cos(x[0]))), x[1:4].copy(), x[4:6].copy(), x[6:8].copy()), f1, f2, max_err_rad)
+    return _sign_by_cheirality((float(np.arctan2(np.sin(x[0]), np.cos(x[0]))), x[1:4].copy(), x[4:6].copy(), x[6:8].copy()), f1, f2, max_err_rad)
+
+
+def _sign_by_cheirality(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float) -> Pose:
+    """The pose, or the pose with -t where that puts fewer of its inliers behind a view, judged on
+    the corrected bearings and only by points with more parallax than ``max_err_rad`` (with less, the
+    side is noise: a spin on the spot would flip its sign at random).
+
+    The Sampson cost of the refinement is the same for t and -t; the sign came from the hypothesis,
+    decided on the bearings as given, where a relative tilt error larger than the parallax can
+    reverse the flow."""
+    yaw, t, tilt1, tilt2 = pose
+    g1, g2 = f1 @ tilt_rotation(tilt1).T, f2 @ tilt_rotation(tilt2).T
+    inl = sampson_sq_upright(upright_e(yaw, t)[None], g1, g2)[0] < max_err_rad**2
+    g1, g2 = g1[inl], g2[inl]
+    wrong = np.count_nonzero(behind_upright(yaw, t, g1, g2, max_err_rad)) >= _SIGN_MIN_BEHIND * len(g1)
+    return (yaw, -t, tilt1, tilt2) if wrong and not np.any(behind_upright(yaw, -t, g1, g2, max_err_rad)) else pose
 
 
 @kernel
