@@ -607,11 +607,18 @@ def _in_front(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float) ->
     """The pose with the sign of its translation (and for a vertical one, the yaw's twin) that puts
     the points it fits in front of both views."""
     yaw, t, tilt1, tilt2 = pose
-    g1, g2 = f1 @ tilt_rotation(tilt1).T, f2 @ tilt_rotation(tilt2).T
-    e = upright_e(yaw, t)
-    inl = sampson_sq_upright(e[None], g1, g2)[0] < max_err_rad**2
-    decided = decompose_upright(e, g1[inl], g2[inl])
+    g1, g2 = _fitted_bearings(pose, f1, f2, max_err_rad)
+    decided = decompose_upright(upright_e(yaw, t), g1, g2)
     return pose if decided is None else (decided[0], decided[1], tilt1, tilt2)
+
+
+def _fitted_bearings(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """The bearings (n, 3) of the points the pose fits (Sampson error under ``max_err_rad``), with its
+    roll/pitch corrections applied."""
+    yaw, t, tilt1, tilt2 = pose
+    g1, g2 = f1 @ tilt_rotation(tilt1).T, f2 @ tilt_rotation(tilt2).T
+    inl = sampson_sq_upright(upright_e(yaw, t)[None], g1, g2)[0] < max_err_rad**2
+    return g1[inl], g2[inl]
 
 
 def _posterior_costs(f1: np.ndarray, f2: np.ndarray, poses: tuple[Pose, ...], attitude_sigma_rad: tuple[float, float], max_err_rad: float) -> list[float]:
@@ -660,17 +667,16 @@ def _refine_with_attitude(
 
 
 def _sign_by_cheirality(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float) -> Pose:
-    """The pose, or the pose with -t where that puts fewer of its inliers behind a view, judged on
-    the corrected bearings and only by points with more parallax than ``max_err_rad`` (with less, the
-    side is noise: a spin on the spot would flip its sign at random).
+    """The pose, or the pose with -t where t puts at least ``_SIGN_MIN_BEHIND`` of its inliers behind
+    a view and -t none, judged on the corrected bearings and only by points with more parallax than
+    ``max_err_rad`` (with less, the side is noise). Where both signs put some behind, the data do not
+    decide and the sign is kept: a vote of all points flipped near-ties in a spin on the spot.
 
     The Sampson cost of the refinement is the same for t and -t; the sign came from the hypothesis,
     decided on the bearings as given, where a relative tilt error larger than the parallax can
     reverse the flow."""
     yaw, t, tilt1, tilt2 = pose
-    g1, g2 = f1 @ tilt_rotation(tilt1).T, f2 @ tilt_rotation(tilt2).T
-    inl = sampson_sq_upright(upright_e(yaw, t)[None], g1, g2)[0] < max_err_rad**2
-    g1, g2 = g1[inl], g2[inl]
+    g1, g2 = _fitted_bearings(pose, f1, f2, max_err_rad)
     wrong = np.count_nonzero(behind_upright(yaw, t, g1, g2, max_err_rad)) >= _SIGN_MIN_BEHIND * len(g1)
     return (yaw, -t, tilt1, tilt2) if wrong and not np.any(behind_upright(yaw, -t, g1, g2, max_err_rad)) else pose
 
