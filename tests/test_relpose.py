@@ -573,3 +573,27 @@ def test_the_ground_plane_pose_does_not_depend_on_roll_pitch() -> None:
         assert math.degrees(rotation_angle_rad(R_true, scene.R_2_1)) > 0.3
     forward = make_scene(rng, 200, motion="sideways", mount="forward", structure="volume", focal_px=FOCAL_PX)
     assert estimate_ground_plane_relpose(forward.f1_lvl, forward.f2_lvl, THRESHOLD_RAD) is None
+
+
+def test_the_general_start_does_not_depend_on_roll_pitch() -> None:
+    """Off the ground, the general 5-point's pose between the given level frames is the true one
+    however far off their roll/pitch are (1 deg per view): of the essential matrix's two rotations the
+    one nearer the given yaw, the translation up to its sign (which the caller decides). Over the
+    ground it is not asked for: ``sees_ground`` says so."""
+    from mavvo.estimation.general5pt import estimate_general_start, sees_ground
+
+    rng = np.random.default_rng(32)
+    for trial in range(10):
+        scene = make_scene(rng, 150, motion=("forward", "sideways")[trial % 2], mount="forward", structure="volume", baseline_fraction=0.05,
+                           pixel_noise_px=0.05, imu_noise_rad=np.radians(1.0), focal_px=FOCAL_PX)
+        R_true = scene.R_lvl_cam2 @ scene.R_c2_c1 @ scene.R_lvl_cam1.T
+        t_true = scene.R_lvl_cam2 @ scene.t_c2_c1
+        assert not sees_ground(scene.f1_lvl, scene.f2_lvl)
+        pose = estimate_general_start(scene.f1_lvl, scene.f2_lvl, THRESHOLD_RAD, relpose_module.rot_z(yaw_of(R_true)))
+        assert pose is not None
+        R, t = pose
+        assert math.degrees(rotation_angle_rad(R, R_true)) < 0.1
+        assert min(math.degrees(angle_between_rad(t, t_true)), math.degrees(angle_between_rad(-t, t_true))) < 3.0
+        assert math.degrees(rotation_angle_rad(R_true, scene.R_2_1)) > 0.3  # the roll/pitch given are that far off
+    ground = make_scene(rng, 200, motion="sideways", mount="nadir", structure="ground", focal_px=FOCAL_PX)
+    assert sees_ground(ground.f1_lvl, ground.f2_lvl)

@@ -51,6 +51,7 @@ def test_both_ways_out_of_a_tilted_hypothesis_find_the_pose(survey_pairs, monkey
     both = found()
     with monkeypatch.context() as m:
         m.setattr(relpose, "estimate_ground_plane_relpose", lambda *args, **kwargs: None)
+        m.setattr(relpose, "estimate_general_start", lambda *args, **kwargs: None)
         without_plane = found()
     monkeypatch.setattr(relpose, "_CORRECTION_MIN_COST_DROP", math.inf)
     as_given = found()
@@ -58,6 +59,31 @@ def test_both_ways_out_of_a_tilted_hypothesis_find_the_pose(survey_pairs, monkey
     assert both >= 112, both
     assert both >= without_plane + 15, (both, without_plane)
     assert both >= as_given + 20, (both, as_given)
+
+
+@pytest.fixture(scope="module")
+def forward_pairs():
+    """7 pairs from the first 2 s of the forward flight (climbing away over mixed terrain)."""
+    return tracked_pairs("forward", 2.0)
+
+
+def test_off_the_ground_the_general_five_point_is_the_second_start(forward_pairs, monkeypatch) -> None:
+    """Where the scene is not a ground plane, a hypothesis made with roll/pitch 0.5-1 deg off can refine
+    into a local minimum too (forward pair 2 of ``benchmarks/relpose_flight.py`` at 0.5 deg: 42 deg
+    off, at 4.6x the cost of the refinement started from the truth). The general 5-point does not use
+    roll/pitch; refined from its pose, the better answer is kept. 101 of 140 when written, 79 without."""
+    pairs, camera = forward_pairs
+    runs = [(level, seed) for level in (0.5, 1.0) for seed in range(1, 11)]
+
+    def found() -> int:
+        return sum(_successes(pairs, camera, level, seed) for level, seed in runs)
+
+    with_start = found()
+    monkeypatch.setattr(relpose, "estimate_general_start", lambda *args, **kwargs: None)
+    without = found()
+    assert len(pairs) == 7
+    assert with_start >= 95, with_start
+    assert with_start >= without + 15, (with_start, without)
 
 
 def test_the_translation_sign_is_decided_on_the_corrected_bearings(survey_pairs) -> None:

@@ -4,6 +4,8 @@
   pose was told. The bearings of each view are turned so that their mean points along +z and projected
   onto that virtual image plane (focal length 1), so the estimate works whichever way the camera
   looks; the pose is turned back into the level frames. Seeded through OpenCV's generator.
+- :func:`estimate_general_start`: the 5-point's pose without the triangulation that decides its
+  translation's sign: a start for the refinement under the attitude prior.
 - :func:`estimate_ground_plane_relpose`: the pose a homography of points on the ground gives, with no
   use of roll/pitch beyond choosing which of its solutions has the ground's normal: a start for the
   refinement under the attitude prior that the attitude's error cannot have misled.
@@ -16,7 +18,7 @@ import numpy as np
 
 from mavvo.geometry.frames import cross
 
-__all__ = ["estimate_general_relpose", "estimate_ground_plane_relpose", "sampson_sq_general"]
+__all__ = ["estimate_general_relpose", "estimate_general_start", "estimate_ground_plane_relpose", "sampson_sq_general", "sees_ground"]
 
 _MIN_Z = 0.1  # bearings this close to a virtual image's horizon are left out of the estimate
 _GROUND_MIN_Z = 0.3  # ground points: at least 17 deg below the horizon in both views (level z is down)
@@ -44,11 +46,9 @@ def sampson_sq_general(E: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndar
     return np.where(den > 1e-300, r * r / np.maximum(den, 1e-300), np.inf)
 
 
-def estimate_general_relpose(
-    f1: np.ndarray, f2: np.ndarray, max_err_rad: float, *, seed: int = 0, confidence: float = 0.99,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """``(R_2_1, unit t_2_1, E)`` between the level frames of two views from bearings (N, 3), or None
-    when OpenCV finds nothing (fewer than 5 usable points)."""
+def _virtual_images(f1: np.ndarray, f2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """``(V1, V2, p1, p2)``: each view's bearings (N, 3) turned by V (3, 3) so that their mean is along
+    +z, and those well in front (M, 2) projected onto the plane z = 1; None with fewer than 5 such."""
     V1, V2 = _towards_z(f1), _towards_z(f2)
     g1, g2 = f1 @ V1.T, f2 @ V2.T
     ok = (g1[:, 2] > _MIN_Z) & (g2[:, 2] > _MIN_Z)
@@ -56,6 +56,39 @@ def estimate_general_relpose(
         return None
     p1 = np.ascontiguousarray(g1[ok, :2] / g1[ok, 2:])
     p2 = np.ascontiguousarray(g2[ok, :2] / g2[ok, 2:])
+    return V1, V2, p1, p2
+
+
+def estimate_general_start(f1: np.ndarray, f2: np.ndarray, max_err_rad: float, R_near: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(R_2_1, unit t_2_1)`` between the level frames from the general 5-point (no use of
+    roll/pitch), as a start for a refinement: of the essential matrix's two rotations the one nearer
+    ``R_near`` (3, 3), and the translation's sign left to the caller's cheirality test. Cheaper than
+    :func:`estimate_general_relpose` (no triangulation). None when OpenCV finds nothing."""
+    virtual = _virtual_images(f1, f2)
+    if virtual is None:
+        return None
+    V1, V2, p1, p2 = virtual
+    # USAC_FAST: the same starts as RANSAC on the benchmark's pairs at a third of the time (0.15 ms
+    # against 0.48 for 120 points); its generator is seeded by its own state, the same on every call.
+    E_v, _ = cv2.findEssentialMat(p1, p2, focal=1.0, pp=(0.0, 0.0), method=cv2.USAC_FAST, prob=0.99, threshold=max_err_rad)
+    if E_v is None or E_v.shape != (3, 3):
+        return None
+    Ra, Rb, t_v = cv2.decomposeEssentialMat(E_v)
+    Rs = [V2.T @ R_v @ V1 for R_v in (Ra, Rb)]
+    R = max(Rs, key=lambda R: float(np.trace(R_near.T @ R)))  # the larger trace, the smaller the angle between them
+    t = V2.T @ t_v[:, 0]
+    return R, t / np.linalg.norm(t)
+
+
+def estimate_general_relpose(
+    f1: np.ndarray, f2: np.ndarray, max_err_rad: float, *, seed: int = 0, confidence: float = 0.99,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``(R_2_1, unit t_2_1, E)`` between the level frames of two views from bearings (N, 3), or None
+    when OpenCV finds nothing (fewer than 5 usable points)."""
+    virtual = _virtual_images(f1, f2)
+    if virtual is None:
+        return None
+    V1, V2, p1, p2 = virtual
     cv2.setRNGSeed(seed)
     E_v, mask = cv2.findEssentialMat(p1, p2, focal=1.0, pp=(0.0, 0.0), method=cv2.RANSAC, prob=confidence, threshold=max_err_rad)
     if E_v is None or E_v.shape != (3, 3):
@@ -66,6 +99,21 @@ def estimate_general_relpose(
     return R, t / np.linalg.norm(t), V2.T @ E_v @ V1
 
 
+def _below_horizon(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
+    """(N,) bool: the correspondences well below the horizon in both level frames."""
+    return (f1[:, 2] > _GROUND_MIN_Z) & (f2[:, 2] > _GROUND_MIN_Z)
+
+
+def _mostly(below: np.ndarray) -> bool:
+    return bool(np.count_nonzero(below) >= max(8, _GROUND_MIN_SHARE * len(below)))
+
+
+def sees_ground(f1: np.ndarray, f2: np.ndarray) -> bool:
+    """True when most correspondences (bearings (N, 3) in the level frames) are well below the horizon
+    in both views: the scene may be the ground plane, whose two poses the 5-point cannot tell apart."""
+    return _mostly(_below_horizon(f1, f2))
+
+
 def estimate_ground_plane_relpose(f1: np.ndarray, f2: np.ndarray, max_err_rad: float, *, seed: int = 0) -> tuple[np.ndarray, np.ndarray] | None:
     """``(R_2_1, unit t_2_1)`` between the level frames of two views whose bearings (N, 3) see mostly
     the ground, from a general homography (8 degrees of freedom: OpenCV's RANSAC at ``2 * max_err_rad``
@@ -73,8 +121,8 @@ def estimate_ground_plane_relpose(f1: np.ndarray, f2: np.ndarray, max_err_rad: f
     1 is nearest the vertical. Roll/pitch errors go into ``R_2_1`` and the normal, not into the
     translation. None when under 80% of the points are well below the horizon in both views, or the
     homography is degenerate."""
-    below = (f1[:, 2] > _GROUND_MIN_Z) & (f2[:, 2] > _GROUND_MIN_Z)
-    if np.count_nonzero(below) < max(8, _GROUND_MIN_SHARE * len(f1)):
+    below = _below_horizon(f1, f2)
+    if not _mostly(below):
         return None
     p1 = np.ascontiguousarray(f1[below, :2] / f1[below, 2:])
     p2 = np.ascontiguousarray(f2[below, :2] / f2[below, 2:])

@@ -8,8 +8,9 @@ differ by a yaw and a translation: ``x_2 = R_2_1 @ x_1 + t_2_1``, ``R_2_1 = Rz(y
    (:func:`mavvo.estimation.ransac.lo_ransac`: blocks of samples, early rejection on a subset, MSAC on
    the Sampson error, local optimisation of each new best model, adaptive stopping).
 2. The best model is refined on the upright manifold (yaw and translation direction), optionally with
-   roll and pitch free under the IMU's sigma; over the ground, also from the ground homography's pose
-   (which the attitude's error cannot mislead), keeping the better of two different answers.
+   roll and pitch free under the IMU's sigma; where the tilt's share of the flow is large, also from
+   a pose the attitude's error cannot mislead (the ground homography's over flat ground, the general
+   5-point's elsewhere), keeping the better of two different answers.
 3. Model selection by GRIC (Torr, 1998) between the essential matrix, the known-gravity ground-plane
    homography (Saurer et al., 2 points; :class:`~mavvo.estimation.estimators.GroundHomography` by the
    same loop among the essential inliers) and a pure rotation (no baseline; closed form on them).
@@ -37,7 +38,7 @@ from mavvo.types import StrEnum
 
 from mavvo.estimation.estimators import SAMPLE_SIZE, GroundHomography, MinimalSolver, NonminimalSolver, PureRotation, UprightEssential
 from mavvo.estimation.estimators import decompose_upright, upright_e, yaw_of
-from mavvo.estimation.general5pt import estimate_general_relpose, estimate_ground_plane_relpose, sampson_sq_general
+from mavvo.estimation.general5pt import estimate_general_relpose, estimate_general_start, estimate_ground_plane_relpose, sampson_sq_general, sees_ground
 from mavvo.estimation.ransac import RansacOptions, RansacResult, RansacStats, lo_ransac, required_iterations
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import as_rotation, rot_z
@@ -519,8 +520,8 @@ def _refine(
     """The sampling's essential model refined, and how roll/pitch went into it.
 
     Without an attitude sigma, yaw and translation with roll/pitch as given. With one, under the
-    attitude prior (:func:`_refine_with_attitude`, and the ground plane's start where the tilt's share
-    of the flow can mislead the hypothesis). With less median parallax than the relative attitude sigma
+    attitude prior (:func:`_refine_with_attitude`, and a second start, :func:`_second_start`, where the
+    tilt's share of the flow can mislead the hypothesis). With less median parallax than the relative attitude sigma
     or a few thresholds a tilt and a translation explain nearly the same flow, and the corrections are
     kept only where they fit significantly better than roll/pitch as given: their posterior cost lower
     by ``_CORRECTION_MIN_COST_DROP`` (a likelihood-ratio test of the 4 corrections). Exact roll/pitch
@@ -538,7 +539,9 @@ def _refine(
     relative_sigma = math.hypot(*attitude_sigma_rad)
     corrected = _refine_with_attitude(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, opt.refine_steps)
     if parallax < _PLANE_START_PARALLAX_SIGMAS * relative_sigma:
-        corrected = _ground_plane_start(f1, f2, run.inliers, corrected, attitude_sigma_rad, sample_thr, max_err_rad, opt, yaw_prior_rad)
+        # With less parallax than a few thresholds the general 5-point's translation is noise.
+        general = parallax >= _TILT_MIN_PARALLAX_THRESHOLDS * max_err_rad
+        corrected = _second_start(f1, f2, run.inliers, corrected, attitude_sigma_rad, sample_thr, max_err_rad, opt, yaw_prior_rad, general)
     if parallax >= max(_TILT_MIN_PARALLAX_SIGMAS * relative_sigma, _TILT_MIN_PARALLAX_THRESHOLDS * max_err_rad):
         return corrected, _Correction.RESOLVED
     as_given = _refine_uncorrected(f1, f2, yaw, t, max_err_rad, opt.refine_steps)
@@ -567,30 +570,42 @@ def _pose_err_sq(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float)
     return _corrected_err_sq(np.array([yaw, *t, *tilt1, *tilt2]), f1, f2, max_err_rad)
 
 
-def _ground_plane_start(
+def _second_start(
     f1: np.ndarray, f2: np.ndarray, candidates: np.ndarray, pose: Pose, attitude_sigma_rad: tuple[float, float], sample_thr: float, max_err_rad: float,
-    opt: RelposeOptions, yaw_prior_rad: float | None,
+    opt: RelposeOptions, yaw_prior_rad: float | None, general: bool,
 ) -> Pose:
     """``pose`` (refined under the attitude prior from the sampling's hypothesis), or the pose refined
-    from the ground plane's homography when that is another answer and a better one.
+    from a start that roll/pitch cannot have misled, when that is another answer and a better one.
 
-    Over flat ground a tilt and a sideways translation explain the same flow to first order, so a
-    3-point hypothesis made with roll/pitch off by a few tenths of a degree can take the tilt's share
-    of the flow for translation and refine into a local minimum of its own: on the survey pairs of
+    A 3-point hypothesis made with roll/pitch off by a few tenths of a degree can take the tilt's share
+    of the flow for translation and refine into a local minimum of its own. Over flat ground a tilt
+    and a sideways translation explain the same flow to first order: on the survey pairs of
     ``benchmarks/relpose_flight.py`` with 0.5 deg per view, translations 40-90 deg off at 2-80x the
     cost of the refinement started from the truth. A homography of the ground does not use roll/pitch
-    (:func:`~mavvo.estimation.general5pt.estimate_ground_plane_relpose`); refined from its pose under
-    the same prior, it replaces ``pose`` when its translation is more than ``_OTHER_ANSWER_DEG`` away,
-    its yaw keeps to the prior, and its posterior cost is lower. Closer than that the two are one
-    answer and the first is kept (taking the cheaper there moved the simulated take-off's ATE from 6.4
-    to 8.7 cm: a choice between two refinements of one answer is noise). The start's translation sign
-    is decided by cheirality first (the refinement counts points behind a view as outliers)."""
+    (:func:`~mavvo.estimation.general5pt.estimate_ground_plane_relpose`). Where the scene is not
+    mostly below the horizon, the general 5-point's pose is the start instead, when ``general``
+    (:func:`~mavvo.estimation.general5pt.estimate_general_start`; forward pair 2 at 0.5 deg per view:
+    42 deg off, at 4.6x the cost of the refinement from the truth). Over a plane its two poses fit
+    alike: as a second start there it lost 5 survey pairs of 156 (and one more where the homography
+    saw no translation). The caller sets ``general`` only with parallax enough for the 5-point's
+    translation to be more than noise: in a spin on the spot its starts moved the roll/pitch
+    corrections and put 4 of the 72 windows of ``yaw_spin`` draw 102 outside the 99% ellipse, against
+    one. Refined from the start under the same prior, the answer replaces
+    ``pose`` when its translation is more than ``_OTHER_ANSWER_DEG`` away, its yaw keeps to the prior,
+    and its posterior cost is lower. Closer than that the two are one answer and the first is kept
+    (taking the cheaper there moved the simulated take-off's ATE from 6.4 to 8.7 cm: a choice between
+    two refinements of one answer is noise). The start's translation sign is decided by cheirality
+    first (the refinement counts points behind a view as outliers)."""
     t = pose[1]
-    plane = estimate_ground_plane_relpose(f1[candidates], f2[candidates], sample_thr)
-    if plane is None:
+    c1, c2 = f1[candidates], f2[candidates]
+    if sees_ground(c1, c2):
+        start = estimate_ground_plane_relpose(c1, c2, sample_thr)
+    else:
+        start = estimate_general_start(c1, c2, max_err_rad, rot_z(pose[0])) if general else None
+    if start is None:
         return pose
     other_answer = math.cos(math.radians(_OTHER_ANSWER_DEG))
-    start_yaw, start_t, start_tilt2 = _upright_from_general(*plane)
+    start_yaw, start_t, start_tilt2 = _upright_from_general(*start)
     if abs(float(np.dot(start_t, t))) >= other_answer:
         return pose  # the same answer: not worth a second refinement
     start_yaw, start_t, _, _ = _in_front((start_yaw, start_t, np.zeros(2), start_tilt2), f1, f2, max_err_rad)
