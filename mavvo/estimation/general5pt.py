@@ -6,19 +6,23 @@
   looks; the pose is turned back into the level frames. Seeded through OpenCV's generator.
 - :func:`estimate_general_start`: the 5-point's pose without the triangulation that decides its
   translation's sign: a start for the refinement under the attitude prior.
-- :func:`estimate_ground_plane_relpose`: the pose a homography of points on the ground gives, with no
-  use of roll/pitch beyond choosing which of its solutions has the ground's normal: a start for the
-  refinement under the attitude prior that the attitude's error cannot have misled.
+- :func:`estimate_ground_plane_relpose`: the pose a homography of points on the ground gives
+  (:func:`decompose_homography`), with no use of roll/pitch beyond choosing which of its solutions has
+  the ground's normal: a start for the refinement under the attitude prior that the attitude's error
+  cannot have misled.
 """
 
 from __future__ import annotations
+
+import math
 
 import cv2
 import numpy as np
 
 from mavvo.geometry.frames import cross
+from mavvo.jit import kernel
 
-__all__ = ["estimate_general_relpose", "estimate_general_start", "estimate_ground_plane_relpose", "sampson_sq_general", "sees_ground"]
+__all__ = ["decompose_homography", "estimate_general_relpose", "estimate_general_start", "estimate_ground_plane_relpose", "sampson_sq_general", "sees_ground"]
 
 _MIN_Z = 0.1  # bearings this close to a virtual image's horizon are left out of the estimate
 _GROUND_MIN_Z = 0.3  # ground points: at least 17 deg below the horizon in both views (level z is down)
@@ -115,12 +119,13 @@ def sees_ground(f1: np.ndarray, f2: np.ndarray) -> bool:
 
 
 def estimate_ground_plane_relpose(f1: np.ndarray, f2: np.ndarray, max_err_rad: float, *, seed: int = 0) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(R_2_1, unit t_2_1)`` between the level frames of two views whose bearings (N, 3) see mostly
-    the ground, from a general homography (8 degrees of freedom: OpenCV's RANSAC at ``2 * max_err_rad``
-    on the level frames' image planes), decomposed; of its solutions the one whose plane normal in view
-    1 is nearest the vertical. Roll/pitch errors go into ``R_2_1`` and the normal, not into the
-    translation. None when under 80% of the points are well below the horizon in both views, or the
-    homography is degenerate."""
+    """``(R_2_1, t_2_1 / d)`` between the level frames of two views whose bearings (N, 3) see mostly
+    the ground, d the ground's distance from view 1 (so that ``|t_2_1 / d|`` is about the parallax the
+    translation makes, in radians, looking down), from a general homography (8 degrees of freedom:
+    OpenCV's RANSAC at ``2 * max_err_rad`` on the level frames' image planes) decomposed by
+    :func:`decompose_homography`; of its solutions the one whose plane normal in view 1 is nearest the
+    vertical. Roll/pitch errors go into ``R_2_1`` and the normal, not into the translation. None when
+    under 80% of the points are well below the horizon in both views, or the homography is degenerate."""
     below = _below_horizon(f1, f2)
     if not _mostly(below):
         return None
@@ -130,10 +135,66 @@ def estimate_ground_plane_relpose(f1: np.ndarray, f2: np.ndarray, max_err_rad: f
     H, _ = cv2.findHomography(p1, p2, cv2.RANSAC, 2.0 * max_err_rad)
     if H is None:
         return None
-    _, Rs, ts, normals = cv2.decomposeHomographyMat(H, np.eye(3))
+    solutions = decompose_homography(H, p1, p2)
+    if not solutions:
+        return None
     # H = R + t n^T / d: its solutions come in pairs of signs and in the plane's two poses; the
     # ground's normal is +-z in a level frame whatever the translation.
-    best = max(range(len(Rs)), key=lambda i: abs(float(normals[i][2, 0])))
-    t = ts[best][:, 0]
-    nt = float(np.linalg.norm(t))
-    return (Rs[best], t / nt) if nt > 1e-12 else None
+    R, t_per_d, _ = max(solutions, key=lambda sol: abs(float(sol[2][2])))
+    return R, t_per_d
+
+
+def decompose_homography(H: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The poses ``(R, t / d, n)`` of a calibrated homography H (3, 3) with ``x2 ~ (R + t n^T / d) x1``
+    (Ma, Soatto, Kosecka and Sastry, An Invitation to 3-D Vision, 2004, section 5.3.3): four, two
+    pairs that differ in sign; none where H is degenerate. H is scaled so its middle singular value is
+    1 and signed so the image points p1, p2 (M, 2) lie in front (``x2^T H x1 > 0``). Unlike OpenCV's
+    ``decomposeHomographyMat``, which calls a homography within 1e-3 of a rotation one (no plane, no
+    translation), this keeps the translation of a pixel's parallax."""
+    Rs, ts, ns = _decompose_homography_kernel(np.ascontiguousarray(H, dtype=np.float64), np.ascontiguousarray(p1, dtype=np.float64),
+                                              np.ascontiguousarray(p2, dtype=np.float64))
+    return [(Rs[k], ts[k], ns[k]) for k in range(len(Rs))]
+
+
+@kernel
+def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+@kernel
+def _decompose_homography_kernel(H: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`decompose_homography`, compiled: (k, 3, 3) rotations, (k, 3) translations, (k, 3) normals, k = 4 or 0."""
+    _, sv, Vt = np.linalg.svd(H)
+    if not sv[1] > 0:
+        return np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 3))
+    Hn = H / sv[1]
+    ahead = 0  # points with x2^T H x1 > 0, x1 = (px, py, 1)
+    for i in range(p1.shape[0]):
+        px, py = p1[i, 0], p1[i, 1]
+        h0 = Hn[0, 0] * px + Hn[0, 1] * py + Hn[0, 2]
+        h1 = Hn[1, 0] * px + Hn[1, 1] * py + Hn[1, 2]
+        h2 = Hn[2, 0] * px + Hn[2, 1] * py + Hn[2, 2]
+        ahead += p2[i, 0] * h0 + p2[i, 1] * h1 + h2 > 0.0
+    if 2 * ahead < p1.shape[0]:
+        Hn = -Hn
+    # H^T H = V diag(s1^2, 1, s3^2) V^T, from H's own singular vectors
+    s1, s3 = (sv[0] / sv[1]) ** 2, (sv[2] / sv[1]) ** 2
+    span = s1 - s3
+    if not span > 1e-12:  # to rounding: a real homography's noise alone is far above it
+        return np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 3))  # a rotation: no plane, no translation
+    v1, v2, v3 = Vt[0].copy(), Vt[1].copy(), Vt[2].copy()
+    a, b = math.sqrt(max(1.0 - s3, 0.0)), math.sqrt(max(s1 - 1.0, 0.0))
+    Rs, ts, ns = np.zeros((4, 3, 3)), np.zeros((4, 3)), np.zeros((4, 3))
+    for k in range(2):
+        u = (a * v1 + (b if k == 0 else -b) * v3) / math.sqrt(span)  # the plane's two poses
+        n = _cross3(v2, u)
+        Hv2, Hu = Hn @ v2, Hn @ u
+        U = np.empty((3, 3))
+        W = np.empty((3, 3))
+        U[:, 0], U[:, 1], U[:, 2] = v2, u, n
+        W[:, 0], W[:, 1], W[:, 2] = Hv2, Hu, _cross3(Hv2, Hu)
+        R = W @ U.T
+        t = (Hn - R) @ n
+        Rs[2 * k], ts[2 * k], ns[2 * k] = R, t, n
+        Rs[2 * k + 1], ts[2 * k + 1], ns[2 * k + 1] = R, -t, -n
+    return Rs, ts, ns

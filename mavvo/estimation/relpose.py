@@ -587,10 +587,11 @@ def _second_start(
     (:func:`~mavvo.estimation.general5pt.estimate_general_start`; forward pair 2 at 0.5 deg per view:
     42 deg off, at 4.6x the cost of the refinement from the truth). Over a plane its two poses fit
     alike: as a second start there it lost 5 survey pairs of 156 (and one more where the homography
-    saw no translation). The caller sets ``general`` only with parallax enough for the 5-point's
-    translation to be more than noise: in a spin on the spot its starts moved the roll/pitch
-    corrections and put 4 of the 72 windows of ``yaw_spin`` draw 102 outside the 99% ellipse, against
-    one. Refined from the start under the same prior, the answer replaces
+    saw no translation). Either start needs parallax enough for its translation to be more than
+    noise: the homography's as much as the pure-rotation rule asks (:func:`_min_parallax_rad`), the
+    5-point's three thresholds (the caller's ``general``). In a spin on the spot such starts moved the
+    roll/pitch corrections and put 4 of the 72 windows of ``yaw_spin`` draw 102 outside the 99%
+    ellipse, against one. Refined from the start under the same prior, the answer replaces
     ``pose`` when its translation is more than ``_OTHER_ANSWER_DEG`` away, its yaw keeps to the prior,
     and its posterior cost is lower. Closer than that the two are one answer and the first is kept
     (taking the cheaper there moved the simulated take-off's ATE from 6.4 to 8.7 cm: a choice between
@@ -600,6 +601,10 @@ def _second_start(
     c1, c2 = f1[candidates], f2[candidates]
     if sees_ground(c1, c2):
         start = estimate_ground_plane_relpose(c1, c2, sample_thr)
+        if start is not None:
+            err = _pose_err_sq(pose, f1, f2, max_err_rad)
+            t_per_d = float(np.linalg.norm(start[1]))  # about the parallax it makes, radians
+            start = (start[0], start[1] / t_per_d) if t_per_d >= _min_parallax_rad(err[err < max_err_rad**2], max_err_rad) else None
     else:
         start = estimate_general_start(c1, c2, max_err_rad, rot_z(pose[0])) if general else None
     if start is None:
@@ -618,22 +623,30 @@ def _second_start(
     return alt if cost_alt < cost else pose
 
 
+def _min_parallax_rad(err_sq_inliers: np.ndarray, max_err_rad: float) -> float:
+    """The parallax under which a translation is noise, as the pure-rotation rule has it: the
+    threshold, or ``_PARALLAX_NOISE_SIGMAS`` noise sigmas (from a fit's inlier errors) where the tracks
+    are finer."""
+    return min(max_err_rad, _PARALLAX_NOISE_SIGMAS * _robust_sigma(err_sq_inliers, max_err_rad))
+
+
 def _in_front(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float) -> Pose:
     """The pose with the sign of its translation (and for a vertical one, the yaw's twin) that puts
     the points it fits in front of both views."""
     yaw, t, tilt1, tilt2 = pose
-    g1, g2 = _fitted_bearings(pose, f1, f2, max_err_rad)
+    g1, g2, _ = _fitted_bearings(pose, f1, f2, max_err_rad)
     decided = decompose_upright(upright_e(yaw, t), g1, g2)
     return pose if decided is None else (decided[0], decided[1], tilt1, tilt2)
 
 
-def _fitted_bearings(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float) -> tuple[np.ndarray, np.ndarray]:
+def _fitted_bearings(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The bearings (n, 3) of the points the pose fits (Sampson error under ``max_err_rad``), with its
-    roll/pitch corrections applied."""
+    roll/pitch corrections applied, and their squared errors (n,)."""
     yaw, t, tilt1, tilt2 = pose
     g1, g2 = f1 @ tilt_rotation(tilt1).T, f2 @ tilt_rotation(tilt2).T
-    inl = sampson_sq_upright(upright_e(yaw, t)[None], g1, g2)[0] < max_err_rad**2
-    return g1[inl], g2[inl]
+    err = sampson_sq_upright(upright_e(yaw, t)[None], g1, g2)[0]
+    inl = err < max_err_rad**2
+    return g1[inl], g2[inl], err[inl]
 
 
 def _posterior_costs(f1: np.ndarray, f2: np.ndarray, poses: tuple[Pose, ...], attitude_sigma_rad: tuple[float, float], max_err_rad: float) -> list[float]:
@@ -684,16 +697,19 @@ def _refine_with_attitude(
 def _sign_by_cheirality(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float) -> Pose:
     """The pose, or the pose with -t where t puts at least ``_SIGN_MIN_BEHIND`` of its inliers behind
     a view and -t none, judged on the corrected bearings and only by points with more parallax than
-    ``max_err_rad`` (with less, the side is noise). Where both signs put some behind, the data do not
-    decide and the sign is kept: a vote of all points flipped near-ties in a spin on the spot.
+    :func:`_min_parallax_rad` (with less, the side is noise; the threshold alone left survey pair 107,
+    0.7 px of parallax against 0.02 px of noise, without a voter and 178 deg off). Where both signs put
+    some behind, the data do not decide and the sign is kept: a vote of all points flipped near-ties
+    in a spin on the spot.
 
     The Sampson cost of the refinement is the same for t and -t; the sign came from the hypothesis,
     decided on the bearings as given, where a relative tilt error larger than the parallax can
     reverse the flow."""
     yaw, t, tilt1, tilt2 = pose
-    g1, g2 = _fitted_bearings(pose, f1, f2, max_err_rad)
-    wrong = np.count_nonzero(behind_upright(yaw, t, g1, g2, max_err_rad)) >= _SIGN_MIN_BEHIND * len(g1)
-    return (yaw, -t, tilt1, tilt2) if wrong and not np.any(behind_upright(yaw, -t, g1, g2, max_err_rad)) else pose
+    g1, g2, err = _fitted_bearings(pose, f1, f2, max_err_rad)
+    floor = _min_parallax_rad(err, max_err_rad)
+    wrong = np.count_nonzero(behind_upright(yaw, t, g1, g2, floor)) >= _SIGN_MIN_BEHIND * len(g1)
+    return (yaw, -t, tilt1, tilt2) if wrong and not np.any(behind_upright(yaw, -t, g1, g2, floor)) else pose
 
 
 @kernel
