@@ -483,28 +483,32 @@ def test_with_little_parallax_roll_pitch_are_corrected_only_where_that_fits_sign
 
 
 def test_an_attitude_far_worse_than_its_sigma_falls_back_to_the_general_five_point() -> None:
-    """Roll/pitch 3 deg off per view while 0.2 deg is configured: where the upright model explains
-    clearly fewer points, the general 5-point takes over and says so (model ``general``), and every
-    pose is close to the truth; with the attitude as good as configured it never does."""
+    """Roll/pitch 3 or 8 deg off per view while 0.2 deg is configured: every pose is close to the truth,
+    corrected under the prior (refined from the general 5-point's start where the hypothesis misled)
+    or, where the upright model explains clearly fewer points, by the general 5-point itself, which
+    says so (model ``general``): at 8 deg it is most of them. With the attitude as good as configured
+    it never is."""
     from mavvo.geometry.refine import tilt_rotation
 
     rng = np.random.default_rng(77)
     configured = (math.radians(0.2), math.radians(0.2))
-    general = 0
-    for trial in range(6):
-        scene = make_scene(rng, 300, motion=("sideways", "forward", "random")[trial % 3], mount="forward", depth_fraction=0.5,
-                           baseline_fraction=0.1, pixel_noise_px=0.5, imu_noise_rad=math.radians(3.0), focal_px=500.0)
-        scene, _ = add_outliers(scene, 0.2, rng, fov_half_rad=math.radians(30.0))
-        r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=1.0 / 500.0, seed=trial, attitude_sigma_rad=configured)
-        R_true = scene.R_lvl_cam2 @ scene.R_c2_c1 @ scene.R_lvl_cam1.T
-        R = tilt_rotation(r.tilt2_rad).T @ r.R_2_1 @ tilt_rotation(r.tilt1_rad)
-        # Either the corrections under the prior got there (they go beyond 3 sigma), or the general model did.
-        general += r.model == "general"
-        assert r.success and r.model in ("essential", "general") and math.degrees(rotation_angle_rad(R, R_true)) < 1.0
-        # The fallback is OpenCV's RANSAC, the best minimal sample without local optimisation: its
-        # translation was 1.2-7.2 deg off here (USAC_ACCURATE: 0.7-1.5 deg, docs/relpose.md says why not).
-        assert math.degrees(angle_between_rad(tilt_rotation(r.tilt2_rad).T @ r.t_2_1, scene.R_lvl_cam2 @ scene.t_c2_c1)) < 10.0
-    assert general >= 3  # 4 of 6 when written (0.22-0.78 deg), the other two corrected under the prior (0.07, 0.10 deg)
+    general = {3.0: 0, 8.0: 0}
+    for off_deg in general:
+        for trial in range(6):
+            scene = make_scene(rng, 300, motion=("sideways", "forward", "random")[trial % 3], mount="forward", depth_fraction=0.5,
+                               baseline_fraction=0.1, pixel_noise_px=0.5, imu_noise_rad=math.radians(off_deg), focal_px=500.0)
+            scene, _ = add_outliers(scene, 0.2, rng, fov_half_rad=math.radians(30.0))
+            r = estimate_upright_relpose(scene.f1_lvl, scene.f2_lvl, max_err_rad=1.0 / 500.0, seed=trial, attitude_sigma_rad=configured)
+            R_true = scene.R_lvl_cam2 @ scene.R_c2_c1 @ scene.R_lvl_cam1.T
+            R = tilt_rotation(r.tilt2_rad).T @ r.R_2_1 @ tilt_rotation(r.tilt1_rad)
+            general[off_deg] += r.model == "general"
+            assert r.success and r.model in ("essential", "general") and math.degrees(rotation_angle_rad(R, R_true)) < 1.0
+            # The fallback is OpenCV's RANSAC, the best minimal sample without local optimisation: its
+            # translation was up to 6 deg off here (USAC_ACCURATE did better, docs/relpose.md says why not).
+            assert math.degrees(angle_between_rad(tilt_rotation(r.tilt2_rad).T @ r.t_2_1, scene.R_lvl_cam2 @ scene.t_c2_c1)) < 10.0
+    # When written: 3 deg, 1 of 6 general (4 before the 5-point's start was refined off the ground too,
+    # 0.22-0.78 deg of rotation error against 0.07-0.27 now); 8 deg, 6 of 6.
+    assert general[8.0] >= 5, general
     for trial in range(6):
         scene = make_scene(rng, 300, motion=("sideways", "forward", "random")[trial % 3], mount="forward", depth_fraction=0.5,
                            baseline_fraction=0.1, pixel_noise_px=0.5, imu_noise_rad=math.radians(0.1), focal_px=500.0)
@@ -623,6 +627,35 @@ def test_sub_pixel_parallax_over_the_ground_is_read_down_to_the_noise(monkeypatc
     with_threshold = found()
     assert with_noise_floor >= 74, with_noise_floor
     assert with_noise_floor >= with_threshold + 3, (with_noise_floor, with_threshold)
+
+
+def test_off_the_ground_a_tilted_hypothesis_is_not_the_last_word(monkeypatch) -> None:
+    """The paper's scenes (forward camera, 300 points, 20% outliers, 0.5 px) with roll/pitch 0.5 and 1 deg
+    off per view: a 3-point hypothesis that inherits the tilt can refine into a local minimum with
+    the translation 10-11 deg off (a posterior cost 37-39% above the refinement from the truth). The
+    general 5-point's pose, refined as a second start, finds them: 180 of 180 when written, 178 without."""
+    rng = np.random.default_rng(1)
+    scenes = []
+    for level in (0.5, 1.0):
+        for k in range(90):
+            scene = make_scene(rng, 300, motion=("sideways", "forward", "random")[k % 3], mount="forward", depth_fraction=0.5, baseline_fraction=0.1,
+                               pixel_noise_px=0.5, imu_noise_rad=np.radians(level), focal_px=FOCAL_PX)
+            scenes.append((level, add_outliers(scene, 0.2, rng)[0]))
+
+    def found() -> int:
+        ok = 0
+        for k, (level, sc) in enumerate(scenes):
+            s = math.radians(level)
+            r = estimate_upright_relpose(sc.f1_lvl, sc.f2_lvl, max_err_rad=1.0 / FOCAL_PX, seed=k, attitude_sigma_rad=(s, s), yaw_prior_rad=yaw_of(sc.R_2_1))
+            t_given = tilt_rotation(r.tilt2_rad).T @ r.t_2_1  # in the level frame of view 2 as given
+            ok += bool(r.success and math.degrees(angle_between_rad(t_given, sc.R_lvl_cam2 @ sc.t_c2_c1)) < 10.0)
+        return ok
+
+    with_start = found()
+    monkeypatch.setattr(relpose_module, "estimate_general_start", lambda *args, **kwargs: None)
+    without = found()
+    assert with_start == len(scenes) == 180, with_start
+    assert without < with_start, without
 
 
 def test_the_general_start_does_not_depend_on_roll_pitch() -> None:

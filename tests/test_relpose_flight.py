@@ -71,7 +71,7 @@ def test_off_the_ground_the_general_five_point_is_the_second_start(forward_pairs
     """Where the scene is not a ground plane, a hypothesis made with roll/pitch 0.5-1 deg off can refine
     into a local minimum too (forward pair 2 of ``benchmarks/relpose_flight.py`` at 0.5 deg: 42 deg
     off, at 4.6x the cost of the refinement started from the truth). The general 5-point does not use
-    roll/pitch; refined from its pose, the better answer is kept. 101 of 140 when written, 79 without."""
+    roll/pitch; refined from its pose, the better answer is kept. 104 of 140 when written, 79 without."""
     pairs, camera = forward_pairs
     runs = [(level, seed) for level in (0.5, 1.0) for seed in range(1, 11)]
 
