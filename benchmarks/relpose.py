@@ -282,11 +282,27 @@ def run_opencv(method: int) -> Callable[[TwoViewScene, np.ndarray, np.ndarray, i
     return fn
 
 
-def run_poselib(scene: TwoViewScene, uv1: np.ndarray, uv2: np.ndarray, seed: int) -> tuple[Pose | None, int]:
+def run_poselib(defaults: bool = False) -> Callable[[TwoViewScene, np.ndarray, np.ndarray, int], tuple[Pose | None, int]]:
+    """PoseLib's relative pose at p = 0.99 and no least number of iterations, or with its defaults."""
     cam = {"model": "PINHOLE", "width": 640, "height": 480, "params": [FOCAL_PX, FOCAL_PX, 320.0, 240.0]}
-    ransac = {"max_epipolar_error": THRESHOLD_PX, "success_prob": CONFIDENCE, "min_iterations": 0, "seed": seed}
-    pose, info = poselib.estimate_relative_pose(uv1, uv2, cam, cam, ransac, {})
-    return (pose.R, pose.t), int(info["iterations"])
+
+    def fn(scene: TwoViewScene, uv1: np.ndarray, uv2: np.ndarray, seed: int) -> tuple[Pose | None, int]:
+        ransac = {"max_epipolar_error": THRESHOLD_PX, "seed": seed}
+        if not defaults:
+            ransac |= {"success_prob": CONFIDENCE, "min_iterations": 0}
+        pose, info = poselib.estimate_relative_pose(uv1, uv2, cam, cam, ransac, {})
+        return (pose.R, pose.t), int(info["iterations"])
+
+    return fn
+
+
+def side_scene(rng: np.random.Generator, n: int, trial: int, imu_noise_rad: float, outliers: float) -> tuple[TwoViewScene, np.ndarray, np.ndarray]:
+    """A scene of the side-by-side runs and its pixels (N, 2) in both views: forward-looking camera,
+    motion cycling sideways / forward / random with the trial, 0.5 px noise, uniform outliers."""
+    scene = make_scene(rng, n, motion=("sideways", "forward", "random")[trial % 3], mount="forward", depth_fraction=0.5,
+                       baseline_fraction=0.1, pixel_noise_px=0.5, imu_noise_rad=imu_noise_rad, focal_px=FOCAL_PX)
+    scene, _ = add_outliers(in_front(scene), outliers, rng, fov_half_rad=np.radians(30.0))
+    return (scene, *pixels(scene))
 
 
 def side_by_side(
@@ -299,18 +315,14 @@ def side_by_side(
         "OpenCV RANSAC": run_opencv(cv2.RANSAC),
     }
     if poselib is not None:
-        methods["PoseLib"] = run_poselib
+        methods["PoseLib"] = run_poselib()
     rows = []
     rng = np.random.default_rng(2010)
     for n in sizes:
         for outliers in outlier_levels:
             per: dict[str, dict[str, list[float]]] = {m: {"ms": [], "rot": [], "trans": [], "it": []} for m in methods}
             for trial in range(trials):
-                scene = make_scene(rng, n, motion=("sideways", "forward", "random")[trial % 3], mount="forward",
-                                   depth_fraction=0.5, baseline_fraction=0.1, pixel_noise_px=0.5,
-                                   imu_noise_rad=IMU_SIGMA_RAD, focal_px=FOCAL_PX)
-                scene, _ = add_outliers(in_front(scene), outliers, rng, fov_half_rad=np.radians(30.0))
-                uv1, uv2 = pixels(scene)
+                scene, uv1, uv2 = side_scene(rng, n, trial, IMU_SIGMA_RAD, outliers)
                 for name, fn in methods.items():
                     ms, (pose, iters) = timed(lambda fn=fn: fn(scene, uv1, uv2, trial), clock)
                     rot, trans = errors_deg(pose, scene)
@@ -357,12 +369,6 @@ ATTITUDE_LEVELS_DEG = (0.0, 0.2, 0.5, 1.0)  # roll/pitch noise per view and axis
 SUCCESS_ROT_DEG, SUCCESS_TRANS_DEG = 2.0, 10.0  # as benchmarks/relpose_flight.py
 
 
-def run_poselib_defaults(scene: TwoViewScene, uv1: np.ndarray, uv2: np.ndarray, seed: int) -> tuple[Pose | None, int]:
-    cam = {"model": "PINHOLE", "width": 640, "height": 480, "params": [FOCAL_PX, FOCAL_PX, 320.0, 240.0]}
-    pose, info = poselib.estimate_relative_pose(uv1, uv2, cam, cam, {"max_epipolar_error": THRESHOLD_PX, "seed": seed}, {})
-    return (pose.R, pose.t), int(info["iterations"])
-
-
 def attitude_sweep(trials: int, n: int = 300, outliers: float = 0.2) -> list[dict]:
     """Success rate (rotation under 2 deg, translation direction under 10 deg) and median errors on the
     side-by-side scenes with roll/pitch off by each of ``ATTITUDE_LEVELS_DEG`` per view and axis; mavvo
@@ -378,14 +384,11 @@ def attitude_sweep(trials: int, n: int = 300, outliers: float = 0.2) -> list[dic
             "OpenCV USAC_MAGSAC": run_opencv(cv2.USAC_MAGSAC),
         }
         if poselib is not None:
-            methods["PoseLib p=0.99"] = run_poselib
-            methods["PoseLib defaults"] = run_poselib_defaults
+            methods["PoseLib p=0.99"] = run_poselib()
+            methods["PoseLib defaults"] = run_poselib(defaults=True)
         per: dict[str, dict[str, list[float]]] = {m: {"rot": [], "trans": []} for m in methods}
         for trial in range(trials):
-            scene = make_scene(rng, n, motion=("sideways", "forward", "random")[trial % 3], mount="forward", depth_fraction=0.5,
-                               baseline_fraction=0.1, pixel_noise_px=0.5, imu_noise_rad=math.radians(level), focal_px=FOCAL_PX)
-            scene, _ = add_outliers(in_front(scene), outliers, rng, fov_half_rad=np.radians(30.0))
-            uv1, uv2 = pixels(scene)
+            scene, uv1, uv2 = side_scene(rng, n, trial, math.radians(level), outliers)
             for name, fn in methods.items():
                 rot, trans = errors_deg(fn(scene, uv1, uv2, trial)[0], scene)
                 per[name]["rot"].append(rot)

@@ -157,11 +157,6 @@ def decompose_homography(H: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> list[
 
 
 @kernel
-def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
-
-
-@kernel
 def _decompose_homography_kernel(H: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`decompose_homography`, compiled: (k, 3, 3) rotations, (k, 3) translations, (k, 3) normals, k = 4 or 0."""
     _, sv, Vt = np.linalg.svd(H)
@@ -187,12 +182,12 @@ def _decompose_homography_kernel(H: np.ndarray, p1: np.ndarray, p2: np.ndarray) 
     Rs, ts, ns = np.zeros((4, 3, 3)), np.zeros((4, 3)), np.zeros((4, 3))
     for k in range(2):
         u = (a * v1 + (b if k == 0 else -b) * v3) / math.sqrt(span)  # the plane's two poses
-        n = _cross3(v2, u)
+        n = np.cross(v2, u)
         Hv2, Hu = Hn @ v2, Hn @ u
         U = np.empty((3, 3))
         W = np.empty((3, 3))
         U[:, 0], U[:, 1], U[:, 2] = v2, u, n
-        W[:, 0], W[:, 1], W[:, 2] = Hv2, Hu, _cross3(Hv2, Hu)
+        W[:, 0], W[:, 1], W[:, 2] = Hv2, Hu, np.cross(Hv2, Hu)
         R = W @ U.T
         t = (Hn - R) @ n
         Rs[2 * k], ts[2 * k], ns[2 * k] = R, t, n
