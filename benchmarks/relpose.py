@@ -28,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import cv2  # noqa: E402
 
 from benchmarks.common import load_average, machine, publish  # noqa: E402
+from benchmarks.compare import BEST_PEER_HEADER, SUCCESS_ROT_DEG, SUCCESS_TRANS_DEG, TrialErrors, best_peer_cells  # noqa: E402
 from mavvo.estimation.warmup import warm_kernels  # noqa: E402
 from mavvo import geometry as solvers  # noqa: E402
 from mavvo.geometry.camera_model import CameraModel  # noqa: E402
@@ -366,19 +367,20 @@ def side_by_side_markdown(rows: list[dict], settings: dict[str, str]) -> list[st
 
 
 ATTITUDE_LEVELS_DEG = (0.0, 0.2, 0.5, 1.0)  # roll/pitch noise per view and axis
-SUCCESS_ROT_DEG, SUCCESS_TRANS_DEG = 2.0, 10.0  # as benchmarks/relpose_flight.py
+ATTITUDE_SWEEP_MAVVO = "mavvo, attitude sigma, yaw prior"  # the row compared with the peers: what the odometry runs
 
 
 def attitude_sweep(trials: int, n: int = 300, outliers: float = 0.2) -> list[dict]:
-    """Success rate (rotation under 2 deg, translation direction under 10 deg) and median errors on the
-    side-by-side scenes with roll/pitch off by each of ``ATTITUDE_LEVELS_DEG`` per view and axis; mavvo
-    is told that sigma (at least 0.05 deg), the 5-point peers do not use roll/pitch."""
+    """Each method's errors per trial (rows of level, method, trials, :class:`TrialErrors`) on the
+    side-by-side scenes with roll/pitch off by each of ``ATTITUDE_LEVELS_DEG`` per view and axis, every
+    method on the same scenes; mavvo is told that sigma (at least 0.05 deg), the 5-point peers do not
+    use roll/pitch."""
     rows = []
     rng = np.random.default_rng(2011)
     for level in ATTITUDE_LEVELS_DEG:
         sigma = math.radians(max(level, 0.05))
         methods: dict[str, Callable[..., tuple[Pose | None, int]]] = {
-            "mavvo, attitude sigma, yaw prior": run_mavvo(sigma, yaw_prior=True),
+            ATTITUDE_SWEEP_MAVVO: run_mavvo(sigma, yaw_prior=True),
             "mavvo, attitude sigma": run_mavvo(sigma),
             "mavvo, roll/pitch taken as exact, yaw prior": run_mavvo(None, yaw_prior=True),
             "OpenCV USAC_MAGSAC": run_opencv(cv2.USAC_MAGSAC),
@@ -386,24 +388,26 @@ def attitude_sweep(trials: int, n: int = 300, outliers: float = 0.2) -> list[dic
         if poselib is not None:
             methods["PoseLib p=0.99"] = run_poselib()
             methods["PoseLib defaults"] = run_poselib(defaults=True)
-        per: dict[str, dict[str, list[float]]] = {m: {"rot": [], "trans": []} for m in methods}
+        per = np.empty((len(methods), trials, 2))  # (method, trial, rotation / translation error in deg)
         for trial in range(trials):
             scene, uv1, uv2 = side_scene(rng, n, trial, math.radians(level), outliers)
-            for name, fn in methods.items():
-                rot, trans = errors_deg(fn(scene, uv1, uv2, trial)[0], scene)
-                per[name]["rot"].append(rot)
-                per[name]["trans"].append(trans)
-        for name, d in per.items():
-            ok = [r < SUCCESS_ROT_DEG and t < SUCCESS_TRANS_DEG for r, t in zip(d["rot"], d["trans"])]
-            rows.append({"level": level, "method": name, "found": sum(ok), "trials": trials,
-                         "rot": statistics.median(d["rot"]), "trans": statistics.median(d["trans"])})
+            for k, fn in enumerate(methods.values()):
+                per[k, trial] = errors_deg(fn(scene, uv1, uv2, trial)[0], scene)
+        rows += [{"level": level, "method": name, "trials": trials, "errors": TrialErrors(per[k, :, 0], per[k, :, 1])} for k, name in enumerate(methods)]
         print(f"  roll/pitch noise {level} deg done", file=sys.stderr)
     return rows
 
 
 def attitude_sweep_markdown(rows: list[dict]) -> list[str]:
     lines = ["| roll/pitch error per view | method | success | rotation err (deg) | translation err (deg) |", "|---|---|---:|---:|---:|"]
-    lines += [f"| {r['level']:g} deg | {r['method']} | {r['found']} of {r['trials']} | {r['rot']:.3f} | {r['trans']:.2f} |" for r in rows]
+    lines += [f"| {r['level']:g} deg | {r['method']} | {r['errors'].found} of {r['trials']} | {np.median(r['errors'].rot_deg):.3f} | "
+              f"{np.median(r['errors'].trans_deg):.2f} |" for r in rows]
+    lines += ["", f"{ATTITUDE_SWEEP_MAVVO} against the peers on the same trials:", "",
+              "| roll/pitch error per view | " + " | ".join(BEST_PEER_HEADER) + " |", "|---|" + "---|" * len(BEST_PEER_HEADER)]
+    for level in dict.fromkeys(r["level"] for r in rows):
+        at = {r["method"]: r["errors"] for r in rows if r["level"] == level}
+        peers = {m: e for m, e in at.items() if not m.startswith("mavvo")}
+        lines.append(f"| {level:g} deg | " + " | ".join(best_peer_cells(at[ATTITUDE_SWEEP_MAVVO], peers)) + " |")
     return lines
 
 

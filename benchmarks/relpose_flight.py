@@ -40,6 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import cv2  # noqa: E402
 
 from benchmarks.common import load_average, machine, publish  # noqa: E402
+from benchmarks.compare import BEST_PEER_HEADER, TrialErrors, best_peer_cells  # noqa: E402
 from mavvo.estimation.relpose import RelposeOptions, estimate_relpose_known_gravity  # noqa: E402
 from mavvo.geometry.camera_model import CameraModel  # noqa: E402
 from mavvo.geometry.frames import R_lvl_cam, angle_between_rad, rotation_angle_rad  # noqa: E402
@@ -104,10 +105,12 @@ def poselib_method(camera: CameraModel, defaults: bool) -> Method:
     return run
 
 
-def evaluate(pairs: list[TrackedPair], methods: dict[str, Method], kind: str, level_deg: float, seed: int) -> dict[str, dict[str, float]]:
+def evaluate(pairs: list[TrackedPair], methods: dict[str, Method], kind: str, level_deg: float, seed: int) -> dict[str, tuple[TrialErrors, float]]:
+    """Each method's errors per pair and its median time per call (us), every method on the same
+    attitude errors."""
     rng = np.random.default_rng(seed)
     sigma = math.radians(max(level_deg, 0.2))
-    out: dict[str, dict[str, list[float]]] = {m: {"ok": [], "rot": [], "trans": [], "us": []} for m in methods}
+    out: dict[str, dict[str, list[float]]] = {m: {"rot": [], "trans": [], "us": []} for m in methods}
     for i, p in enumerate(pairs):
         e = attitude_errors(rng, kind, level_deg)
         R1 = R_lvl_cam(p.rp1[0] + e[0, 0], p.rp1[1] + e[0, 1], p.R_body_cam)
@@ -121,11 +124,9 @@ def evaluate(pairs: list[TrackedPair], methods: dict[str, Method], kind: str, le
             else:
                 rot = math.degrees(rotation_angle_rad(pose[0], p.R_c2_c1))
                 trans = math.degrees(angle_between_rad(pose[1] / np.linalg.norm(pose[1]), p.t_c2_c1))
-            out[name]["ok"].append(float(rot < 2.0 and trans < 10.0))
             out[name]["rot"].append(rot)
             out[name]["trans"].append(trans)
-    return {m: {"success": float(np.mean(d["ok"])), "rot": statistics.median(d["rot"]), "trans": statistics.median(d["trans"]),
-                "us": statistics.median(d["us"])} for m, d in out.items()}
+    return {m: (TrialErrors(np.array(d["rot"]), np.array(d["trans"])), statistics.median(d["us"])) for m, d in out.items()}
 
 
 def run(quick: bool, plots: Path | None) -> str:
@@ -146,8 +147,8 @@ def run(quick: bool, plots: Path | None) -> str:
         for kind, levels in (("independent", INDEPENDENT_DEG), ("correlated", CORRELATED_DEG)):
             for level in levels:
                 res = evaluate(pairs, methods, kind, level, seed=int(level * 100) + (7 if kind == "correlated" else 0))
-                for m, r in res.items():
-                    rows.append({"scenario": name, "kind": kind, "level": level, "method": m, **r})
+                for m, (errors, us) in res.items():
+                    rows.append({"scenario": name, "kind": kind, "level": level, "method": m, "errors": errors, "us": us, "pairs": len(pairs)})
                 print(f"  {name} {kind} {level} deg done", file=sys.stderr)
     lines = [
         BEGIN,
@@ -162,11 +163,31 @@ def run(quick: bool, plots: Path | None) -> str:
         "|---|---|---|---:|---:|---:|---:|",
     ]
     for r in rows:
-        err = f"{r['level']:g} deg " + ("per view" if r["kind"] == "independent" else "bias + 0.05 deg")
-        lines.append(f"| {r['scenario']} | {err} | {r['method']} | {r['success']:.0%} | {r['rot']:.3f} | {r['trans']:.2f} | {r['us']:.0f} |")
+        e = r["errors"]
+        lines.append(f"| {r['scenario']} | {_error_label(r)} | {r['method']} | {e.found} of {r['pairs']} | {np.median(e.rot_deg):.3f} | "
+                     f"{np.median(e.trans_deg):.2f} | {r['us']:.0f} |")
+    lines += ["", f"mavvo with the attitude sigma against the peers ({', '.join(m for m in method_names if not m.startswith('mavvo'))}) on the same pairs:", "",
+              "| flight | roll/pitch error | " + " | ".join(BEST_PEER_HEADER) + " |", "|---|---|" + "---|" * len(BEST_PEER_HEADER)]
+    for (scenario, kind, level), group in _groups(rows).items():
+        peers = {m: r["errors"] for m, r in group.items() if not m.startswith("mavvo")}
+        if peers:
+            cells = best_peer_cells(group["mavvo, attitude sigma"]["errors"], peers)
+            lines.append(f"| {scenario} | {_error_label(group['mavvo, attitude sigma'])} | " + " | ".join(cells) + " |")
     if plots is not None:
         lines += ["", f"![success against roll/pitch noise]({_plot(plots / 'relpose_flight_success.png', rows, method_names)})"]
     return "\n".join(lines + ["", END])
+
+
+def _error_label(row: dict) -> str:
+    return f"{row['level']:g} deg " + ("per view" if row["kind"] == "independent" else f"bias + {CORRELATED_NOISE_DEG:g} deg")
+
+
+def _groups(rows: list[dict]) -> dict[tuple[str, str, float], dict[str, dict]]:
+    """Rows by (flight, kind of error, level), then by method."""
+    out: dict[tuple[str, str, float], dict[str, dict]] = {}
+    for r in rows:
+        out.setdefault((r["scenario"], r["kind"], r["level"]), {})[r["method"]] = r
+    return out
 
 
 def _plot(path: Path, rows: list[dict], methods: list[str]) -> str:
@@ -179,7 +200,7 @@ def _plot(path: Path, rows: list[dict], methods: list[str]) -> str:
     fig, axes = plt.subplots(1, len(scen), figsize=(5 * len(scen), 3.4), sharey=True)
     for ax, s in zip(np.atleast_1d(axes), scen):
         for m in methods:
-            pts = [(r["level"], r["success"]) for r in rows if r["scenario"] == s and r["method"] == m and r["kind"] == "independent"]
+            pts = [(r["level"], r["errors"].found / r["pairs"]) for r in rows if r["scenario"] == s and r["method"] == m and r["kind"] == "independent"]
             ax.plot([a for a, _ in pts], [100 * b for _, b in pts], marker="o", label=m)
         ax.set_title(f"{s}: independent roll/pitch errors", fontsize=9)
         ax.set_xlabel("roll/pitch noise per view and axis [deg]")

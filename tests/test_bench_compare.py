@@ -1,0 +1,64 @@
+"""The benchmarks' comparison with the best peer: success counts and paired median differences."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from benchmarks.compare import TrialErrors, best_peer_cells, paired_medians
+
+
+def test_found_needs_both_errors_under_their_bars() -> None:
+    e = TrialErrors(np.array([0.1, 1.9, 2.0, 0.5, math.inf]), np.array([9.9, 0.3, 0.3, 10.0, 0.1]))
+    assert e.found == 2  # the first two; 2.0 deg of rotation and 10.0 deg of translation are misses
+
+
+def test_a_constant_gap_has_an_interval_of_exactly_that_gap() -> None:
+    rng = np.random.default_rng(5)
+    peer = rng.uniform(0.01, 0.2, 101)
+    p = paired_medians(peer + 0.003, peer, seed=1)
+    assert p.ours_deg == pytest.approx(np.sort(peer)[50] + 0.003)
+    assert p.peer_deg == pytest.approx(np.sort(peer)[50])
+    assert p.diff_low_deg == pytest.approx(0.003) and p.diff_high_deg == pytest.approx(0.003)
+    assert p.ours_lower_share == 0.0
+
+
+def test_two_draws_of_the_same_noise_give_an_interval_around_zero() -> None:
+    rng = np.random.default_rng(6)
+    a, b = np.abs(rng.normal(0, 0.05, 400)), np.abs(rng.normal(0, 0.05, 400))
+    p = paired_medians(a, b, seed=2)
+    assert p.diff_low_deg < 0 < p.diff_high_deg
+    assert 0.4 < p.ours_lower_share < 0.6
+
+
+def test_failures_count_in_the_medians_and_not_in_the_share() -> None:
+    ours = np.array([0.1, 0.1, 0.1, math.inf, 0.1])
+    peer = np.array([0.2, 0.2, 0.2, 0.2, math.inf])
+    p = paired_medians(ours, peer, seed=3)
+    assert p.ours_deg == pytest.approx(0.1) and p.peer_deg == pytest.approx(0.2)
+    assert p.ours_lower_share == 1.0  # of the three trials where both gave a pose
+
+
+def test_unpaired_errors_are_refused_by_name() -> None:
+    with pytest.raises(ValueError, match="paired_medians.*shapes"):
+        paired_medians(np.zeros(3), np.zeros(4))
+
+
+def test_the_cells_name_the_best_peer_for_each_figure() -> None:
+    ours = TrialErrors(np.full(4, 0.05), np.full(4, 0.5))
+    peers = {
+        "finds most": TrialErrors(np.array([0.06, 0.06, 0.06, 0.06]), np.array([0.9, 0.9, 0.9, 0.9])),
+        "lowest rotation": TrialErrors(np.full(4, 0.04), np.array([0.8, 0.8, 11.0, 11.0])),
+        "lowest translation": TrialErrors(np.array([0.07, 0.07, math.inf, math.inf]), np.array([0.4, 0.4, 0.4, 0.4])),
+    }
+    success, rotation, translation = best_peer_cells(ours, peers)
+    assert success == "4 vs 4 (finds most)"  # the lowest-rotation peer finds 2, the lowest-translation one 2
+    assert rotation.startswith("0.050 vs 0.040 (lowest rotation): +0.010 to +0.010") and rotation.endswith("lower on 0%")
+    assert translation.startswith("0.500 vs 0.400 (lowest translation): +0.100 to +0.100") and translation.endswith("lower on 0%")
+
+
+def test_no_peer_is_refused() -> None:
+    with pytest.raises(ValueError, match="no peer"):
+        best_peer_cells(TrialErrors(np.zeros(2), np.zeros(2)), {})
