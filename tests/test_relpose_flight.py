@@ -109,3 +109,37 @@ def test_the_translation_sign_is_decided_on_the_corrected_bearings(survey_pairs)
     assert len(pairs) == 23
     assert flipped == []
     assert found >= 150, found  # the poses are found, not merely never flipped
+
+
+def test_the_ground_models_pose_is_refined_with_the_corrections(monkeypatch) -> None:
+    """The ground homography is fitted with the essential fit's roll/pitch corrections held, and its
+    transfer error carries their residual error into yaw and translation; refined jointly with the
+    corrections on the epipolar error, from the homography's pose, the pose is closer to the truth
+    where roll/pitch are off. Over the 40 s survey at 0.5 and 1 deg per view, of the 137 pairs the ground
+    model took when written, the refined rotation was the lower on 65%, the medians 0.0060 against
+    0.0075 deg (translation 0.23 against 0.28 deg)."""
+    pairs, camera = tracked_pairs("survey", 40.0)
+
+    def ground_errors() -> list[tuple[int, float, float]]:
+        out = []
+        for level, seed in ((0.5, 1), (1.0, 2)):
+            rng = np.random.default_rng(seed)
+            sigma = math.radians(level)
+            for i, p in enumerate(pairs):
+                e = sigma * rng.standard_normal((2, 2))
+                R1 = R_lvl_cam(p.rp1[0] + e[0, 0], p.rp1[1] + e[0, 1], p.R_body_cam)
+                R2 = R_lvl_cam(p.rp2[0] + e[1, 0], p.rp2[1] + e[1, 1], p.R_body_cam)
+                r = estimate_relpose_known_gravity(p.uv1, p.uv2, camera, R1, R2, max_err_px=1.0, seed=i, attitude_sigma_rad=(sigma, sigma), yaw_prior_rad=p.yaw_2_1)
+                if r.upright.model == "ground":
+                    out.append((i + 1000 * seed, math.degrees(rotation_angle_rad(r.R_c2_c1, p.R_c2_c1)), math.degrees(angle_between_rad(r.t_c2_c1, p.t_c2_c1))))
+        return out
+
+    refined = ground_errors()
+    monkeypatch.setattr(relpose, "_ground_refined", lambda f1, f2, ground, *args: ground)
+    held = ground_errors()
+    assert [k for k, _, _ in refined] == [k for k, _, _ in held]  # the same pairs took the ground model
+    assert len(refined) >= 100, len(refined)
+    rot_refined, rot_held = np.array([r for _, r, _ in refined]), np.array([r for _, r, _ in held])
+    assert np.mean(rot_refined < rot_held) >= 0.58, np.mean(rot_refined < rot_held)
+    assert np.median(rot_refined) <= 0.9 * np.median(rot_held), (np.median(rot_refined), np.median(rot_held))
+    assert np.all(rot_refined < 0.1)  # refined, no pose left the homography's basin
