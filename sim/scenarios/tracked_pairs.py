@@ -45,15 +45,17 @@ class TrackedPair:
     t_c2_c1: np.ndarray
 
 
-def tracked_pairs(name: str, duration_s: float, *, gap: int = 10, every: int = 5, min_tracks: int = 20) -> tuple[list[TrackedPair], CameraModel]:
+def tracked_pairs(
+    name: str, duration_s: float, *, gap: int = 10, every: int = 5, min_tracks: int = 20, frontend_options: FrontendOptions | None = None
+) -> tuple[list[TrackedPair], CameraModel]:
     """The pairs of the first ``duration_s`` of scenario ``name`` (frames ``gap`` apart, one pair every
-    ``every`` frames, at least ``min_tracks`` common tracks and some motion), and the pinhole camera
-    their pixels are on."""
+    ``every`` frames, at least ``min_tracks`` common tracks and some motion), tracked with
+    ``frontend_options`` (the odometry's defaults when None), and the pinhole camera their pixels are on."""
     sc = load_scenario(name)
     seq = PairedSequence(sc, duration_s=duration_s)
     model = sc.camera.camera_model()
     pinhole = CameraModel(model.width_px, model.height_px, model.fx_px, model.fy_px, model.cx_px, model.cy_px)
-    frontend = Frontend(model, FrontendOptions())
+    frontend = Frontend(model, frontend_options or FrontendOptions())
     R_body_cam = sc.camera.R_body_cam()
     lever = np.asarray(sc.camera.lever_arm_m, dtype=float)
     views = []
