@@ -112,6 +112,9 @@ _OTHER_ANSWER_GENERAL_DEG = 3.0
 # sigmas: only where the tilt's share of the flow is large enough to mislead a 3-point hypothesis (the
 # survey pairs it put right had 1-15 px of parallax against 6-12 px of relative sigma).
 _PLANE_START_PARALLAX_SIGMAS = 3.0
+# ... and taken where its translation makes this many noise sigmas of parallax (or the threshold):
+# noise starts in a spin on the spot had 1.6-3.9, the survey pairs it put right 9.9-23.
+_PLANE_START_NOISE_SIGMAS = 5.0
 
 
 @dataclass(frozen=True)
@@ -612,9 +615,11 @@ def _second_start(
     cost of the refinement started from the truth. There, with ``ground`` (the tilt's share of the
     flow large), the start is the ground homography's pose
     (:func:`~mavvo.estimation.general5pt.estimate_ground_plane_relpose`), taken where its translation
-    makes the pure-rotation rule's parallax (:func:`_min_parallax_rad`; below it, in a spin on the
-    spot, noise starts put 4 of the 72 windows of ``yaw_spin`` draw 102 outside the 99% ellipse
-    instead of one). Where the scene is not mostly below the horizon, with ``general`` (parallax
+    makes ``_PLANE_START_NOISE_SIGMAS`` noise sigmas of parallax or the threshold
+    (:func:`_min_parallax_rad`; taken at any parallax, in a spin on the spot, noise starts of 1.6-3.9
+    sigmas put 4 of the 72 windows of ``yaw_spin`` draw 102 outside the 99% ellipse instead of one;
+    at the pure-rotation rule's ten sigmas survey pair 134 of ``benchmarks/relpose_flight.py``, 9.9
+    sigmas with 0.5 deg of roll/pitch bias, refined into the plane's other pose). Where the scene is not mostly below the horizon, with ``general`` (parallax
     enough for a translation, and a relative attitude sigma of a threshold or more: with less, the
     tilt error a hypothesis inherits is within the noise the threshold allows, and on the paper's
     scenes at 0.05 deg per view the start changed no answer while doubling the time), the start is
@@ -639,7 +644,8 @@ def _second_start(
         if start is not None:
             err = _pose_err_sq(pose, f1, f2, max_err_rad)
             t_per_d = float(np.linalg.norm(start[1]))  # about the parallax it makes, radians
-            start = (start[0], start[1] / t_per_d) if t_per_d >= _min_parallax_rad(err[err < max_err_rad**2], max_err_rad) else None
+            floor = _min_parallax_rad(err[err < max_err_rad**2], max_err_rad, _PLANE_START_NOISE_SIGMAS)
+            start = (start[0], start[1] / t_per_d) if t_per_d >= floor else None
     elif not on_ground and general:
         start = estimate_general_start(c1, c2, max_err_rad, rot_z(pose[0]))
     if start is None:
@@ -658,11 +664,10 @@ def _second_start(
     return alt if cost_alt < cost else pose
 
 
-def _min_parallax_rad(err_sq_inliers: np.ndarray, max_err_rad: float) -> float:
+def _min_parallax_rad(err_sq_inliers: np.ndarray, max_err_rad: float, noise_sigmas: float = _PARALLAX_NOISE_SIGMAS) -> float:
     """The parallax under which a translation is noise, as the pure-rotation rule has it: the
-    threshold, or ``_PARALLAX_NOISE_SIGMAS`` noise sigmas (from a fit's inlier errors) where the tracks
-    are finer."""
-    return min(max_err_rad, _PARALLAX_NOISE_SIGMAS * _robust_sigma(err_sq_inliers, max_err_rad))
+    threshold, or ``noise_sigmas`` noise sigmas (from a fit's inlier errors) where the tracks are finer."""
+    return min(max_err_rad, noise_sigmas * _robust_sigma(err_sq_inliers, max_err_rad))
 
 
 def _in_front(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float) -> Pose:
