@@ -531,8 +531,8 @@ def _ground_refined(f1: np.ndarray, f2: np.ndarray, ground: _Fit, attitude_sigma
     (0.0034 deg), the refined the lower on 20%; taken as exact (no corrections), 0.0005 deg against
     0.0008 refined, and there it is kept. The sign of the translation and its size per height stay the
     homography's."""
-    yaw, t, tilt1, tilt2 = _refine_with_attitude(f1, f2, ground.yaw, ground.t, attitude_sigma_rad, max_err_rad, max_err_rad, steps, ground.tilt1, ground.tilt2)
-    t = t if np.dot(t, ground.t) >= 0 else -t
+    yaw, t, tilt1, tilt2 = _attitude_rounds_from(f1, f2, ground.yaw, ground.t, attitude_sigma_rad, max_err_rad, max_err_rad, steps, ground.tilt1, ground.tilt2)
+    t = t if np.dot(t, ground.t) >= 0 else -t  # a refinement from the homography's pose keeps its side
     assert ground.t_per_height is not None  # a ground fit has its translation per height
     return _Fit("ground", yaw, t, ground.err_sq, float(np.linalg.norm(ground.t_per_height)) * t, tilt1, tilt2, ground.correction)
 
@@ -723,6 +723,14 @@ def _refine_with_attitude(
     inliers (Cauchy loss at the round's threshold), re-selects them with the corrected bearings and
     halves the threshold, until it is ``max_err_rad`` and the inliers stop changing. Re-selecting with
     the refined model is what removes the bias a first, outlier-tainted inlier set leaves. Compiled."""
+    return _sign_by_cheirality(_attitude_rounds_from(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, steps, tilt1, tilt2), f1, f2, max_err_rad)
+
+
+def _attitude_rounds_from(
+    f1: np.ndarray, f2: np.ndarray, yaw: float, t: np.ndarray, attitude_sigma_rad: tuple[float, float], sample_thr: float, max_err_rad: float, steps: int,
+    tilt1: np.ndarray | None, tilt2: np.ndarray | None,
+) -> Pose:
+    """:func:`_attitude_rounds` from a pose, as a pose (the sign of t not judged again)."""
     sigmas = np.array([max(s, 1e-6) for s in attitude_sigma_rad])  # a view given as exact: held by a stiff prior
     x = np.zeros(8)  # (yaw, unit t, tilt1, tilt2): the kernel's state, updated in place
     x[0], x[1:4] = yaw, np.asarray(t, dtype=float) / np.linalg.norm(t)
@@ -731,7 +739,7 @@ def _refine_with_attitude(
     if tilt2 is not None:
         x[6:8] = tilt2
     _attitude_rounds(x, f1, f2, sigmas, sample_thr, max_err_rad, steps, _TILT_ROUNDS)
-    return _sign_by_cheirality((float(np.arctan2(np.sin(x[0]), np.cos(x[0]))), x[1:4].copy(), x[4:6].copy(), x[6:8].copy()), f1, f2, max_err_rad)
+    return float(np.arctan2(np.sin(x[0]), np.cos(x[0]))), x[1:4].copy(), x[4:6].copy(), x[6:8].copy()
 
 
 def _sign_by_cheirality(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float) -> Pose:
