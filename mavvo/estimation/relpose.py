@@ -619,11 +619,11 @@ def _second_start(
     (:func:`_min_parallax_rad`; taken at any parallax, in a spin on the spot, noise starts of 1.6-3.9
     sigmas put 4 of the 72 windows of ``yaw_spin`` draw 102 outside the 99% ellipse instead of one;
     at the pure-rotation rule's ten sigmas survey pair 134 of ``benchmarks/relpose_flight.py``, 9.9
-    sigmas with 0.5 deg of roll/pitch bias, refined into the plane's other pose). Where the scene is not mostly below the horizon, with ``general`` (parallax
-    enough for a translation, and a relative attitude sigma of a threshold or more: with less, the
-    tilt error a hypothesis inherits is within the noise the threshold allows, and on the paper's
-    scenes at 0.05 deg per view the start changed no answer while doubling the time), the start is
-    the general 5-point's pose
+    sigmas with 0.5 deg of roll/pitch bias, refined into the plane's other pose). Where the scene is
+    not mostly below the horizon, with ``general`` (parallax enough for a translation, and a relative
+    attitude sigma of a threshold or more: with less, the tilt error a hypothesis inherits is within
+    the noise the threshold allows, and on the paper's scenes at 0.05 deg per view the start changed
+    no answer while doubling the time), the start is the general 5-point's pose
     (:func:`~mavvo.estimation.general5pt.estimate_general_start`; forward pair 2 at 0.5 deg per view
     refined 42 deg off, at 4.6x the cost of the refinement from the truth). Over a plane the 5-point's
     two poses fit alike: as a start there it lost 5 survey pairs of 156.
