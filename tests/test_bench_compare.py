@@ -55,8 +55,8 @@ def test_the_cells_name_the_best_peer_for_each_figure() -> None:
     }
     success, rotation, translation = best_peer_cells(ours, peers)
     assert success == "4 vs 4 (finds most)"  # the lowest-rotation peer finds 2, the lowest-translation one 2
-    assert rotation.startswith("0.050 vs 0.040 (lowest rotation): +0.010 to +0.010") and rotation.endswith("lower on 0%")
-    assert translation.startswith("0.500 vs 0.400 (lowest translation): +0.100 to +0.100") and translation.endswith("lower on 0%")
+    assert rotation.startswith("0.0500 vs 0.0400 (lowest rotation): +0.0100 to +0.0100") and rotation.endswith("lower on 0%")
+    assert translation.startswith("0.5000 vs 0.4000 (lowest translation): +0.1000 to +0.1000") and translation.endswith("lower on 0%")
 
 
 def test_no_peer_is_refused() -> None:
