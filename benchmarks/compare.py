@@ -15,6 +15,7 @@ from typing import Mapping
 import numpy as np
 
 SUCCESS_ROT_DEG, SUCCESS_TRANS_DEG = 2.0, 10.0  # a pose is found: rotation error and translation direction error under these
+YAW_PRIOR_NOISE_DEG = 1.0  # mavvo is told the flight controller's yaw change, as the odometry tells it, this far off
 BOOTSTRAP_DRAWS = 2000
 INTERVAL = (5.0, 95.0)  # percentiles of the bootstrap difference: a 90% interval
 

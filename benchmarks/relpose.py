@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import cv2  # noqa: E402
 
 from benchmarks.common import load_average, machine, publish  # noqa: E402
-from benchmarks.compare import BEST_PEER_HEADER, SUCCESS_ROT_DEG, SUCCESS_TRANS_DEG, TrialErrors, best_peer_cells  # noqa: E402
+from benchmarks.compare import BEST_PEER_HEADER, SUCCESS_ROT_DEG, SUCCESS_TRANS_DEG, YAW_PRIOR_NOISE_DEG, TrialErrors, best_peer_cells  # noqa: E402
 from mavvo.estimation.warmup import warm_kernels  # noqa: E402
 from mavvo import geometry as solvers  # noqa: E402
 from mavvo.geometry.camera_model import CameraModel  # noqa: E402
@@ -248,9 +248,6 @@ def timed(fn: Callable[[], object], clock: Callable[[], float] = time.thread_tim
 
 
 IMU_SIGMA_RAD = np.radians(0.05)
-
-
-YAW_PRIOR_NOISE_DEG = 1.0  # the flight controller's yaw change, as benchmarks/relpose_flight.py gives it
 
 
 def run_mavvo(tilt_sigma_rad: float | None, yaw_prior: bool = False) -> Callable[[TwoViewScene, np.ndarray, np.ndarray, int], tuple[Pose | None, int]]:
