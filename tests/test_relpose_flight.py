@@ -173,3 +173,36 @@ def test_the_ground_start_is_taken_from_five_noise_sigmas_of_parallax(monkeypatc
     assert len(p.uv1) > 400
     assert at_five >= 29, at_five
     assert at_five >= at_ten + 3, (at_five, at_ten)
+
+
+def test_the_widened_rounds_weigh_with_one_noise_sigma(monkeypatch) -> None:
+    """While the attitude rounds' threshold is still widened for the tilt error a hypothesis inherits,
+    the set holds outliers and the pose is off; a Cauchy loss of one noise sigma there (2.385 at the
+    tight threshold, as before) keeps them from pulling the rounds to another fixed point. The forward
+    camera over texture 4 (20 s, 79 pairs at the flight benchmark's density), roll/pitch exact and
+    0.2 deg off per view, 0.2 deg told: when written, 154 of 158 found either way (the first two pairs
+    are called rotations both ways), median rotation error 0.0343 against 0.0384 deg with 2.385 throughout, the
+    lower on 71% of the pairs found and the higher on 29%."""
+    pairs, camera = tracked_pairs("forward", 20.0, frontend_options=FrontendOptions(max_features=500, min_distance_px=6.0), variant=4)
+    sigma = math.radians(0.2)
+
+    def rotation_errors() -> np.ndarray:
+        out = []
+        for level, seed in ((0.0, 0), (0.2, 20)):
+            rng = np.random.default_rng(seed)
+            for i, p in enumerate(pairs):
+                e = math.radians(level) * rng.standard_normal((2, 2))
+                R1 = R_lvl_cam(p.rp1[0] + e[0, 0], p.rp1[1] + e[0, 1], p.R_body_cam)
+                R2 = R_lvl_cam(p.rp2[0] + e[1, 0], p.rp2[1] + e[1, 1], p.R_body_cam)
+                r = estimate_relpose_known_gravity(p.uv1, p.uv2, camera, R1, R2, max_err_px=1.0, seed=i, attitude_sigma_rad=(sigma, sigma), yaw_prior_rad=p.yaw_2_1)
+                out.append(math.degrees(rotation_angle_rad(r.R_c2_c1, p.R_c2_c1)) if r.success else math.inf)
+        return np.array(out)
+
+    tight = rotation_errors()
+    monkeypatch.setattr(relpose, "_CAUCHY_WIDE_NOISE_SIGMAS", relpose._CAUCHY_NOISE_SIGMAS)
+    efficient = rotation_errors()
+    found = np.isfinite(tight)
+    assert len(pairs) >= 70 and np.count_nonzero(found) >= np.count_nonzero(np.isfinite(efficient)) >= 0.9 * found.size
+    lower, higher = np.mean(tight[found] < efficient[found]), np.mean(tight[found] > efficient[found])
+    assert lower >= 0.6 and lower >= higher + 0.2, (lower, higher)
+    assert np.median(tight) <= 0.95 * np.median(efficient), (np.median(tight), np.median(efficient))

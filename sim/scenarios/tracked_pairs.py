@@ -8,6 +8,7 @@ on the tracks both hold. The truth is the trajectory's camera pose at both expos
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -46,12 +47,25 @@ class TrackedPair:
 
 
 def tracked_pairs(
-    name: str, duration_s: float, *, gap: int = 10, every: int = 5, min_tracks: int = 20, frontend_options: FrontendOptions | None = None
+    name: str,
+    duration_s: float,
+    *,
+    gap: int = 10,
+    every: int = 5,
+    min_tracks: int = 20,
+    frontend_options: FrontendOptions | None = None,
+    variant: int = 0,
 ) -> tuple[list[TrackedPair], CameraModel]:
     """The pairs of the first ``duration_s`` of scenario ``name`` (frames ``gap`` apart, one pair every
     ``every`` frames, at least ``min_tracks`` common tracks and some motion), tracked with
-    ``frontend_options`` (the odometry's defaults when None), and the pinhole camera their pixels are on."""
+    ``frontend_options`` (the odometry's defaults when None), and the pinhole camera their pixels are on.
+
+    ``variant`` 0 is the scenario as shipped; k > 0 flies the same path over another procedural
+    texture (``world.texture_seed`` = k) with other camera noise (``seed`` + 100 k): other tracks,
+    the same geometry."""
     sc = load_scenario(name)
+    if variant:
+        sc = dataclasses.replace(sc, seed=sc.seed + 100 * variant, world=dataclasses.replace(sc.world, texture_seed=variant))
     seq = PairedSequence(sc, duration_s=duration_s)
     model = sc.camera.camera_model()
     pinhole = CameraModel(model.width_px, model.height_px, model.fx_px, model.fy_px, model.cx_px, model.cy_px)
