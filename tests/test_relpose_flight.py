@@ -181,8 +181,8 @@ def test_the_widened_rounds_weigh_with_one_noise_sigma(monkeypatch) -> None:
     tight threshold, as before) keeps them from pulling the rounds to another fixed point. The forward
     camera over texture 4 (20 s, 79 pairs at the flight benchmark's density), roll/pitch exact and
     0.2 deg off per view, 0.2 deg told: when written, 154 of 158 found either way (the first two pairs
-    are called rotations both ways), median rotation error 0.0343 against 0.0384 deg with 2.385 throughout, the
-    lower on 71% of the pairs found and the higher on 29%."""
+    are called rotations both ways), median rotation error 0.0343 against 0.0384 deg with 2.385
+    throughout, the lower on 71% of the pairs found and the higher on 29%."""
     pairs, camera = tracked_pairs("forward", 20.0, frontend_options=FrontendOptions(max_features=500, min_distance_px=6.0), variant=4)
     sigma = math.radians(0.2)
 
