@@ -97,11 +97,12 @@ _CORRECTION_MIN_COST_DROP = 18.5
 # Refinements weigh inliers with a Cauchy loss of this many noise sigmas (95% efficiency for Gaussian noise).
 _CAUCHY_NOISE_SIGMAS = 2.385
 # ... and of this many while the attitude rounds' threshold is still widened for the tilt error the
-# hypothesis inherits: that set holds outliers and the pose is still off, and at 2.385 they pulled the
-# rounds to other fixed points. On nine forward flights' pairs (1431, KLT tracks, roll/pitch exact and
-# 0.2 deg sigma told) median rotation 0.0425 -> 0.0402 deg (PoseLib's defaults 0.0408); on the paper's
-# scenes (2400 trials) at 0.2 deg 0.0994 -> 0.0980 (USAC_MAGSAC 0.0998). Everywhere tighter, the
-# paper's scenes at 0.2 deg lost (0.105): at the threshold their Gaussian noise wants the efficient one.
+# hypothesis inherits, where the parallax tells a tilt from a translation: that set holds outliers and
+# the pose is still off, and at 2.385 they pulled the rounds to other fixed points. On nine forward
+# flights' pairs (1431, KLT tracks, roll/pitch exact and 0.2 deg sigma told) median rotation 0.0425 ->
+# 0.0402 deg (PoseLib's defaults 0.0408); on the paper's scenes (2400 trials) at 0.2 deg 0.0994 ->
+# 0.0980 (USAC_MAGSAC 0.0998). Everywhere tighter, the paper's scenes at 0.2 deg lost (0.105): at the
+# threshold their Gaussian noise wants the efficient loss.
 _CAUCHY_WIDE_NOISE_SIGMAS = 1.0
 # A median parallax under min_parallax_ratio times the threshold, or times this many noise sigmas
 # when that is less, is a pure rotation.
@@ -572,15 +573,20 @@ def _refine(
     inl = run.err_sq < max_err_rad**2  # the points the hypothesis fits closely: outliers would inflate it
     parallax = _yaw_parallax_rad(yaw, f1, f2, np.flatnonzero(inl))
     relative_sigma = math.hypot(*attitude_sigma_rad)
-    corrected = _refine_with_attitude(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, opt.refine_steps)
+    resolved = parallax >= max(_TILT_MIN_PARALLAX_SIGMAS * relative_sigma, _TILT_MIN_PARALLAX_THRESHOLDS * max_err_rad)
+    # With parallax enough to tell a tilt from a translation, the widened rounds weigh with one noise
+    # sigma. With less, the fit is near-degenerate and a tight loss let it settle on a subset: in a spin
+    # on the spot (`yaw_spin`, seed 102) essential fits on 72-85 points where a rotation explained 218-229.
+    wide_c = _CAUCHY_WIDE_NOISE_SIGMAS if resolved else _CAUCHY_NOISE_SIGMAS
+    corrected = _refine_with_attitude(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, opt.refine_steps, wide_c_sigmas=wide_c)
     # A second start where one may be needed: over the ground where the tilt's share of the flow is large;
     # elsewhere where the tilt error the hypothesis may inherit is more than the threshold allows for and
     # the parallax is enough for the general 5-point's translation (with less it is noise).
     ground = parallax < _PLANE_START_PARALLAX_SIGMAS * relative_sigma
     general = relative_sigma >= max_err_rad and parallax >= _TILT_MIN_PARALLAX_THRESHOLDS * max_err_rad
     if ground or general:
-        corrected = _second_start(f1, f2, run.inliers, corrected, attitude_sigma_rad, sample_thr, max_err_rad, opt, yaw_prior_rad, ground, general)
-    if parallax >= max(_TILT_MIN_PARALLAX_SIGMAS * relative_sigma, _TILT_MIN_PARALLAX_THRESHOLDS * max_err_rad):
+        corrected = _second_start(f1, f2, run.inliers, corrected, attitude_sigma_rad, sample_thr, max_err_rad, opt, yaw_prior_rad, ground, general, wide_c)
+    if resolved:
         return corrected, _Correction.RESOLVED
     as_given = _refine_uncorrected(f1, f2, yaw, t, max_err_rad, opt.refine_steps)
     cost_corrected, cost_as_given = _posterior_costs(f1, f2, (corrected, as_given), attitude_sigma_rad, max_err_rad)
@@ -610,7 +616,7 @@ def _pose_err_sq(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float)
 
 def _second_start(
     f1: np.ndarray, f2: np.ndarray, candidates: np.ndarray, pose: Pose, attitude_sigma_rad: tuple[float, float], sample_thr: float, max_err_rad: float,
-    opt: RelposeOptions, yaw_prior_rad: float | None, ground: bool, general: bool,
+    opt: RelposeOptions, yaw_prior_rad: float | None, ground: bool, general: bool, wide_c_sigmas: float,
 ) -> Pose:
     """``pose`` (refined under the attitude prior from the sampling's hypothesis), or the pose refined
     from a start that roll/pitch cannot have misled, when that is another answer and a better one.
@@ -662,7 +668,7 @@ def _second_start(
     if abs(float(np.dot(start_t, t))) >= other_answer:
         return pose  # the same answer: not worth a second refinement
     start_yaw, start_t, _, _ = _in_front((start_yaw, start_t, np.zeros(2), start_tilt2), f1, f2, max_err_rad)
-    alt = _refine_with_attitude(f1, f2, start_yaw, start_t, attitude_sigma_rad, sample_thr, max_err_rad, opt.refine_steps, tilt2=start_tilt2)
+    alt = _refine_with_attitude(f1, f2, start_yaw, start_t, attitude_sigma_rad, sample_thr, max_err_rad, opt.refine_steps, tilt2=start_tilt2, wide_c_sigmas=wide_c_sigmas)
     if abs(float(np.dot(alt[1], t))) >= other_answer:
         return pose
     if yaw_prior_rad is not None and abs(math.remainder(alt[0] - yaw_prior_rad, math.tau)) > math.radians(opt.yaw_prior_tolerance_deg):
@@ -723,22 +729,25 @@ def _upright_from_general(R_2_1: np.ndarray, t_2_1: np.ndarray) -> tuple[float, 
 
 def _refine_with_attitude(
     f1: np.ndarray, f2: np.ndarray, yaw: float, t: np.ndarray, attitude_sigma_rad: tuple[float, float], sample_thr: float, max_err_rad: float, steps: int,
-    tilt1: np.ndarray | None = None, tilt2: np.ndarray | None = None,
+    tilt1: np.ndarray | None = None, tilt2: np.ndarray | None = None, wide_c_sigmas: float | None = None,
 ) -> Pose:
     """Yaw, translation direction and the roll/pitch corrections of both views under the attitude
     prior, from the sampling's wide inlier set down to the tight one: each round refines on the current
-    inliers (a Cauchy loss of one noise sigma while the threshold is widened, of 2.385 at the tight
-    one, never wider than the round's threshold), re-selects them with the corrected bearings and
+    inliers (a Cauchy loss of ``wide_c_sigmas`` noise sigmas while the threshold is widened, of
+    ``_CAUCHY_NOISE_SIGMAS`` at the tight one and while widened when None, never wider than the
+    round's threshold), re-selects them with the corrected bearings and
     halves the threshold, until it is ``max_err_rad`` and the inliers stop changing. Re-selecting with
     the refined model is what removes the bias a first, outlier-tainted inlier set leaves. Compiled."""
-    return _sign_by_cheirality(_attitude_rounds_from(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, steps, tilt1, tilt2), f1, f2, max_err_rad)
+    rounds = _attitude_rounds_from(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, steps, tilt1, tilt2, wide_c_sigmas)
+    return _sign_by_cheirality(rounds, f1, f2, max_err_rad)
 
 
 def _attitude_rounds_from(
     f1: np.ndarray, f2: np.ndarray, yaw: float, t: np.ndarray, attitude_sigma_rad: tuple[float, float], sample_thr: float, max_err_rad: float, steps: int,
-    tilt1: np.ndarray | None, tilt2: np.ndarray | None,
+    tilt1: np.ndarray | None, tilt2: np.ndarray | None, wide_c_sigmas: float | None = None,
 ) -> Pose:
-    """:func:`_attitude_rounds` from a pose, as a pose (the sign of t not judged again)."""
+    """:func:`_attitude_rounds` from a pose, as a pose (the sign of t not judged again); the Cauchy
+    scale in noise sigmas while the threshold is widened ``wide_c_sigmas`` (the tight one's when None)."""
     sigmas = np.array([max(s, 1e-6) for s in attitude_sigma_rad])  # a view given as exact: held by a stiff prior
     x = np.zeros(8)  # (yaw, unit t, tilt1, tilt2): the kernel's state, updated in place
     x[0], x[1:4] = yaw, np.asarray(t, dtype=float) / np.linalg.norm(t)
@@ -746,7 +755,7 @@ def _attitude_rounds_from(
         x[4:6] = tilt1
     if tilt2 is not None:
         x[6:8] = tilt2
-    _attitude_rounds(x, f1, f2, sigmas, sample_thr, max_err_rad, steps, _TILT_ROUNDS, _CAUCHY_WIDE_NOISE_SIGMAS)
+    _attitude_rounds(x, f1, f2, sigmas, sample_thr, max_err_rad, steps, _TILT_ROUNDS, _CAUCHY_NOISE_SIGMAS if wide_c_sigmas is None else wide_c_sigmas)
     return float(np.arctan2(np.sin(x[0]), np.cos(x[0]))), x[1:4].copy(), x[4:6].copy(), x[6:8].copy()
 
 
