@@ -700,3 +700,24 @@ def test_the_general_start_does_not_depend_on_roll_pitch() -> None:
         assert math.degrees(rotation_angle_rad(R_true, scene.R_2_1)) > 0.3  # the roll/pitch given are that far off
     ground = make_scene(rng, 200, motion="sideways", mount="nadir", structure="ground", focal_px=FOCAL_PX)
     assert sees_ground(ground.f1_lvl, ground.f2_lvl)
+
+
+def test_at_a_flight_controllers_attitude_error_the_rotation_beats_usac_magsac() -> None:
+    """The paper's scenes as ``benchmarks/relpose.py`` makes them (forward camera, 300 points, 20%
+    outliers, 0.5 px) with roll/pitch 0.2 deg off per view, mavvo told that sigma and the yaw within
+    1 deg: the median rotation error at most 0.95 of USAC_MAGSAC's on the same 400 scenes. When written
+    0.090 against 0.100 deg. Refining from the general 5-point's start only where it was 3 deg or more
+    from the hypothesis's answer gave 0.096 here (0.0980 against 0.0998 over 2400 scenes): the
+    refinement's re-selected inliers keep something of where it started, and the 3-point hypothesis
+    was made with roll/pitch as given."""
+    from benchmarks.relpose import errors_deg, run_mavvo, run_opencv, side_scene
+
+    cv2.setNumThreads(1)
+    rng = np.random.default_rng(8)
+    mavvo, usac = run_mavvo(math.radians(0.2), yaw_prior=True), run_opencv(cv2.USAC_MAGSAC)
+    rot = np.empty((400, 2))
+    for trial in range(len(rot)):
+        scene, uv1, uv2 = side_scene(rng, 300, trial, math.radians(0.2), 0.2)
+        rot[trial] = errors_deg(mavvo(scene, uv1, uv2, trial)[0], scene)[0], errors_deg(usac(scene, uv1, uv2, trial)[0], scene)[0]
+    assert np.all(np.isfinite(rot[:, 0]))
+    assert np.median(rot[:, 0]) <= 0.95 * np.median(rot[:, 1]), np.median(rot, axis=0)
