@@ -141,13 +141,19 @@ def test_fast_yaw_spin_turns_without_moving() -> None:
 def test_fast_yaw_spin_with_drift_does_not_step_at_a_keyframe_made_on_few_inliers() -> None:
     """The shipped spin drifts as the hover does. A keyframe made from a frame measured on few
     inliers goes where the filter puts it: at its raw measurement, the frames of the turn on the spot
-    that followed stayed 0.37 m from the last estimate (measured after: 0.11 m)."""
-    run = _shipped("yaw_spin")
-    good = run.good()
-    t = np.array([e.t_exposure_s for e in good])
-    err = np.array([e.p_ned_m for e in good]) - np.array([run.sequence.trajectory.state(x).p_ned_m for x in t])
-    assert any(e.diagnostics.reason == "few_inliers" and e.diagnostics.keyframe for e in good)
-    assert np.linalg.norm(np.diff(err, axis=0), axis=1).max() <= 0.2
+    that followed stayed 0.37 m from the last estimate (measured after: 0.11 m). The shipped seed and
+    two more draws of the noise: since 2026-11-27 the shipped seed makes no keyframe on few inliers
+    (draws 101 and 102 make two and one; largest steps 0.12 / 0.14 / 0.13 m when written)."""
+    spin = load_scenario("yaw_spin")
+    runs = [_shipped("yaw_spin")] + [_run(dataclasses.replace(spin, seed=s), {"scale": {"source": "rangefinder"}}) for s in (101, 102)]
+    few_inlier_keyframes = 0
+    for run in runs:
+        good = run.good()
+        t = np.array([e.t_exposure_s for e in good])
+        err = np.array([e.p_ned_m for e in good]) - np.array([run.sequence.trajectory.state(x).p_ned_m for x in t])
+        few_inlier_keyframes += sum(e.diagnostics.reason == "few_inliers" and e.diagnostics.keyframe for e in good)
+        assert np.linalg.norm(np.diff(err, axis=0), axis=1).max() <= 0.2
+    assert few_inlier_keyframes >= 2, few_inlier_keyframes  # the case the test is about happened
 
 
 def test_square_with_altitude_scale() -> None:
