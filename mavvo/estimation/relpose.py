@@ -665,6 +665,7 @@ def _second_start(
         start = estimate_general_start(c1, c2, max_err_rad, rot_z(pose[0]))
     if start is None:
         return pose
+
     def same_answer(u: np.ndarray) -> bool:  # over the ground only (above)
         return on_ground and abs(float(np.dot(u, t))) >= math.cos(math.radians(_OTHER_ANSWER_DEG))
 
