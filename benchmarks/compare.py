@@ -1,10 +1,11 @@
 """mavvo against its best peer on the same trials: success counts and median errors with a paired
 bootstrap interval, for the relative-pose benchmarks' "at least the best peer's" goals.
 
-A difference of medians over 90 or 160 trials moves by a few hundredths of a degree from one seed to
-the next; the interval says whether a gap between two medians is larger than that. Trials are paired
-(every method ran on the same tracks and the same attitude errors), so the bootstrap resamples trial
-indices and takes both medians on the same resample.
+A difference of medians over 90 trials moved by a few hundredths of a degree from one seed to the
+next (over a few hundred, still by some thousandths); the interval says whether a gap between two
+medians is larger than that. Trials are paired (every method ran on the same tracks and the same
+attitude errors), so the bootstrap resamples trial indices and takes both medians on the same
+resample.
 """
 
 from __future__ import annotations

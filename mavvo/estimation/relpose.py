@@ -537,7 +537,9 @@ def _ground_refined(f1: np.ndarray, f2: np.ndarray, ground: _Fit, attitude_sigma
     (0.0034 deg), the refined the lower on 20%; taken as exact (no corrections), 0.0005 deg against
     0.0008 refined, and there it is kept. The sign of the translation and its size per height stay the
     homography's."""
-    yaw, t, tilt1, tilt2 = _attitude_rounds_from(f1, f2, ground.yaw, ground.t, attitude_sigma_rad, max_err_rad, max_err_rad, steps, ground.tilt1, ground.tilt2)
+    yaw, t, tilt1, tilt2 = _attitude_rounds_from(
+        f1, f2, ground.yaw, ground.t, attitude_sigma_rad, max_err_rad, max_err_rad, steps, ground.tilt1, ground.tilt2, _CAUCHY_NOISE_SIGMAS  # never widened
+    )
     t = t if np.dot(t, ground.t) >= 0 else -t  # a refinement from the homography's pose keeps its side
     assert ground.t_per_height is not None  # a ground fit has its translation per height
     return _Fit("ground", yaw, t, ground.err_sq, float(np.linalg.norm(ground.t_per_height)) * t, tilt1, tilt2, ground.correction)
@@ -576,7 +578,7 @@ def _refine(
     # sigma. With less, the fit is near-degenerate and a tight loss let it settle on a subset: in a spin
     # on the spot (`yaw_spin`, seed 102) essential fits on 72-85 points where a rotation explained 218-229.
     wide_c = _CAUCHY_WIDE_NOISE_SIGMAS if resolved else _CAUCHY_NOISE_SIGMAS
-    corrected = _refine_with_attitude(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, opt.refine_steps, wide_c_sigmas=wide_c)
+    corrected = _refine_with_attitude(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, opt.refine_steps, wide_c)
     # A second start where one may be needed: over the ground where the tilt's share of the flow is large;
     # elsewhere where the tilt error the hypothesis may inherit is more than the threshold allows for and
     # the parallax is enough for the general 5-point's translation (with less it is noise).
@@ -673,7 +675,7 @@ def _second_start(
     if same_answer(start_t):
         return pose  # not worth a second refinement
     start_yaw, start_t, _, _ = _in_front((start_yaw, start_t, np.zeros(2), start_tilt2), f1, f2, max_err_rad)
-    alt = _refine_with_attitude(f1, f2, start_yaw, start_t, attitude_sigma_rad, sample_thr, max_err_rad, opt.refine_steps, tilt2=start_tilt2, wide_c_sigmas=wide_c_sigmas)
+    alt = _refine_with_attitude(f1, f2, start_yaw, start_t, attitude_sigma_rad, sample_thr, max_err_rad, opt.refine_steps, wide_c_sigmas, tilt2=start_tilt2)
     if same_answer(alt[1]):
         return pose
     if yaw_prior_rad is not None and abs(math.remainder(alt[0] - yaw_prior_rad, math.tau)) > math.radians(opt.yaw_prior_tolerance_deg):
@@ -734,13 +736,12 @@ def _upright_from_general(R_2_1: np.ndarray, t_2_1: np.ndarray) -> tuple[float, 
 
 def _refine_with_attitude(
     f1: np.ndarray, f2: np.ndarray, yaw: float, t: np.ndarray, attitude_sigma_rad: tuple[float, float], sample_thr: float, max_err_rad: float, steps: int,
-    tilt1: np.ndarray | None = None, tilt2: np.ndarray | None = None, wide_c_sigmas: float | None = None,
+    wide_c_sigmas: float, tilt1: np.ndarray | None = None, tilt2: np.ndarray | None = None,
 ) -> Pose:
     """Yaw, translation direction and the roll/pitch corrections of both views under the attitude
     prior, from the sampling's wide inlier set down to the tight one: each round refines on the current
     inliers (a Cauchy loss of ``wide_c_sigmas`` noise sigmas while the threshold is widened, of
-    ``_CAUCHY_NOISE_SIGMAS`` at the tight one and while widened when None, never wider than the
-    round's threshold), re-selects them with the corrected bearings and
+    ``_CAUCHY_NOISE_SIGMAS`` at the tight one, never wider than the round's threshold), re-selects them with the corrected bearings and
     halves the threshold, until it is ``max_err_rad`` and the inliers stop changing. Re-selecting with
     the refined model is what removes the bias a first, outlier-tainted inlier set leaves. Compiled."""
     rounds = _attitude_rounds_from(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, steps, tilt1, tilt2, wide_c_sigmas)
@@ -749,10 +750,10 @@ def _refine_with_attitude(
 
 def _attitude_rounds_from(
     f1: np.ndarray, f2: np.ndarray, yaw: float, t: np.ndarray, attitude_sigma_rad: tuple[float, float], sample_thr: float, max_err_rad: float, steps: int,
-    tilt1: np.ndarray | None, tilt2: np.ndarray | None, wide_c_sigmas: float | None = None,
+    tilt1: np.ndarray | None, tilt2: np.ndarray | None, wide_c_sigmas: float,
 ) -> Pose:
     """:func:`_attitude_rounds` from a pose, as a pose (the sign of t not judged again); the Cauchy
-    scale in noise sigmas while the threshold is widened ``wide_c_sigmas`` (the tight one's when None)."""
+    scale in noise sigmas while the threshold is widened ``wide_c_sigmas``."""
     sigmas = np.array([max(s, 1e-6) for s in attitude_sigma_rad])  # a view given as exact: held by a stiff prior
     x = np.zeros(8)  # (yaw, unit t, tilt1, tilt2): the kernel's state, updated in place
     x[0], x[1:4] = yaw, np.asarray(t, dtype=float) / np.linalg.norm(t)
@@ -760,7 +761,7 @@ def _attitude_rounds_from(
         x[4:6] = tilt1
     if tilt2 is not None:
         x[6:8] = tilt2
-    _attitude_rounds(x, f1, f2, sigmas, sample_thr, max_err_rad, steps, _TILT_ROUNDS, _CAUCHY_NOISE_SIGMAS if wide_c_sigmas is None else wide_c_sigmas)
+    _attitude_rounds(x, f1, f2, sigmas, sample_thr, max_err_rad, steps, _TILT_ROUNDS, wide_c_sigmas)
     return float(np.arctan2(np.sin(x[0]), np.cos(x[0]))), x[1:4].copy(), x[4:6].copy(), x[6:8].copy()
 
 

@@ -63,6 +63,8 @@ def tracked_pairs(
     ``variant`` 0 is the scenario as shipped; k > 0 flies the same path over another procedural
     texture (``world.texture_seed`` = k) with other camera noise (``seed`` + 100 k): other tracks,
     the same geometry."""
+    if variant < 0:
+        raise ValueError(f"variant: expected 0 (the scenario as shipped) or a positive texture number, got {variant}")
     sc = load_scenario(name)
     if variant:
         sc = dataclasses.replace(sc, seed=sc.seed + 100 * variant, world=dataclasses.replace(sc.world, texture_seed=variant))
