@@ -15,9 +15,10 @@ differ by a yaw and a translation: ``x_2 = R_2_1 @ x_1 + t_2_1``, ``R_2_1 = Rz(y
 3. Model selection by GRIC (Torr, 1998) between the essential matrix, the known-gravity ground-plane
    homography (Saurer et al., 2 points; :class:`~mavvo.estimation.estimators.GroundHomography` by the
    same loop among the essential inliers) and a pure rotation (no baseline; closed form on them).
-   A median parallax under a pixel or so (``min_parallax_ratio``; ten noise sigmas for finer tracks)
-   is a pure rotation outright. With no essential model at all, a pure rotation is searched by the
-   same loop (:class:`~mavvo.estimation.estimators.PureRotation`).
+   A median parallax under a pixel or so (``min_parallax_ratio``; for finer tracks, half as much
+   again as noise alone leaves a pure rotation of as many points) is a pure rotation outright. With
+   no essential model at all, a pure rotation is searched by the same loop
+   (:class:`~mavvo.estimation.estimators.PureRotation`).
 
 :func:`estimate_relpose_known_gravity` is the same for pixel coordinates and camera frames.
 """
@@ -104,9 +105,16 @@ _CAUCHY_NOISE_SIGMAS = 2.385
 # 0.0980 (USAC_MAGSAC 0.0998). Everywhere tighter, the paper's scenes at 0.2 deg lost (0.105): at the
 # threshold their Gaussian noise wants the efficient loss.
 _CAUCHY_WIDE_NOISE_SIGMAS = 1.0
-# A median parallax under min_parallax_ratio times the threshold, or times this many noise sigmas
-# when that is less, is a pure rotation.
+# Parallax under this many noise sigmas is noise to a single point (its side, in the sign's vote).
 _PARALLAX_NOISE_SIGMAS = 10.0
+# The pure-rotation rule (:func:`_translation_unresolved`). Noise alone leaves a pure rotation a
+# median parallax (after the best rotation about z) of a few sigmas, more with fewer points: 99th
+# percentiles 8.2 / 5.6 / 4.3 / 3.0 / 2.4 / 2.1 / 2.0 sigmas at 15 / 20 / 30 / 50 / 100 / 200 / 400
+# inliers (synthetic, 0.1 px, 200 trials each), about 1.8 + 75 / n. The rule asks for half as much
+# again (KLT tails, track bias).
+_NOISE_PARALLAX_SIGMAS = 1.8
+_NOISE_PARALLAX_POINTS = 75.0
+_NOISE_PARALLAX_MARGIN = 1.5
 # The refined translation's sign is reversed where it puts at least this fraction of its inliers
 # behind a view and the reverse puts none (where both put some, neither is in the data).
 _SIGN_MIN_BEHIND = 0.05
@@ -139,7 +147,7 @@ class RelposeOptions(RansacOptions):
     model: ModelChoice = bounded("auto", "auto: essential matrix or ground homography by GRIC; essential or ground forces one (pure rotation is always checked)")
     tilt_sigma_deg: float = bounded(0.0, "let vision correct roll/pitch of both views within this sigma, degrees (0: off; the corrections are reported)", ge=0, le=30)
     ground_samples: int = bounded(16, "most 2-point samples for the ground model among the essential inliers (the stopping rule mostly needs a few)", ge=1, le=10000)
-    min_parallax_ratio: float = bounded(1.0, "median inlier parallax below this many thresholds (or ten noise sigmas, when less): a pure rotation (translation not observable)", ge=0, le=100)
+    min_parallax_ratio: float = bounded(1.0, "median inlier parallax below this many thresholds (or, when less, this many times 1.5 x what noise alone leaves a pure rotation: 3 noise sigmas at 400 inliers, 10 at 15): a pure rotation (translation not observable; 0: GRIC alone decides)", ge=0, le=100)
     yaw_prior_tolerance_deg: float = bounded(
         30.0, "with a yaw prior, hypotheses further from it are dropped (a nadir camera over flat ground sees a twin at yaw + 180 deg)", gt=0, le=180
     )
@@ -494,13 +502,10 @@ def _select(
     rotation = None if R_rot is None else _Fit("rotation", yaw_of(R_rot), np.zeros(3), rotation_sq(R_rot, f1c, f2c), None, tilt1, tilt2, correction)
     if rotation is not None:
         gric["rotation"] = _gric(rotation.err_sq, inl_idx, sigma_sq, "rotation")
-        # Below about a pixel of parallax a translation direction is noise, and a near-vertical one
-        # leaves yaw ambiguous by pi (E = [t]x Rz(yaw) is the same for yaw + pi when t is along z).
-        # "A pixel" is the threshold, or ten noise sigmas where the tracks are that much finer.
         # Measured about z only: roll and pitch are known, and a free tilt would pass off a nadir
         # camera's image shift as rotation.
         parallax = _yaw_parallax_rad(rotation.yaw, f1c, f2c, inl_idx)
-        if parallax < opt.min_parallax_ratio * min(max_err_rad, _PARALLAX_NOISE_SIGMAS * sigma):
+        if _translation_unresolved(parallax, len(inl_idx), sigma, max_err_rad, opt.min_parallax_ratio):
             return rotation, essential, sigma, gric
     ground = None
     if opt.model in ("auto", "ground"):
@@ -684,9 +689,19 @@ def _second_start(
     return alt if cost_alt < cost else pose
 
 
+def _translation_unresolved(parallax_rad: float, n_inliers: int, sigma_rad: float, max_err_rad: float, ratio: float) -> bool:
+    """The pure-rotation rule: True where ``n_inliers`` points with this median parallax (after the
+    best rotation about z) leave a translation to noise, and a near-vertical one leaves the yaw open
+    by pi (``E = [t]x Rz(yaw)`` is the same for yaw + pi when t is along z): under ``ratio`` times the
+    threshold (about a pixel) or, where the tracks are finer, half as much again as noise alone
+    leaves a pure rotation of that many points. ``ratio`` 0 turns the rule off."""
+    floor = _NOISE_PARALLAX_SIGMAS + _NOISE_PARALLAX_POINTS / max(n_inliers, 1)
+    return parallax_rad < ratio * min(max_err_rad, _NOISE_PARALLAX_MARGIN * floor * sigma_rad)
+
+
 def _min_parallax_rad(err_sq_inliers: np.ndarray, max_err_rad: float, noise_sigmas: float = _PARALLAX_NOISE_SIGMAS) -> float:
-    """The parallax under which a translation is noise, as the pure-rotation rule has it: the
-    threshold, or ``noise_sigmas`` noise sigmas (from a fit's inlier errors) where the tracks are finer."""
+    """The parallax under which one point's translation is noise: the threshold, or ``noise_sigmas``
+    noise sigmas (from a fit's inlier errors) where the tracks are finer."""
     return min(max_err_rad, noise_sigmas * _robust_sigma(err_sq_inliers, max_err_rad))
 
 
