@@ -55,8 +55,29 @@ def test_the_cells_name_the_best_peer_for_each_figure() -> None:
     }
     success, rotation, translation = best_peer_cells(ours, peers)
     assert success == "4 vs 4 (finds most)"  # the lowest-rotation peer finds 2, the lowest-translation one 2
-    assert rotation.startswith("0.0500 vs 0.0400 (lowest rotation): +0.0100 to +0.0100") and rotation.endswith("lower on 0%")
-    assert translation.startswith("0.5000 vs 0.4000 (lowest translation): +0.1000 to +0.1000") and translation.endswith("lower on 0%")
+    assert rotation.startswith("0.0500 vs 0.0400 (lowest rotation): +0.0100 to +0.0100")
+    assert translation.startswith("0.5000 vs 0.4000 (lowest translation): +0.1000 to +0.1000")
+    # Each peer found its first two trials only (translation 11 deg, no rotation): the common medians are over those.
+    assert rotation.endswith("lower on 0%; on the 2 both found 0.0500 vs 0.0400")
+    assert translation.endswith("lower on 0%; on the 2 both found 0.5000 vs 0.4000")
+
+
+def test_the_common_medians_are_over_the_trials_both_found() -> None:
+    """A trial that neither found (mavvo's wrong pose, the peer's none) moves the all-trials median by a
+    rank and leaves the common one alone."""
+    peer = TrialErrors(np.array([0.040, 0.041, 0.050, math.inf]), np.full(4, 0.3))
+    without = TrialErrors(np.array([0.042, 0.043, 0.048, math.inf]), np.full(4, 0.3))
+    wrong_pose = TrialErrors(np.array([0.042, 0.043, 0.048, 0.001]), np.array([0.3, 0.3, 0.3, 12.0]))
+    rot_without = best_peer_cells(without, {"peer": peer})[1]
+    rot_wrong = best_peer_cells(wrong_pose, {"peer": peer})[1]
+    assert rot_without.startswith("0.0455 vs 0.0455") and rot_wrong.startswith("0.0425 vs 0.0455")
+    assert rot_without.endswith("on the 3 both found 0.0430 vs 0.0410") and rot_wrong.endswith("on the 3 both found 0.0430 vs 0.0410")
+
+
+def test_nothing_found_by_both_is_said() -> None:
+    cells = best_peer_cells(TrialErrors(np.array([5.0, 0.1]), np.array([1.0, 20.0])), {"peer": TrialErrors(np.array([0.1, 0.1]), np.array([1.0, 20.0]))})
+    assert cells[0] == "0 vs 1 (peer)"
+    assert cells[1].endswith("none found by both")
 
 
 def test_no_peer_is_refused() -> None:
