@@ -81,10 +81,10 @@ def best_peer_cells(ours: TrialErrors, peers: Mapping[str, TrialErrors]) -> list
     for field in ("rot_deg", "trans_deg"):
         lowest = min(peers, key=lambda m: float(np.median(getattr(peers[m], field))))
         p = paired_medians(getattr(ours, field), getattr(peers[lowest], field))
-        # Four decimals: over flat ground the rotation medians are 0.005 deg, and the gaps 0.0001-0.001.
         both = ours.found_trials & peers[lowest].found_trials
         common = (f"on the {np.count_nonzero(both)} both found {np.median(getattr(ours, field)[both]):.4f} vs "
                   f"{np.median(getattr(peers[lowest], field)[both]):.4f}") if np.any(both) else "none found by both"
+        # Four decimals: over flat ground the rotation medians are 0.005 deg, and the gaps 0.0001-0.001.
         cells.append(f"{p.ours_deg:.4f} vs {p.peer_deg:.4f} ({lowest}): {p.diff_low_deg:+.4f} to {p.diff_high_deg:+.4f}, "
                      f"lower on {p.ours_lower_share:.0%}; {common}")
     return cells
