@@ -17,9 +17,10 @@ a slowly varying bias is the same at two exposures half a second apart) plus 0.0
 
 Methods, each on the same tracks: mavvo with roll/pitch taken as exact (the paper's setting; the
 odometry's with ``attitude_correction`` off), mavvo with each view's attitude sigma given (the
-error's own sigma, at least 0.2 deg: what a configuration would say; the odometry's default); both get the yaw change as a prior, as the odometry gives it (the flight
-controller's, here the truth plus 1 deg of noise: over flat ground a nadir view has a twin pose turned by
-180 deg that only the prior tells apart); OpenCV ``findEssentialMat`` USAC_MAGSAC + ``recoverPose`` on the undistorted
+error's own sigma, at least 0.2 deg: what a configuration would say; the odometry's default); both
+get the yaw change as a prior, as the odometry gives it (the flight controller's, here the truth
+plus 1 deg of noise: over flat ground a nadir view has a twin pose turned by 180 deg that only the
+prior tells apart); OpenCV ``findEssentialMat`` USAC_MAGSAC + ``recoverPose`` on the undistorted
 pixels, PoseLib ``estimate_relative_pose`` (success_prob 0.99, and its defaults) where installed.
 Success: rotation error < 2 deg and translation direction error < 10 deg. Times are per-thread CPU
 time per call, medians.

@@ -624,7 +624,8 @@ def _second_start(
     opt: RelposeOptions, yaw_prior_rad: float | None, ground: bool, general: bool, wide_c_sigmas: float,
 ) -> Pose:
     """``pose`` (refined under the attitude prior from the sampling's hypothesis), or the pose refined
-    from a start that roll/pitch cannot have misled, when that is another answer and a better one.
+    from a start that roll/pitch cannot have misled, when that is a better one (over the ground, only
+    when it is also another answer).
 
     A 3-point hypothesis made with roll/pitch off by a few tenths of a degree can take the tilt's share
     of the flow for translation and refine into a local minimum of its own. Over flat ground a tilt
@@ -636,7 +637,7 @@ def _second_start(
     makes ``_PLANE_START_NOISE_SIGMAS`` noise sigmas of parallax or the threshold
     (:func:`_min_parallax_rad`; taken at any parallax, in a spin on the spot, noise starts of 1.6-3.9
     sigmas put 4 of the 72 windows of ``yaw_spin`` draw 102 outside the 99% ellipse instead of one;
-    at the pure-rotation rule's ten sigmas survey pair 134 of ``benchmarks/relpose_flight.py``, 9.9
+    at ten sigmas (the pure-rotation rule's then) survey pair 134 of ``benchmarks/relpose_flight.py``, 9.9
     sigmas with 0.5 deg of roll/pitch bias, refined into the plane's other pose). Where the scene is
     not mostly below the horizon, with ``general`` (parallax enough for a translation, and a relative
     attitude sigma of a threshold or more: with less, the tilt error a hypothesis inherits is within
@@ -756,9 +757,10 @@ def _refine_with_attitude(
     """Yaw, translation direction and the roll/pitch corrections of both views under the attitude
     prior, from the sampling's wide inlier set down to the tight one: each round refines on the current
     inliers (a Cauchy loss of ``wide_c_sigmas`` noise sigmas while the threshold is widened, of
-    ``_CAUCHY_NOISE_SIGMAS`` at the tight one, never wider than the round's threshold), re-selects them with the corrected bearings and
-    halves the threshold, until it is ``max_err_rad`` and the inliers stop changing. Re-selecting with
-    the refined model is what removes the bias a first, outlier-tainted inlier set leaves. Compiled."""
+    ``_CAUCHY_NOISE_SIGMAS`` at the tight one, never wider than the round's threshold), re-selects
+    them with the corrected bearings and halves the threshold, until it is ``max_err_rad`` and the
+    inliers stop changing. Re-selecting with the refined model is what removes the bias a first,
+    outlier-tainted inlier set leaves; the translation's sign is then judged by cheirality. Compiled."""
     rounds = _attitude_rounds_from(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, steps, tilt1, tilt2, wide_c_sigmas)
     return _sign_by_cheirality(rounds, f1, f2, max_err_rad)
 
