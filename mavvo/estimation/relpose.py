@@ -867,7 +867,9 @@ def _attitude_rounds(
         if thr == max_err_rad and have_previous and np.all(inl == previous):
             break
         noise = _robust_sigma_kernel(err[inl], max_err_rad)
-        # A few steps per round from the warm start: the rounds go on until the inliers settle.
+        # A few steps per round from the warm start: the rounds go on until the inliers settle, not
+        # until the steps do (they close about half the distance each; converging every round was
+        # within the tie with PoseLib on the forward pairs and cost 15-40% more time, docs/relpose.md).
         c_sigmas = wide_c_sigmas if thr > max_err_rad else _CAUCHY_NOISE_SIGMAS
         gauss_newton_upright(x, f1[inl], f2[inl], min(steps, 3), True, prior_w, 1.0 / noise, min(thr, c_sigmas * noise))
         previous, have_previous = inl, True
