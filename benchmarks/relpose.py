@@ -429,8 +429,8 @@ def goal_lines(rows: list[dict]) -> list[str]:
 
 
 def run(quick: bool, plots: Path | None, docs_root: Path | None) -> str:
-    # 100 side-by-side trials a row: at 25 the median times moved by 10-20% between runs (mavvo's ratio to
-    # PoseLib at N = 300 / 20% read 1.8-2.4x over one day's runs; at 100, 2.16-2.22x over four).
+    # 100 side-by-side trials a row: at 25, mavvo's ratio to PoseLib at N = 300 / 20% read 1.9-2.3x in
+    # four runs back to back (1.8-2.4x over one day's); at 100, 2.16-2.22x in four.
     trials_min, trials_ls, trials_side = (60, 20, 5) if quick else (500, 200, 100)
     sweeps = {}
     for kind, trials in (("minimal", trials_min), ("least squares", trials_ls)):
