@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from mavvo.geometry.camera_model import CameraModel
-from mavvo.geometry.frames import angle_between_rad, rotation_angle_rad
+from mavvo.geometry.frames import angle_between_rad, rot_z, rotation_angle_rad
 from mavvo.estimation.estimators import upright_e, yaw_of
 from mavvo.estimation.relpose import RelposeOptions, estimate_relpose_known_gravity, estimate_upright_relpose, required_iterations
-import mavvo.estimation.relpose as relpose_module
+import mavvo.estimation.attitude_refine as attitude_refine
 from mavvo.geometry.refine import refine_upright, tilt_rotation
 from mavvo.geometry.residuals import sampson_sq_upright
 from sim.world.twoview import add_outliers, make_scene
@@ -496,7 +496,7 @@ def test_with_little_parallax_roll_pitch_are_corrected_only_where_that_fits_sign
 
     assert run(0.0)[1] <= 1
     found, corrected = run(sigma / 4)
-    monkeypatch.setattr(relpose_module, "_CORRECTION_MIN_COST_DROP", math.inf)
+    monkeypatch.setattr(attitude_refine, "_CORRECTION_MIN_COST_DROP", math.inf)
     found_as_given, _ = run(sigma / 4)
     assert corrected >= 8, corrected
     assert found >= found_as_given + 4, (found, found_as_given)
@@ -643,7 +643,7 @@ def test_sub_pixel_parallax_over_the_ground_is_read_down_to_the_noise(monkeypatc
         return ok
 
     with_noise_floor = found()
-    monkeypatch.setattr(relpose_module, "_min_parallax_rad", lambda err_sq, max_err_rad, *noise_sigmas: max_err_rad)
+    monkeypatch.setattr(attitude_refine, "_min_parallax_rad", lambda err_sq, max_err_rad, *noise_sigmas: max_err_rad)
     with_threshold = found()
     assert with_noise_floor >= 74, with_noise_floor
     assert with_noise_floor >= with_threshold + 3, (with_noise_floor, with_threshold)
@@ -672,7 +672,7 @@ def test_off_the_ground_a_tilted_hypothesis_is_not_the_last_word(monkeypatch) ->
         return ok
 
     with_start = found()
-    monkeypatch.setattr(relpose_module, "estimate_general_start", lambda *args, **kwargs: None)
+    monkeypatch.setattr(attitude_refine, "estimate_general_start", lambda *args, **kwargs: None)
     without = found()
     assert with_start == len(scenes) == 180, with_start
     assert without < with_start, without
@@ -684,8 +684,8 @@ def test_the_general_start_is_not_tried_where_roll_pitch_are_better_than_the_thr
     the 5-point's start is not computed at all (on the paper's speed scenes it changed no answer and
     doubled the time); with 0.5 deg it is, on every scene with parallax."""
     calls = []
-    real = relpose_module.estimate_general_start
-    monkeypatch.setattr(relpose_module, "estimate_general_start", lambda *args, **kwargs: calls.append(1) or real(*args, **kwargs))
+    real = attitude_refine.estimate_general_start
+    monkeypatch.setattr(attitude_refine, "estimate_general_start", lambda *args, **kwargs: calls.append(1) or real(*args, **kwargs))
     rng = np.random.default_rng(3)
     for sigma_deg, expected in ((0.05, 0), (0.5, 6)):
         calls.clear()
@@ -712,7 +712,7 @@ def test_the_general_start_does_not_depend_on_roll_pitch() -> None:
         R_true = scene.R_lvl_cam2 @ scene.R_c2_c1 @ scene.R_lvl_cam1.T
         t_true = scene.R_lvl_cam2 @ scene.t_c2_c1
         assert not sees_ground(scene.f1_lvl, scene.f2_lvl)
-        pose = estimate_general_start(scene.f1_lvl, scene.f2_lvl, THRESHOLD_RAD, relpose_module.rot_z(yaw_of(R_true)))
+        pose = estimate_general_start(scene.f1_lvl, scene.f2_lvl, THRESHOLD_RAD, rot_z(yaw_of(R_true)))
         assert pose is not None
         R, t = pose
         assert math.degrees(rotation_angle_rad(R, R_true)) < 0.1

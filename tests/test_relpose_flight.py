@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+import mavvo.estimation.attitude_refine as attitude_refine
 import mavvo.estimation.relpose as relpose
 from mavvo.estimation.relpose import estimate_relpose_known_gravity
 from mavvo.geometry.frames import R_lvl_cam, angle_between_rad, rotation_angle_rad
@@ -51,10 +52,10 @@ def test_both_ways_out_of_a_tilted_hypothesis_find_the_pose(survey_pairs, monkey
 
     both = found()
     with monkeypatch.context() as m:
-        m.setattr(relpose, "estimate_ground_plane_relpose", lambda *args, **kwargs: None)
-        m.setattr(relpose, "estimate_general_start", lambda *args, **kwargs: None)
+        m.setattr(attitude_refine, "estimate_ground_plane_relpose", lambda *args, **kwargs: None)
+        m.setattr(attitude_refine, "estimate_general_start", lambda *args, **kwargs: None)
         without_plane = found()
-    monkeypatch.setattr(relpose, "_CORRECTION_MIN_COST_DROP", math.inf)
+    monkeypatch.setattr(attitude_refine, "_CORRECTION_MIN_COST_DROP", math.inf)
     as_given = found()
     assert len(pairs) == 23
     assert both >= 112, both
@@ -80,7 +81,7 @@ def test_off_the_ground_the_general_five_point_is_the_second_start(forward_pairs
         return sum(_successes(pairs, camera, level, seed) for level, seed in runs)
 
     with_start = found()
-    monkeypatch.setattr(relpose, "estimate_general_start", lambda *args, **kwargs: None)
+    monkeypatch.setattr(attitude_refine, "estimate_general_start", lambda *args, **kwargs: None)
     without = found()
     assert len(pairs) == 7
     assert with_start >= 95, with_start
@@ -168,7 +169,7 @@ def test_the_ground_start_is_taken_from_five_noise_sigmas_of_parallax(monkeypatc
         return ok
 
     at_five = found()
-    monkeypatch.setattr(relpose, "_PLANE_START_NOISE_SIGMAS", 10.0)
+    monkeypatch.setattr(attitude_refine, "_PLANE_START_NOISE_SIGMAS", 10.0)
     at_ten = found()
     assert len(p.uv1) > 400
     assert at_five >= 29, at_five
@@ -199,7 +200,7 @@ def test_the_widened_rounds_weigh_with_one_noise_sigma(monkeypatch) -> None:
         return np.array(out)
 
     tight = rotation_errors()
-    monkeypatch.setattr(relpose, "_CAUCHY_WIDE_NOISE_SIGMAS", relpose._CAUCHY_NOISE_SIGMAS)
+    monkeypatch.setattr(attitude_refine, "_CAUCHY_WIDE_NOISE_SIGMAS", attitude_refine._CAUCHY_NOISE_SIGMAS)
     efficient = rotation_errors()
     found = np.isfinite(tight)
     assert len(pairs) >= 70 and np.count_nonzero(found) >= np.count_nonzero(np.isfinite(efficient)) >= 0.9 * found.size
@@ -215,13 +216,13 @@ def test_the_tight_loss_is_kept_to_pairs_whose_parallax_resolves_a_tilt(forward_
     rounds keep the efficient scale. The forward camera's pairs are resolved once it is under way; the
     survey's slow start (a few px of parallax from 30 m, 0.5 deg per view) is not."""
     scales: list[float | None] = []
-    rounds_from = relpose._attitude_rounds_from
+    rounds_from = attitude_refine.attitude_rounds_from
 
     def spy(*args, **kwargs):  # type: ignore[no-untyped-def]
         scales.append(args[10] if len(args) > 10 else kwargs.get("wide_c_sigmas"))
         return rounds_from(*args, **kwargs)
 
-    monkeypatch.setattr(relpose, "_attitude_rounds_from", spy)
+    monkeypatch.setattr(attitude_refine, "attitude_rounds_from", spy)
 
     def first_scales(pairs: list[TrackedPair], camera, level_deg: float) -> list[float | None]:
         out = []
@@ -236,7 +237,7 @@ def test_the_tight_loss_is_kept_to_pairs_whose_parallax_resolves_a_tilt(forward_
 
     forward = first_scales(*forward_pairs, 0.2)
     survey = first_scales(*survey_pairs, 0.5)
-    tight, efficient = relpose._CAUCHY_WIDE_NOISE_SIGMAS, relpose._CAUCHY_NOISE_SIGMAS
+    tight, efficient = attitude_refine._CAUCHY_WIDE_NOISE_SIGMAS, attitude_refine._CAUCHY_NOISE_SIGMAS
     assert tight < efficient
     # When written: forward 2.385 on the first three pairs (the circle's start), then 1.0; the survey
     # 2.385 on its first 14 pairs, then 1.0 as it gathers speed.
