@@ -216,13 +216,13 @@ def test_the_tight_loss_is_kept_to_pairs_whose_parallax_resolves_a_tilt(forward_
     rounds keep the efficient scale. The forward camera's pairs are resolved once it is under way; the
     survey's slow start (a few px of parallax from 30 m, 0.5 deg per view) is not."""
     scales: list[float | None] = []
-    rounds_from = attitude_refine.attitude_rounds_from
+    rounds_from = attitude_refine._attitude_rounds_from
 
     def spy(*args, **kwargs):  # type: ignore[no-untyped-def]
         scales.append(args[10] if len(args) > 10 else kwargs.get("wide_c_sigmas"))
         return rounds_from(*args, **kwargs)
 
-    monkeypatch.setattr(attitude_refine, "attitude_rounds_from", spy)
+    monkeypatch.setattr(attitude_refine, "_attitude_rounds_from", spy)
 
     def first_scales(pairs: list[TrackedPair], camera, level_deg: float) -> list[float | None]:
         out = []

@@ -5,7 +5,9 @@ a translation direction between two level frames. :func:`refine_essential` refin
 inliers; with an attitude sigma, also the roll/pitch corrections of both views under their priors, in
 rounds that re-select the inliers from the threshold widened for the tilt error down to the tight
 one, from a second start that roll/pitch cannot have misled where one may be needed, with the
-translation's sign decided by cheirality on the corrected bearings. ``docs/relpose.md`` ("Roll/pitch that are not exact") gives the measurements.
+translation's sign decided by cheirality on the corrected bearings. :func:`refine_at_threshold`
+refines a pose another model found (the ground homography's) by the same rounds. ``docs/relpose.md``
+("Roll/pitch that are not exact") gives the measurements.
 
 A pose is ``(yaw, t, tilt1, tilt2)``: radians, the unit translation in the corrected level frame 2,
 and the (2,) roll/pitch corrections of each view's level frame in radians.
@@ -31,8 +33,8 @@ from mavvo.jit import kernel
 __all__ = [
     "Correction",
     "Pose",
-    "attitude_rounds_from",
     "pose_err_sq",
+    "refine_at_threshold",
     "refine_essential",
     "robust_sigma",
     "upright_from_general",
@@ -310,18 +312,18 @@ def _refine_with_attitude(
     them with the corrected bearings and halves the threshold, until it is ``max_err_rad`` and the
     inliers stop changing. Re-selecting with the refined model is what removes the bias a first,
     outlier-tainted inlier set leaves; the translation's sign is then judged by cheirality. Compiled."""
-    rounds = attitude_rounds_from(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, steps, tilt1, tilt2, wide_c_sigmas)
+    rounds = _attitude_rounds_from(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, steps, tilt1, tilt2, wide_c_sigmas)
     return _sign_by_cheirality(rounds, f1, f2, max_err_rad)
 
 
-def attitude_rounds_from(
+def _attitude_rounds_from(
     f1: np.ndarray, f2: np.ndarray, yaw: float, t: np.ndarray, attitude_sigma_rad: tuple[float, float], sample_thr: float, max_err_rad: float, steps: int,
-    tilt1: np.ndarray | None, tilt2: np.ndarray | None, wide_c_sigmas: float = _CAUCHY_NOISE_SIGMAS,
+    tilt1: np.ndarray | None, tilt2: np.ndarray | None, wide_c_sigmas: float,
 ) -> Pose:
     """:func:`_attitude_rounds` from a pose (yaw and t, and the views' roll/pitch corrections, zero
     for None), as a pose; the sign of t is not judged again. The rounds start at ``sample_thr`` (the
-    first round's threshold, halved each round down to ``max_err_rad``; starting at it, the rounds are
-    tight throughout) with a Cauchy scale of ``wide_c_sigmas`` noise sigmas while it is wider."""
+    first round's threshold, halved each round down to ``max_err_rad``) with a Cauchy scale of
+    ``wide_c_sigmas`` noise sigmas while it is wider."""
     sigmas = np.array([max(s, 1e-6) for s in attitude_sigma_rad])  # a view given as exact: held by a stiff prior
     x = np.zeros(8)  # (yaw, unit t, tilt1, tilt2): the kernel's state, updated in place
     x[0], x[1:4] = yaw, np.asarray(t, dtype=float) / np.linalg.norm(t)
@@ -331,6 +333,16 @@ def attitude_rounds_from(
         x[6:8] = tilt2
     _attitude_rounds(x, f1, f2, sigmas, sample_thr, max_err_rad, steps, _TILT_ROUNDS, wide_c_sigmas)
     return float(np.arctan2(np.sin(x[0]), np.cos(x[0]))), x[1:4].copy(), x[4:6].copy(), x[6:8].copy()
+
+
+def refine_at_threshold(
+    f1: np.ndarray, f2: np.ndarray, pose: Pose, attitude_sigma_rad: tuple[float, float], max_err_rad: float, steps: int,
+) -> Pose:
+    """``pose`` (from another model: the ground homography's) refined with the roll/pitch corrections
+    under the attitude prior by the same rounds, at the inlier threshold throughout (so with the
+    efficient Cauchy scale); the sign of t is not judged again."""
+    yaw, t, tilt1, tilt2 = pose
+    return _attitude_rounds_from(f1, f2, yaw, t, attitude_sigma_rad, max_err_rad, max_err_rad, steps, tilt1, tilt2, _CAUCHY_NOISE_SIGMAS)
 
 
 def _sign_by_cheirality(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float) -> Pose:

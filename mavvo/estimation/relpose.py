@@ -37,7 +37,7 @@ import numpy as np
 from mavvo.options import bounded
 from mavvo.types import StrEnum
 
-from mavvo.estimation.attitude_refine import Correction, attitude_rounds_from, pose_err_sq, refine_essential, robust_sigma, upright_from_general, yaw_parallax_rad
+from mavvo.estimation.attitude_refine import Correction, pose_err_sq, refine_at_threshold, refine_essential, robust_sigma, upright_from_general, yaw_parallax_rad
 from mavvo.estimation.estimators import SAMPLE_SIZE, GroundHomography, MinimalSolver, NonminimalSolver, PureRotation, UprightEssential
 from mavvo.estimation.estimators import yaw_of
 from mavvo.estimation.general5pt import estimate_general_relpose, sampson_sq_general
@@ -489,9 +489,7 @@ def _ground_refined(f1: np.ndarray, f2: np.ndarray, ground: _Fit, attitude_sigma
     (0.0034 deg), the refined the lower on 20%; taken as exact (no corrections), 0.0005 deg against
     0.0008 refined, and there it is kept. The sign of the translation and its size per height stay the
     homography's."""
-    yaw, t, tilt1, tilt2 = attitude_rounds_from(
-        f1, f2, ground.yaw, ground.t, attitude_sigma_rad, max_err_rad, max_err_rad, steps, ground.tilt1, ground.tilt2  # at the tight threshold from the start
-    )
+    yaw, t, tilt1, tilt2 = refine_at_threshold(f1, f2, (ground.yaw, ground.t, ground.tilt1, ground.tilt2), attitude_sigma_rad, max_err_rad, steps)
     t = t if np.dot(t, ground.t) >= 0 else -t  # a refinement from the homography's pose keeps its side
     assert ground.t_per_height is not None  # a ground fit has its translation per height
     return _Fit("ground", yaw, t, ground.err_sq, float(np.linalg.norm(ground.t_per_height)) * t, tilt1, tilt2, ground.correction)
