@@ -125,9 +125,17 @@ def test_minimal_input_is_fitted_exactly_even_with_noise(runs: list[Run]) -> Non
 
 def test_noise_free_overdetermined_input_has_a_solution_fitting_every_point(runs: list[Run]) -> None:
     # The 4-point's other det(E) = 0 roots on a least-squares pencil need not fit; the true one does.
+    # The bound follows from the conditioning, not from one machine's rounding: a backward-stable SVD
+    # turns the null vector by up to about eps * s_max / s_gap (s_gap: the smallest non-zero singular
+    # value of the N x 6 system), which moves the residual by s_max times that; ten times it is room.
     clean = [(s, Es) for _, n, noisy, s, Es in runs if n == 12 and not noisy]
     assert len(clean) == 300
-    assert all(min(_epipolar_residual(E, s) for E in Es) < 1e-9 for s, Es in clean)
+    eps = np.finfo(np.float64).eps
+    worst = []
+    for s, Es in clean:
+        sv = np.linalg.svd(epipolar_rows(s.f1_lvl, s.f2_lvl), compute_uv=False)
+        worst.append(min(_epipolar_residual(E, s) for E in Es) / (10 * eps * sv[0] ** 2 / sv[4]))
+    assert max(worst) < 1.0
 
 
 def test_3pt_and_linear_5pt_return_essential_matrices(runs: list[Run]) -> None:

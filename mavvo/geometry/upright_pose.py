@@ -47,11 +47,18 @@ def _yaw_candidates(e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     energy = np.empty(len(yaws))
     for k in range(len(yaws)):
         y = out[k]
-        for _ in range(2):  # Newton on f'(yaw) = 0: the quartic's roots carry only ~1e-8 precision
+        # Newton on f'(yaw) = 0 to convergence: the quartic's roots carry only ~1e-8 precision, and the
+        # root at infinity starts at pi, up to a few tenths of a radian from its stationary point; two
+        # fixed steps left that one 1e-9 off, which picks it over the converged twin by rounding alone.
+        for _ in range(8):
             d1 = P * math.cos(y) - Q * math.sin(y) - 2 * U * math.sin(2 * y) + 2 * V * math.cos(2 * y)
             d2 = -P * math.sin(y) - Q * math.cos(y) - 4 * U * math.cos(2 * y) - 4 * V * math.sin(2 * y)
-            if abs(d2) > 1e-12:
-                y -= d1 / d2
+            if abs(d2) <= 1e-12:
+                break
+            step = d1 / d2
+            y -= step
+            if abs(step) <= 1e-15:
+                break
         out[k] = y
         energy[k] = P * math.sin(y) + Q * math.cos(y) + U * math.cos(2 * y) + V * math.sin(2 * y)
     return out, energy
