@@ -51,12 +51,12 @@ soak: $(STAMP)
 # Every shipped scenario over five draws of its noise (about 12 minutes on 2 cores): what the vehicle
 # would feel, median and range; writes the tables into docs/service.md.
 draws: $(STAMP)
-	$(BIN)/python -m sim.scenarios.draws --markdown docs/service.md
+	$(BIN)/python -m mavvo.sim.scenarios.draws --markdown docs/service.md
 
 # Hostile and broken input against the real service on 127.0.0.1 (about 5 minutes): prints the table
 # and writes it into docs/reliability.md. The quick cases also run in `make test`.
 faults: $(STAMP)
-	$(BIN)/python -m sim.faults.suite --markdown docs/reliability.md
+	$(BIN)/python -m tools.faults.suite --markdown docs/reliability.md
 
 # Benchmarks run single-threaded (the last line adds OpenCV on all cores); PoseLib is installed for the
 # comparison when the platform has it.
@@ -83,10 +83,12 @@ install:
 	mkdir -p $(PREFIX) $(ETCDIR) $(UNITDIR)
 	@if [ "$(abspath $(PREFIX))" != "$(CURDIR)" ]; then \
 		tar --exclude=.venv --exclude=.git --exclude='*.egg-info' --exclude=__pycache__ --exclude=mavvo-sim-out \
-			-cf - mavvo sim config systemd pyproject.toml README.md Makefile | tar -xf - -C $(PREFIX); fi
+			-cf - mavvo config systemd pyproject.toml README.md Makefile | tar -xf - -C $(PREFIX); fi
 	$(PYTHON) -m venv --clear $(PREFIX)/.venv
 	$(PREFIX)/.venv/bin/python -m pip install --quiet --upgrade pip
 	$(PREFIX)/.venv/bin/python -m pip install --quiet $(PREFIX)
+	@# setuptools builds in the source tree: what it leaves there is no part of the installed copy.
+	rm -rf $(PREFIX)/build $(PREFIX)/*.egg-info
 	@test -e $(ETCDIR)/mavvo.yaml || install -m 0640 config/default.yaml $(ETCDIR)/mavvo.yaml
 	sed -e 's|/opt/mavvo|$(abspath $(PREFIX))|g' -e 's|/etc/mavvo|$(abspath $(ETCDIR))|g' -e 's|/var/cache/mavvo|$(abspath $(CACHEDIR))|g' \
 		systemd/mavvo.service > $(UNITDIR)/mavvo.service

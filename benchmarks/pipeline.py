@@ -40,8 +40,8 @@ from benchmarks.common import PI4_FACTOR, load_average, machine, publish  # noqa
 from mavvo.estimation.warmup import warm_kernels  # noqa: E402
 from mavvo.odometry.ahead import TrackAhead  # noqa: E402
 from mavvo.odometry.pipeline import Odometry  # noqa: E402
-from sim.scenarios.loader import load_scenario  # noqa: E402
-from sim.scenarios.paired_frames import PairedSequence  # noqa: E402
+from mavvo.sim.scenarios.loader import load_scenario  # noqa: E402
+from mavvo.sim.scenarios.paired_frames import PairedSequence  # noqa: E402
 
 BEGIN, END = "<!-- pipeline:begin -->", "<!-- pipeline:end -->"
 

@@ -34,7 +34,7 @@ from mavvo import geometry as solvers  # noqa: E402
 from mavvo.geometry.camera_model import CameraModel  # noqa: E402
 from mavvo.geometry.frames import angle_between_rad, rotation_angle_rad  # noqa: E402
 from mavvo.estimation.relpose import RelposeOptions, estimate_relpose_known_gravity  # noqa: E402
-from sim.world.twoview import TwoViewScene, add_outliers, make_scene  # noqa: E402
+from mavvo.sim.world.twoview import TwoViewScene, add_outliers, make_scene  # noqa: E402
 
 try:
     import poselib  # type: ignore[import-not-found]

@@ -3,7 +3,7 @@ errors a flight controller makes, mavvo beside OpenCV and PoseLib in the same ru
 
     python benchmarks/relpose_flight.py [--quick] [--markdown docs/benchmarks.md] [--plots docs/img]
 
-Pairs (:func:`sim.scenarios.tracked_pairs.tracked_pairs`): the simulated camera renders a flight
+Pairs (:func:`mavvo.sim.scenarios.tracked_pairs.tracked_pairs`): the simulated camera renders a flight
 (``survey``: nadir; ``forward``: a forward camera), mavvo's own frontend tracks it, and every 5th frame
 is paired with the one 10 frames later (0.5 s) on the tracks both hold (up to 500 tracks a frame, 6 px
 apart: 200-500 a pair): real tracking noise, real tracking failures as outliers. The truth is the
@@ -49,7 +49,7 @@ from mavvo.estimation.relpose import RelposeOptions, estimate_relpose_known_grav
 from mavvo.geometry.camera_model import CameraModel  # noqa: E402
 from mavvo.geometry.frames import R_lvl_cam, angle_between_rad, rotation_angle_rad  # noqa: E402
 from mavvo.odometry.frontend import FrontendOptions  # noqa: E402
-from sim.scenarios.tracked_pairs import TrackedPair, tracked_pairs  # noqa: E402
+from mavvo.sim.scenarios.tracked_pairs import TrackedPair, tracked_pairs  # noqa: E402
 
 try:
     import poselib  # type: ignore[import-not-found]

@@ -22,8 +22,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.common import load_average, machine, per_call_us, publish  # noqa: E402
 from mavvo.geometry.camera_model import CameraModel  # noqa: E402
 from mavvo.geometry.frames import R_BODY_CAM_FORWARD, R_BODY_CAM_NADIR, R_from_euler321, rot_y  # noqa: E402
-from sim.world.render import Renderer, apply_effects  # noqa: E402
-from sim.world.scene import BoxSpec, World, WorldSpec  # noqa: E402
+from mavvo.sim.world.render import Renderer, apply_effects  # noqa: E402
+from mavvo.sim.world.scene import BoxSpec, World, WorldSpec  # noqa: E402
 
 BEGIN, END = "<!-- render:begin -->", "<!-- render:end -->"
 

@@ -14,17 +14,17 @@ import cv2
 import numpy as np
 
 from mavvo.service.settings import ServiceConfig, config_yaml
-from sim.world.camera import SimCamera
-from sim.world.clock import LockstepClock
+from mavvo.sim.world.camera import SimCamera
+from mavvo.sim.world.clock import LockstepClock
 from mavvo.geometry.frames import R_from_euler321, quat_wxyz_from_R
-from sim.replay.fc_logs import write_dataflash, write_ulog
+from log_writers import write_dataflash, write_ulog
 from mavvo.service.mavlink import mavutil
-from sim.evaluation.metrics import PoseSeries
-from sim.evaluation.report import write_tum
-from sim.scenarios.loader import load_scenario
-from sim.scenarios.service_run import config_for
-from sim.world.trajectories import make_trajectory
-from sim.world.scene import World
+from mavvo.evaluation.metrics import PoseSeries
+from mavvo.evaluation.report import write_tum
+from mavvo.sim.scenarios.loader import load_scenario
+from mavvo.sim.scenarios.service_run import config_for
+from mavvo.sim.world.trajectories import make_trajectory
+from mavvo.sim.world.scene import World
 
 BOOT_S = 100.0
 UNIX_AT_BOOT_US = 1_790_000_000_000_000

@@ -16,10 +16,10 @@ from mavvo.odometry.ahead import TrackAhead
 from mavvo.odometry.frontend import Frontend, Tracks
 from mavvo.service.camera import InjectedSource
 from mavvo.service.settings import ServiceConfig
-from sim.scenarios.loader import load_scenario
-from sim.scenarios.paired_frames import PairedSequence
-from sim.scenarios.service_run import config_for
-from sim.world.clock import LockstepClock
+from mavvo.sim.scenarios.loader import load_scenario
+from mavvo.sim.scenarios.paired_frames import PairedSequence
+from mavvo.sim.scenarios.service_run import config_for
+from mavvo.sim.world.clock import LockstepClock
 
 W, H = 320, 240
 

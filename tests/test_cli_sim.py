@@ -15,7 +15,7 @@ import pytest
 
 from conftest import free_port
 from mavvo.cli import main
-from sim.scenarios.loader import load_scenario
+from mavvo.sim.scenarios.loader import load_scenario
 
 
 def test_fc_only_serves_a_plain_pymavlink_client(mavutil, tmp_path):
@@ -82,7 +82,7 @@ def test_sim_seed_replaces_the_scenarios_own(monkeypatch):
         flown.append(scenario)
         raise RuntimeError("stopped before flying")  # the command reports it and exits 1
 
-    monkeypatch.setattr("sim.scenarios.service_run.run_daemon_in_sim", capture)
+    monkeypatch.setattr("mavvo.sim.scenarios.service_run.run_daemon_in_sim", capture)
     own = load_scenario("hover")
     assert own.seed != 7
     assert main(["sim", "--scenario", "hover", "--seed", "7"]) == 1
@@ -93,14 +93,15 @@ def test_sim_seed_replaces_the_scenarios_own(monkeypatch):
 
 def test_sim_realtime_json_summary(tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-m", "mavvo", "sim", "--scenario", "hover", "--duration", "5", "--realtime", "--json", "--out", str(tmp_path)],
+        [sys.executable, "-m", "mavvo", "sim", "--scenario", "hover", "--duration", "8", "--realtime", "--json", "--out", str(tmp_path)],
         capture_output=True, text=True, timeout=120,
     )
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout)  # stdout holds the one JSON object and nothing else
     assert summary["realtime"] is True and summary["scenario"] == "hover"
-    # How many estimates fit into 5 s of wall time depends on the machine (the first one waits for the
-    # flight controller's HEARTBEAT and settled yaw, about 4 s after the start here): lockstep runs
+    # How many estimates fit into 8 s of wall time depends on the machine and its load (the first one
+    # waits for the flight controller's HEARTBEAT and settled yaw, about 4 s after the start; at 5 s a
+    # loaded machine sometimes had none): lockstep runs
     # check the counts; this one checks that a real-time run estimates at all and reports it.
     assert summary["estimates_received"] > 0 and summary["frames"] >= summary["estimates_received"]
     assert summary["ate_rmse_m"] < 0.1 and summary["latency_ms"] > 0

@@ -1,4 +1,4 @@
-"""Configuration fuzzing: mutated settings files (sim/faults/config_fuzz.py) through ``mavvo check-config``.
+"""Configuration fuzzing: mutated settings files (tools/faults/config_fuzz.py) through ``mavvo check-config``.
 
 Every file is either accepted or refused with exit 2 and one line that names the file (and, for a bad
 value, the key); never a traceback, a crash or a runaway allocation. Accepted files hold only values
@@ -18,11 +18,11 @@ from hypothesis import strategies as st
 
 from mavvo.cli import main
 from mavvo.service.settings import ServiceConfig, load_config
-from sim.faults.config_fuzz import KINDS, mutated_config
+from tools.faults.config_fuzz import KINDS, mutated_config
 
 @st.composite
 def mutated_files(draw) -> bytes:
-    """One settings file from the shared generator (sim/faults/config_fuzz.py), its seed drawn."""
+    """One settings file from the shared generator (tools/faults/config_fuzz.py), its seed drawn."""
     return mutated_config(draw(st.integers(min_value=0, max_value=2**32 - 1)))[1]
 
 

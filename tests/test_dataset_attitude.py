@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from mavvo.geometry.frames import R_from_euler321
-from sim.replay.euroc import _body_from_imu, imu_attitude, tilt_error_deg
+from mavvo.offline.euroc import _body_from_imu, imu_attitude, tilt_error_deg
 
 BIAS = np.array([0.08, -0.06, 0.05])  # rad/s: what a real sequence's gyro shows
 
@@ -55,8 +55,8 @@ def test_in_a_figure_eight_after_a_still_start_the_tilt_stays_within_a_degree():
     """A flight's accelerometer is not gravity in turns: the cruising gains keep its pull small.
     With the converging gains throughout (kp 0.3) this flight was 3.4 deg off (median), 4.3 deg p95."""
     from mavvo.geometry.frames import rot_x
-    from sim.scenarios.loader import load_scenario
-    from sim.world.trajectories import make_trajectory
+    from mavvo.sim.scenarios.loader import load_scenario
+    from mavvo.sim.world.trajectories import make_trajectory
 
     traj = make_trajectory(load_scenario("figure_eight").trajectory)
     R_body_imu = rot_x(np.pi)  # z up, as a EuRoC IMU

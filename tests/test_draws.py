@@ -1,11 +1,11 @@
-"""The report over draws of the scenarios' noise (sim/scenarios/draws.py): tables from summaries as
+"""The report over draws of the scenarios' noise (mavvo/sim/scenarios/draws.py): tables from summaries as
 ``mavvo sim --json`` prints them, and the markdown section it rewrites."""
 
 from __future__ import annotations
 
 import pytest
 
-from sim.scenarios.draws import BEGIN, END, main, report, write_section
+from mavvo.sim.scenarios.draws import BEGIN, END, main, report, write_section
 
 
 def _summary(nees: float, inside: float, end_m: float, step_m: float | None, path_m: float = 80.0, heading_deg: float = 0.5) -> dict:
@@ -53,7 +53,7 @@ def test_bad_arguments_are_named(args, message, capsys):
 
 
 def test_a_failed_flight_is_named_and_the_run_exits_1(monkeypatch, capsys):
-    import sim.scenarios.draws as draws
+    import mavvo.sim.scenarios.draws as draws
 
     def fly(scenario, seed, out_dir):
         if seed == "101":

@@ -18,7 +18,7 @@ from mavvo.geometry.frames import rot_z, rotation_angle_rad
 from mavvo.geometry.ground_2pt import ground_pose_from_homography
 from mavvo.geometry.refine import tilt_rotation
 from mavvo.geometry.residuals import ground_sq, rotation_sq, sampson_sq_upright
-from sim.world.twoview import TwoViewScene, add_outliers, make_scene
+from mavvo.sim.world.twoview import TwoViewScene, add_outliers, make_scene
 
 EXACT_SQ = 1e-24  # squared residual (rad^2) of an exact model on exact data: rounding only
 THRESHOLD_RAD = 1.0 / 500  # a pixel at 500 px focal length

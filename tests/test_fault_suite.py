@@ -1,4 +1,4 @@
-"""The fault suite's cases (sim/faults/suite.py) against the real service: the quick ones in ``make
+"""The fault suite's cases (tools/faults/suite.py) against the real service: the quick ones in ``make
 test``, every case behind the ``faults`` marker (``make faults`` runs them and writes the table)."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from sim.faults.suite import CASES, FAST_CASES, Outcome, markdown_table
+from tools.faults.suite import CASES, FAST_CASES, Outcome, markdown_table
 
 EXPECTED = {
     "folder_vanishes": Outcome.RESTARTED,
@@ -32,7 +32,7 @@ def test_slow_case(name, tmp_path):
 
 
 def test_the_table_has_a_row_per_case_and_says_what_failed():
-    from sim.faults.suite import FaultRow
+    from tools.faults.suite import FaultRow
 
     rows = [FaultRow("a", Outcome.SURVIVED, 0.25, "nothing", "x"), FaultRow("b", Outcome.FAILED, float("nan"), "all", "y")]
     table = markdown_table(rows).splitlines()

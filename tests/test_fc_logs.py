@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from mavvo.errors import ConfigError
-from sim.replay.fc_logs import read_fc_log, write_dataflash, write_ulog
+from log_writers import write_dataflash, write_ulog
+from mavvo.offline.fc_logs import read_fc_log
 
 ROLL_DEG = [1.0, 2.0, 3.0, 4.0]
 

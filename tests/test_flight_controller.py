@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from conftest import free_port
-from sim.world.clock import LockstepClock, RealClock
-from sim.world.faults import FaultSchedule, FaultSpec
-from sim.flight_controller.autopilot import SimFlightController
-from sim.flight_controller.spec import FlightControllerSpec
-from sim.world.trajectories import FigureEightSpec, HoverSpec, make_trajectory
+from mavvo.sim.world.clock import LockstepClock, RealClock
+from mavvo.sim.world.faults import FaultSchedule, FaultSpec
+from mavvo.sim.flight_controller.autopilot import SimFlightController
+from mavvo.sim.flight_controller.spec import FlightControllerSpec
+from mavvo.sim.world.trajectories import FigureEightSpec, HoverSpec, make_trajectory
 
 ATTITUDE = 30
 SYSTEM_TIME = 2

@@ -13,11 +13,11 @@ from mavvo.odometry.pipeline import Odometry, OdometryOptions
 from mavvo.service.daemon import Daemon
 from mavvo.service.settings import ServiceConfig
 from mavvo.service.timing import FlightControllerState, TimingOptions
-from sim.flight_controller.estimator import EstimatorSpec, SimEstimator
-from sim.scenarios.flight import Simulation
-from sim.scenarios.loader import load_scenario
-from sim.scenarios.service_run import config_for, run_daemon_in_sim
-from sim.world.camera import SimCamera
+from mavvo.sim.flight_controller.estimator import EstimatorSpec, SimEstimator
+from mavvo.sim.scenarios.flight import Simulation
+from mavvo.sim.scenarios.loader import load_scenario
+from mavvo.sim.scenarios.service_run import config_for, run_daemon_in_sim
+from mavvo.sim.world.camera import SimCamera
 
 
 class FixedClock:
@@ -66,7 +66,7 @@ def test_fc_yaw_counts_as_settled_only_once_it_follows_its_gyro():
 
 
 def test_reinitialisation_is_anchored_at_the_flight_controllers_position():
-    from sim.scenarios.paired_frames import PairedSequence
+    from mavvo.sim.scenarios.paired_frames import PairedSequence
 
     sc = dataclasses.replace(load_scenario("hover"), duration_s=3.0)
     frames = list(PairedSequence(sc))
@@ -168,7 +168,7 @@ def test_heading_is_taken_from_the_fc_once_its_yaw_has_settled():
 
 
 def test_on_the_ground_before_take_off_the_sent_sigma_stays_small():
-    from sim.world.trajectories import HoverSpec
+    from mavvo.sim.world.trajectories import HoverSpec
 
     # Standing on its landing gear: the camera 0.3 m above the ground, not moving at all.
     sc = dataclasses.replace(load_scenario("hover"), trajectory=HoverSpec(altitude_m=0.3, drift_m=0.0, duration_s=10.0), duration_s=10.0)

@@ -11,9 +11,9 @@ import cv2
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import R_from_euler321
 from mavvo.odometry.frontend import Frontend, FrontendOptions
-from sim.world.camera import CameraSpec
-from sim.world.render import Renderer, apply_effects
-from sim.world.scene import World, WorldSpec
+from mavvo.sim.world.camera import CameraSpec
+from mavvo.sim.world.render import Renderer, apply_effects
+from mavvo.sim.world.scene import World, WorldSpec
 
 SPEC = CameraSpec()
 CAMERA = SPEC.camera_model()

@@ -8,7 +8,7 @@ import pytest
 from mavvo.geometry.frames import rotation_angle_rad
 from mavvo.geometry.residuals import ground_sq
 from mavvo.geometry import ground_pose_from_homography, solve_ground_2pt_batch
-from sim.world.twoview import make_scene
+from mavvo.sim.world.twoview import make_scene
 
 
 def _ground_scenes(n: int, seed: int = 0):

@@ -1,7 +1,7 @@
 """Hostile and broken input against the service's parts, over real sockets on 127.0.0.1 and real files:
 a flood, a configured flight controller, a connected udpout socket, stale estimates, oversized images,
 a camera that keeps failing, a second stop signal, and threads that stop or die. The whole service
-against each input is the fault suite (sim/faults/suite.py, tests/test_fault_suite.py)."""
+against each input is the fault suite (tools/faults/suite.py, tests/test_fault_suite.py)."""
 
 from __future__ import annotations
 
@@ -27,11 +27,11 @@ from mavvo.service.link import Link, LinkOptions, SystemStatus
 from mavvo.service.mavlink import mavutil
 from mavvo.service.settings import ServiceConfig
 from mavvo.service.timing import MonotonicClock
-from sim.flight_controller.autopilot import SimFlightController
-from sim.flight_controller.spec import FlightControllerSpec
-from sim.world.clock import RealClock
-from sim.world.faults import FaultSchedule
-from sim.world.trajectories import HoverSpec, make_trajectory
+from mavvo.sim.flight_controller.autopilot import SimFlightController
+from mavvo.sim.flight_controller.spec import FlightControllerSpec
+from mavvo.sim.world.clock import RealClock
+from mavvo.sim.world.faults import FaultSchedule
+from mavvo.sim.world.trajectories import HoverSpec, make_trajectory
 from tests.conftest import free_port, wait_for
 from tests.test_link import Recorder
 

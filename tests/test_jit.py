@@ -18,7 +18,7 @@ _SCRIPT = """
 import json, numpy as np
 from mavvo.estimation.relpose import estimate_upright_relpose
 from mavvo.geometry import solve_upright_3pt
-from sim.world.twoview import add_outliers, make_scene
+from mavvo.sim.world.twoview import add_outliers, make_scene
 rng = np.random.default_rng(7)
 out = []
 for structure in ("volume", "ground"):
@@ -65,8 +65,8 @@ def _warm(cache: Path | None) -> subprocess.CompletedProcess:
 # A few frames of a simulated flight through the whole odometry (frontend, relative pose, scale).
 _FLIGHT = """
 from mavvo.odometry.pipeline import Odometry
-from sim.scenarios.loader import load_scenario
-from sim.scenarios.paired_frames import PairedSequence
+from mavvo.sim.scenarios.loader import load_scenario
+from mavvo.sim.scenarios.paired_frames import PairedSequence
 scenario = load_scenario("survey")
 seq = PairedSequence(scenario)
 vo = Odometry(scenario.camera.camera_model(), seq.R_body_cam)

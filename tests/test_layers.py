@@ -1,13 +1,13 @@
-"""The layers of mavvo and sim: every import points down, and each outside library has one importer.
+"""The layers of mavvo: every import points down, and each outside library has one importer.
 
 Layers, lowest first (``docs/design.md``): the shared vocabulary (``mavvo.errors``, ``mavvo.options``,
-``mavvo.types``), ``mavvo.geometry``, ``mavvo.estimation``, ``mavvo.odometry``, ``mavvo.service``,
-``mavvo.calibration``, then
-the simulator's ``sim.evaluation``, ``sim.world``, ``sim.flight_controller``, ``sim.scenarios``,
-``sim.replay``, the command line (``mavvo.cli``, ``mavvo.commands``), and at the top the fault suite
-(``sim.faults``), which drives the command line as an operator would. The commands
-may import ``sim``, but only inside the function of a command that needs it, so that ``mavvo run``
-never loads the simulator.
+``mavvo.types``, ``mavvo.jit``), ``mavvo.geometry``, ``mavvo.estimation``, ``mavvo.odometry``,
+``mavvo.service``, ``mavvo.calibration``, ``mavvo.evaluation``, the simulator's ``mavvo.sim.world``,
+``mavvo.sim.flight_controller`` and ``mavvo.sim.scenarios``, ``mavvo.offline``, the command line
+(``mavvo.cli``, ``mavvo.commands``), and outside the package, at the top, the developer tooling under
+``tools/`` (the fault suite drives the command line as an operator would). The commands import the
+simulator and the offline tools only inside the function of a command that needs them, so that
+``mavvo run`` never loads them.
 """
 
 from __future__ import annotations
@@ -27,14 +27,16 @@ LAYERS = (
     ("mavvo.odometry",),
     ("mavvo.service",),
     ("mavvo.calibration",),
-    ("sim.evaluation", "sim"),
-    ("sim.world",),
-    ("sim.flight_controller",),
-    ("sim.scenarios",),
-    ("sim.replay",),
+    ("mavvo.evaluation",),
+    ("mavvo.sim", "mavvo.sim.world"),
+    ("mavvo.sim.flight_controller",),
+    ("mavvo.sim.scenarios",),
+    ("mavvo.offline",),
     ("mavvo.cli", "mavvo.commands", "mavvo.__main__"),
-    ("sim.faults",),  # above the command line: it checks settings files through it, as an operator would
+    ("tools",),  # outside the package: the fault suite checks settings files through the command line
 )
+# What the command line loads only inside a command's function (start-up of ``mavvo run``).
+LOADED_ON_DEMAND = ("mavvo.sim", "mavvo.offline", "mavvo.evaluation")
 # Outside libraries with exactly one importer.
 SOLE_IMPORTER = {"pymavlink": "mavvo.service.mavlink", "numba": "mavvo.jit", "filterpy": None}  # None: tests only (a reference)
 
@@ -90,8 +92,9 @@ def imports_of(source: str, importer: str, package: bool) -> list[Edge]:
 
 
 def violations(edges: list[Edge]) -> list[str]:
-    """What breaks the layering: an upward import, sim imported by mavvo outside a command's function,
-    a second importer of pymavlink or numba, or any importer of filterpy (a reference for the tests)."""
+    """What breaks the layering: an upward import, the simulator or the offline tools imported by the
+    command line outside a command's function, a second importer of pymavlink or numba, or any
+    importer of filterpy (a reference for the tests)."""
     out = []
     for e in edges:
         top = e.imported.split(".")[0]
@@ -100,19 +103,19 @@ def violations(edges: list[Edge]) -> list[str]:
                 who = SOLE_IMPORTER[top] or "the tests"
                 out.append(f"{e.importer}:{e.line} imports {top}; only {who} may")
             continue
-        if top not in ("mavvo", "sim"):
-            continue
-        if e.importer.startswith("mavvo") and top == "sim":
-            if not (e.importer.startswith("mavvo.commands.") and e.in_function):
-                out.append(f"{e.importer}:{e.line} imports {e.imported}: mavvo loads sim only inside a command's function")
+        if top not in ("mavvo", "tools"):
             continue
         if layer_of(e.imported) > layer_of(e.importer):
             out.append(f"{e.importer}:{e.line} imports {e.imported}, a higher layer")
+            continue
+        on_demand = any(e.imported == p or e.imported.startswith(p + ".") for p in LOADED_ON_DEMAND)
+        if on_demand and e.importer.startswith(("mavvo.commands", "mavvo.cli")) and not e.in_function:
+            out.append(f"{e.importer}:{e.line} imports {e.imported}: the command line loads it only inside a command's function")
     return out
 
 
 def all_modules() -> dict[str, Path]:
-    paths = sorted((ROOT / "mavvo").rglob("*.py")) + sorted((ROOT / "sim").rglob("*.py"))
+    paths = sorted((ROOT / "mavvo").rglob("*.py")) + sorted((ROOT / "tools").rglob("*.py"))
     return {module_name(p): p for p in paths}
 
 
@@ -161,12 +164,16 @@ def test_every_module_says_its_job_in_its_first_docstring_line() -> None:
     "importer, source, package, expected",
     [
         ("mavvo.geometry.frames", "from mavvo.odometry.filter import wrap_angle\n", False, "a higher layer"),
-        ("mavvo.service.daemon", "import sim.world.scene\n", False, "mavvo loads sim only"),
-        ("mavvo.commands.run", "from sim.world.camera import x\n", False, "mavvo loads sim only"),
-        ("sim.world.camera", "from pymavlink import mavutil\n", False, "only mavvo.service.mavlink may"),
+        ("mavvo.service.daemon", "import mavvo.sim.world.scene\n", False, "a higher layer"),
+        ("mavvo.sim.world.camera", "from mavvo.offline.driver import replay\n", False, "a higher layer"),
+        ("mavvo.offline.driver", "from mavvo.cli import main\n", False, "a higher layer"),
+        ("mavvo.commands.run", "from mavvo.sim.world.camera import x\n", False, "only inside a command's function"),
+        ("mavvo.commands.replay", "from mavvo.offline import driver\n", False, "only inside a command's function"),
+        ("mavvo.sim.world.camera", "from pymavlink import mavutil\n", False, "only mavvo.service.mavlink may"),
         ("mavvo.odometry.filter", "import filterpy.kalman\n", False, "only the tests may"),
         ("mavvo.geometry.essential", "from ..odometry import pipeline\n", False, "a higher layer"),
         ("mavvo.odometry", "from .pipeline import Odometry\nfrom ..service import daemon\n", True, "a higher layer"),
+        ("mavvo.cli", "import tools.faults.suite\n", False, "a higher layer"),
     ],
 )
 def test_the_checker_finds_each_kind_of_violation(importer: str, source: str, package: bool, expected: str) -> None:
@@ -176,9 +183,25 @@ def test_the_checker_finds_each_kind_of_violation(importer: str, source: str, pa
 
 def test_the_checker_allows_what_the_layering_allows() -> None:
     allowed = [
-        ("mavvo.commands.sim", "def main():\n    from sim.scenarios.loader import load_scenario\n", False),
-        ("sim.replay.driver", "from mavvo.service.daemon import Daemon\nfrom sim.world.clock import LockstepClock\n", False),
+        ("mavvo.commands.sim", "def main():\n    from mavvo.sim.scenarios.loader import load_scenario\n", False),
+        ("mavvo.offline.driver", "from mavvo.service.daemon import Daemon\nfrom mavvo.sim.world.clock import LockstepClock\n", False),
         ("mavvo.odometry.pipeline", "from mavvo.geometry.frames import R_lvl_cam\nfrom mavvo.types import PairedFrame\n", False),
+        ("tools.faults.suite", "from mavvo.cli import main\n", False),
     ]
     for importer, source, package in allowed:
         assert violations(imports_of(source, importer, package)) == []
+
+
+def test_only_mavvo_is_installed() -> None:
+    """``pip install .`` installs the package ``mavvo`` and nothing beside it (no top-level ``sim``,
+    no ``tools``): the packages setuptools finds with pyproject.toml's ``include``."""
+    import re
+
+    from setuptools import find_packages
+
+    found = re.search(r"^include = \[(.*)\]$", (ROOT / "pyproject.toml").read_text(encoding="utf-8"), re.M)
+    assert found is not None, "pyproject.toml: [tool.setuptools.packages.find] include not found"
+    patterns = [p.strip().strip('"') for p in found.group(1).split(",")]
+    packages = find_packages(where=str(ROOT), include=patterns)
+    assert "mavvo" in packages and "mavvo.sim.scenarios" in packages and "mavvo.offline" in packages
+    assert [p for p in packages if p.split(".")[0] != "mavvo"] == []

@@ -10,9 +10,9 @@ import pytest
 
 from mavvo.errors import ConfigError
 from mavvo.geometry.frames import R_from_euler321
-from sim.evaluation.metrics import PoseSeries, align_umeyama, associate, evaluate
-from sim.evaluation.report import read_tum, write_report, write_tum
-from sim.world.trajectories import LawnmowerSpec, make_trajectory
+from mavvo.evaluation.metrics import PoseSeries, align_umeyama, associate, evaluate
+from mavvo.evaluation.report import read_tum, write_report, write_tum
+from mavvo.sim.world.trajectories import LawnmowerSpec, make_trajectory
 
 
 def _truth(step_s: float = 0.1) -> PoseSeries:

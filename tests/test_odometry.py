@@ -14,9 +14,9 @@ from mavvo.service.yaml_loader import build
 from mavvo.geometry.frames import R_from_euler321
 from mavvo.odometry.pipeline import Odometry, OdometryOptions
 from mavvo.types import PoseEstimate
-from sim.evaluation.metrics import Evaluation, PoseSeries, evaluate
-from sim.scenarios.loader import Scenario, load_scenario
-from sim.scenarios.paired_frames import PairedSequence
+from mavvo.evaluation.metrics import Evaluation, PoseSeries, evaluate
+from mavvo.sim.scenarios.loader import Scenario, load_scenario
+from mavvo.sim.scenarios.paired_frames import PairedSequence
 
 
 @dataclass(frozen=True)

@@ -15,8 +15,8 @@ from mavvo.odometry.scale import ScaleEstimate, ScaleOptions, estimate_scale, gr
 from mavvo.odometry.pipeline import Odometry, _Measurement
 from mavvo.estimation.relpose import RelposeFailure, _failure
 from mavvo.types import PairedFrame, ScaleSource, StateReason
-from sim.scenarios.loader import load_scenario
-from sim.world.twoview import make_scene
+from mavvo.sim.scenarios.loader import load_scenario
+from mavvo.sim.world.twoview import make_scene
 
 
 def _unit_geometry(scene):

@@ -14,9 +14,9 @@ import pytest
 from mavvo.cli import main
 from mavvo.service.preflight import Verdict, checks
 from mavvo.service.settings import MountingOptions, ServiceConfig
-from sim.flight_controller.spec import VISION_READY_PARAMS
-from sim.scenarios.flight import Simulation
-from sim.scenarios.loader import load_scenario
+from mavvo.sim.flight_controller.spec import VISION_READY_PARAMS
+from mavvo.sim.scenarios.flight import Simulation
+from mavvo.sim.scenarios.loader import load_scenario
 from tests.conftest import free_port
 
 

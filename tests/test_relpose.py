@@ -15,7 +15,7 @@ from mavvo.estimation.relpose import RelposeOptions, estimate_relpose_known_grav
 import mavvo.estimation.attitude_refine as attitude_refine
 from mavvo.geometry.refine import refine_upright, tilt_rotation
 from mavvo.geometry.residuals import sampson_sq_upright
-from sim.world.twoview import add_outliers, make_scene
+from mavvo.sim.world.twoview import add_outliers, make_scene
 
 FOCAL_PX = 500.0
 THRESHOLD_RAD = 1.5 / FOCAL_PX  # 3 sigma of 0.5 px noise

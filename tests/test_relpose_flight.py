@@ -13,7 +13,7 @@ import mavvo.estimation.relpose as relpose
 from mavvo.estimation.relpose import estimate_relpose_known_gravity
 from mavvo.geometry.frames import R_lvl_cam, angle_between_rad, rotation_angle_rad
 from mavvo.odometry.frontend import FrontendOptions
-from sim.scenarios.tracked_pairs import TrackedPair, tracked_pairs
+from mavvo.sim.scenarios.tracked_pairs import TrackedPair, tracked_pairs
 
 
 @pytest.fixture(scope="module")

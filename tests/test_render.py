@@ -8,8 +8,8 @@ import pytest
 
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import R_BODY_CAM_FORWARD, R_BODY_CAM_NADIR, R_from_euler321, rot_y
-from sim.world.render import Renderer, apply_effects
-from sim.world.scene import BoxSpec, TextureLayer, World, WorldSpec
+from mavvo.sim.world.render import Renderer, apply_effects
+from mavvo.sim.world.scene import BoxSpec, TextureLayer, World, WorldSpec
 
 PINHOLE = CameraModel(640, 480, 500.0, 500.0, 319.5, 239.5)
 RADTAN = CameraModel(640, 480, 420.0, 420.0, 322.0, 236.0, "pinhole", (-0.28, 0.07, 0.0005, -0.0003))

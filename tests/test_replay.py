@@ -20,12 +20,12 @@ from mavvo.service.settings import ServiceConfig
 from mavvo.service.timing import Pairing
 from mavvo.service.tlog import payload, read_tlog, write_record
 from mavvo.types import Frame
-from sim.world.clock import LockstepClock
-from sim.replay.recording import load_recording
-from sim.replay.driver import replay
-from sim.scenarios.loader import load_scenario
-from sim.scenarios.service_run import run_daemon_in_sim
-from sim.replay.time_offset import estimate_offset
+from mavvo.sim.world.clock import LockstepClock
+from mavvo.offline.recording import load_recording
+from mavvo.offline.driver import replay
+from mavvo.sim.scenarios.loader import load_scenario
+from mavvo.sim.scenarios.service_run import run_daemon_in_sim
+from mavvo.offline.time_offset import estimate_offset
 
 sys.path.insert(0, str(Path(__file__).parent))
 from flightlogs import make_euroc, make_log_flight  # noqa: E402
@@ -233,7 +233,7 @@ def test_euroc_folder_replays_with_truth_or_imu_attitude(tmp_path, capsys):
     tilt = s["notes"]["attitude_tilt_error_deg"]  # the IMU filter's roll/pitch against the ground truth, reported
     assert 0.0 < tilt["median"] <= tilt["p95"] < 5.0
     assert s["evaluation"]["ate_se3_m"]["rmse"] < 0.5  # the filter's tilt errors in turns cost some accuracy
-    from sim.replay.sources import open_replay_source
+    from mavvo.offline.sources import open_replay_source
 
     inp = open_replay_source(root)
     assert np.allclose(inp.config.mounting.rotation(), np.array(load_scenario("figure_eight").camera.R_body_cam()), atol=1e-3)

@@ -11,8 +11,8 @@ import pytest
 from conftest import free_port
 from mavvo.service.camera import FrameSource
 from mavvo.errors import CameraError, ConfigError
-from sim.scenarios.loader import Scenario, load_scenario, scenario_names
-from sim.scenarios.flight import Simulation
+from mavvo.sim.scenarios.loader import Scenario, load_scenario, scenario_names
+from mavvo.sim.scenarios.flight import Simulation
 
 
 @pytest.mark.parametrize("name", scenario_names())
@@ -127,16 +127,16 @@ def test_unknown_scenario_lists_the_shipped_ones(tmp_path):
 def test_docs_list_every_scenario_key():
     from pathlib import Path
 
-    from sim.scenarios.loader import scenario_keys_markdown
+    from mavvo.sim.scenarios.loader import scenario_keys_markdown
 
     doc = (Path(__file__).resolve().parents[1] / "docs" / "simulator.md").read_text()
     section = doc.split("<!-- keys:begin -->\n", 1)[1].split("<!-- keys:end -->", 1)[0]
-    assert section == scenario_keys_markdown(), "docs/simulator.md is stale: paste sim.scenarios.loader.scenario_keys_markdown()"
+    assert section == scenario_keys_markdown(), "docs/simulator.md is stale: paste mavvo.sim.scenarios.loader.scenario_keys_markdown()"
 
 
 def test_a_scenario_run_evaluates_what_the_flight_controller_received(mavutil, tmp_path):
     """A client that reports the true camera-frame times with 5 cm of noise scores about 5 cm * sqrt(3)."""
-    from sim.evaluation.report import vision_estimates, write_report
+    from mavvo.evaluation.report import vision_estimates, write_report
 
     port = free_port()
     sim = Simulation(load_scenario("square"), f"udpin:127.0.0.1:{port}", duration_s=20.0)
@@ -180,7 +180,7 @@ def test_the_service_flown_twice_in_lockstep_sends_the_same_estimates_bit_for_bi
     from mavvo.service.daemon import Daemon
     from mavvo.service.link import Link
     from mavvo.service.settings import ServiceConfig
-    from sim.scenarios.service_run import run_daemon_in_sim
+    from mavvo.sim.scenarios.service_run import run_daemon_in_sim
 
     sc = load_scenario("faults")
     assert any(f.kind == "link_silence" and f.end_s < 7.0 for f in sc.faults)

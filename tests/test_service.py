@@ -20,9 +20,9 @@ import pytest
 from mavvo.service.camera import InjectedSource, ReconnectingSource
 from mavvo.errors import CameraEnded, CameraError
 from mavvo.service.settings import OutputOptions, ServiceConfig
-from sim.world.faults import FaultSpec
-from sim.scenarios.loader import load_scenario
-from sim.scenarios.service_run import run_daemon_in_sim
+from mavvo.sim.world.faults import FaultSpec
+from mavvo.sim.scenarios.loader import load_scenario
+from mavvo.sim.scenarios.service_run import run_daemon_in_sim
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,7 @@ from mavvo.geometry import (
     upright_constraint_residual,
     upright_pose_from_essential,
 )
-from sim.world.twoview import TwoViewScene, make_scene
+from mavvo.sim.world.twoview import TwoViewScene, make_scene
 
 MOTIONS = ("sideways", "forward", "random")
 MOUNTS = ("nadir", "oblique")

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mavvo.geometry.frames import rotation_angle_rad
-from sim.world.trajectories import (
+from mavvo.sim.world.trajectories import (
     GRAVITY_M_S2,
     TRAJECTORY_SPECS,
     LawnmowerSpec,

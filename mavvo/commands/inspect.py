@@ -36,7 +36,7 @@ def _fmt(x: float | None, unit: str = "", digits: int = 3) -> str:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sim.replay.inspect import inspect_source
+    from mavvo.offline.inspect import inspect_source
 
     ins = inspect_source(args.path, video=args.video, fps=args.fps, offset_s=args.offset_s, config=args.config)
     if args.json:

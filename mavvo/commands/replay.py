@@ -41,9 +41,9 @@ def add_parser(sub: Any) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sim.replay.driver import empty_result, replay
-    from sim.replay.report import write_replay_report
-    from sim.replay.sources import open_replay_source
+    from mavvo.offline.driver import empty_result, replay
+    from mavvo.offline.report import write_replay_report
+    from mavvo.offline.sources import open_replay_source
 
     inp = open_replay_source(
         args.source, config=args.config, video=args.video, fps=args.fps, offset_s=args.offset_s, ground_truth=args.ground_truth,

@@ -28,7 +28,7 @@ def add_parser(sub: Any) -> None:
 def sim_camera(argument: str, options: Any, clock: Any, fc: Any = None) -> Any:
     """``camera.source: sim:SCENARIO``: the simulator's rendered camera, in real time, flying the
     scenario on the simulated flight controller's clock (``mavvo sim --fc-only``) once it is heard."""
-    from sim.scenarios.flight import scenario_camera  # sim is loaded only when asked for
+    from mavvo.sim.scenarios.flight import scenario_camera  # sim is loaded only when asked for
 
     return scenario_camera(argument, clock, fc)
 

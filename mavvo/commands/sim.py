@@ -69,7 +69,7 @@ def add_parser(sub: Any) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sim.scenarios.loader import load_scenario, scenario_names  # sim is loaded only for this command
+    from mavvo.sim.scenarios.loader import load_scenario, scenario_names  # sim is loaded only for this command
 
     if args.list:
         for name in scenario_names():
@@ -88,7 +88,7 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _sim_service(scenario: Any, args: argparse.Namespace) -> int:
-    from sim.scenarios.service_run import run_daemon_in_sim
+    from mavvo.sim.scenarios.service_run import run_daemon_in_sim
 
     base = with_record(load_config(args.config) if args.config is not None else ServiceConfig(), args.record)
     out = args.out if args.out is not None else Path("mavvo-sim-out") / scenario.name
@@ -130,8 +130,8 @@ def _sim_service(scenario: Any, args: argparse.Namespace) -> int:
 
 
 def _fc_only(scenario: Any, args: argparse.Namespace) -> int:
-    from sim.evaluation.report import vision_estimates, write_report
-    from sim.scenarios.flight import Simulation
+    from mavvo.evaluation.report import vision_estimates, write_report
+    from mavvo.sim.scenarios.flight import Simulation
 
     try:
         sim = Simulation(scenario, args.mavlink, realtime=True, forward_url=args.forward)

@@ -29,6 +29,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Literal, Mapping
 
@@ -358,6 +359,7 @@ def estimate_upright_relpose(
     options: RelposeOptions | None = None,
     yaw_prior_rad: float | None = None,
     attitude_sigma_rad: tuple[float, float] | None = None,
+    confidence: float | None = None,
 ) -> UprightRelpose:
     """Robust relative pose between two level frames from bearing correspondences.
 
@@ -374,12 +376,19 @@ def estimate_upright_relpose(
             paper's setting). With an uncertainty, hypotheses are scored with a threshold that allows
             for the tilt error they inherit; the refinement then corrects roll/pitch under that prior,
             re-selecting the inliers with a threshold halved each round down to ``max_err_rad``.
+        confidence: deprecated (a keyword of 0.1.0's first releases): ``options.confidence`` replaces
+            it. Still taken, with a ``DeprecationWarning``, in place of ``options.confidence``.
 
     Returns:
         :class:`UprightRelpose`. Degenerate input (fewer points than a sample, identical points, no
         motion) gives ``success=False`` with a reason; malformed input raises ``ValueError``.
     """
     opt = options or RelposeOptions()
+    if confidence is not None:
+        warnings.warn("estimate_upright_relpose(confidence=...) is deprecated: pass options=RelposeOptions(confidence=...)", DeprecationWarning, stacklevel=2)
+        if not 0 < confidence < 1:
+            raise ValueError(f"confidence: expected a probability in (0, 1), got {confidence}")
+        opt = dataclasses.replace(opt, confidence=confidence)
     f1, f2 = as_bearing_pair(f1_lvl, f2_lvl, names=("f1_lvl", "f2_lvl"))
     if not (np.isfinite(max_err_rad) and max_err_rad > 0):
         raise ValueError(f"max_err_rad: expected a positive angle, got {max_err_rad}")

@@ -2,6 +2,7 @@
 module), residuals and least-squares refinement, medians. numpy, OpenCV and compiled kernels
 (``mavvo.jit``); imports nothing else of mavvo but ``mavvo.errors``, ``mavvo.options`` and ``mavvo.types``."""
 
+from mavvo.geometry.camera_model import CameraIntrinsics, CameraModel
 from mavvo.geometry.essential import (
     alpha_beta_gamma,
     as_bearing_pair,
@@ -17,6 +18,8 @@ from mavvo.geometry.upright_linear5pt import solve_upright_linear5pt
 from mavvo.geometry.upright_pose import upright_pose_from_essential
 
 __all__ = [
+    "CameraIntrinsics",
+    "CameraModel",
     "alpha_beta_gamma",
     "as_bearing_pair",
     "epipolar_rows",

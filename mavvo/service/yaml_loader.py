@@ -4,7 +4,7 @@ Every dataclass field is a key; its type annotation is the expected type and its
 :func:`mavvo.options.bounded`) may carry bounds (``ge``, ``gt``, ``le``, ``lt``) and a one-line ``help``. An unknown key, a wrong type or a value
 out of range is a :class:`ConfigError` that names the source, the key path and what was expected::
 
-    sim/scenarios/hover.yaml: trajectory.altitude_m: expected a number > 0, got -3
+    mavvo/sim/scenarios/hover.yaml: trajectory.altitude_m: expected a number > 0, got -3
 
 Supported field types: bool, int, float, str, ``Literal[...]``, ``tuple[T, ...]``, fixed tuples,
 ``T | None``, nested dataclasses (also in tuples), and unions of dataclasses told apart by a ``type``

@@ -1,0 +1,275 @@
+"""A EuRoC/ASL dataset folder as a replay input.
+
+Read: ``mav0/cam0`` (data.csv, data/*.png, sensor.yaml with ``T_BS``, intrinsics, radial-tangential
+distortion, resolution, rate), ``mav0/imu0/data.csv`` (gyro rad/s, accelerometer m/s^2) and, when there,
+``mav0/state_groundtruth_estimate0/data.csv``. The host clock is the dataset's (nanoseconds / 1e9).
+
+Frames (mavvo's conventions, see docs/replay.md):
+- the body frame is the IMU's turned so that z points down at the start (the mean accelerometer over
+  the first second) and x along the camera's view (or the image's up for a camera looking down);
+  ``mounting.R_body_cam`` and ``lever_arm_m`` follow from ``T_BS``;
+- roll/pitch come from the IMU through an attitude filter that also estimates the gyro bias (Mahony
+  with integral feedback, :func:`imu_attitude`; what a flight controller computes), or from the ground
+  truth plus Gaussian noise; yaw is the filter's (it drifts, as a magnetometer-less one does);
+- height above the start comes from the ground truth with barometer-like noise (the datasets have no
+  barometer or rangefinder), so ``odometry.scale.source`` defaults to ``altitude``; a folder without
+  ground truth replays with a warning and the height from the configuration (``fixed``, or ``carried``
+  when chosen).
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import yaml
+
+from mavvo.errors import ConfigError
+from mavvo.geometry.frames import R_from_euler321, R_from_quat_wxyz, euler321_from_R, quat_wxyz_from_R, skew
+from mavvo.service.settings import parse_config
+from mavvo.offline.fc_logs import FcSeries, series_messages
+from mavvo.evaluation.metrics import PoseSeries
+from mavvo.offline.recording import merge
+from mavvo.offline.driver import ReplayFrame, ReplayInput, image_loader
+
+__all__ = ["load_euroc", "read_euroc_groundtruth"]
+
+# Gains (rad/s and rad/s^2 per rad of tilt error): the accelerometer's pull toward its "up" and how fast
+# the gyro-bias estimate follows the pull that persists. Cruising: small, as in a turn the accelerometer
+# is not gravity (0.3 gave 3.4 deg median error in a figure eight at 0.7 m/s^2, 0.02 gave 0.4 deg).
+# Converging: larger, when the recording does not start at rest and the integral must find the bias.
+ATTITUDE_KP = 0.02
+ATTITUDE_KI = 0.001
+ATTITUDE_KP_CONVERGING = 0.3
+ATTITUDE_KI_CONVERGING = 0.02
+ATTITUDE_RATE_HZ = 100.0
+_REST_GYRO_STD = 0.02  # rad/s: a gyro this steady over the first second is at rest
+HEIGHT_RATE_HZ = 10.0
+HEIGHT_NOISE_M = 0.1
+_D = np.diag([1.0, -1.0, -1.0])  # the datasets' z-up world to mavvo's level frame (z down)
+
+
+def _rows(path: Path) -> Iterator[tuple[int, list[str]]]:
+    """(line number, fields) of a dataset CSV, comments and blank lines skipped."""
+    if not path.is_file():
+        raise ConfigError(f"{path}: missing (expected a EuRoC/ASL dataset file)")
+    with path.open(newline="", encoding="utf-8") as f:
+        for n, row in enumerate(csv.reader(f), 1):
+            if row and not row[0].startswith("#"):
+                yield n, row
+
+
+def _csv(path: Path, min_columns: int) -> np.ndarray:
+    rows = []
+    for n, row in _rows(path):
+        try:
+            values = [float(x) for x in row[:min_columns]]
+        except ValueError:
+            raise ConfigError(f"{path}:{n}: expected {min_columns} numbers, got {','.join(row)!r}") from None
+        if len(values) < min_columns:
+            raise ConfigError(f"{path}:{n}: expected {min_columns} columns, got {len(row)}")
+        rows.append(values)
+    return np.array(rows).reshape(-1, min_columns)
+
+
+def _frame_rows(path: Path) -> list[tuple[str, str]]:
+    out = []
+    for n, row in _rows(path):
+        if len(row) < 2 or not row[0].strip().isdigit():
+            raise ConfigError(f"{path}:{n}: expected 'timestamp_ns,filename', got {','.join(row)!r}")
+        out.append((row[0].strip(), row[1].strip()))
+    return out
+
+
+def dataset_times(mav0: Path) -> dict[str, tuple[str, np.ndarray]]:
+    """The sample times (seconds, the dataset's clock) of the frames, the IMU and the ground truth (empty
+    when the folder has none), each with the file it comes from."""
+    gt = mav0 / "state_groundtruth_estimate0" / "data.csv"
+    return {
+        "frames": ("cam0/data.csv", np.array([int(t) * 1e-9 for t, _ in _frame_rows(mav0 / "cam0" / "data.csv")])),
+        "imu": ("imu0/data.csv", _csv(mav0 / "imu0" / "data.csv", 7)[:, 0] * 1e-9),
+        "ground_truth": ("state_groundtruth_estimate0/data.csv", _csv(gt, 8)[:, 0] * 1e-9 if gt.is_file() else np.zeros(0)),
+    }
+
+
+def _sensor_yaml(path: Path) -> dict[str, Any]:
+    try:
+        text = path.read_text(encoding="utf-8")
+        data = yaml.safe_load("\n".join(line for line in text.splitlines() if not line.startswith("%")))  # OpenCV's %YAML:1.0
+    except (OSError, yaml.YAMLError) as e:
+        raise ConfigError(f"{path}: cannot read: {e}") from e
+    if not isinstance(data, dict) or "T_BS" not in data:
+        raise ConfigError(f"{path}: expected a EuRoC sensor.yaml with T_BS, got {type(data).__name__}")
+    return data
+
+
+def read_euroc_groundtruth(path: Path) -> PoseSeries:
+    """The ground truth of the IMU (``p_RS_R``, ``q_RS`` wxyz) as a series in mavvo's level frame."""
+    a = _csv(path, 8)
+    R = np.array([_D @ R_from_quat_wxyz(q) for q in a[:, 4:8]])
+    return PoseSeries.from_rotations(a[:, 0] * 1e-9, a[:, 1:4] @ _D.T, R)
+
+
+def _body_from_imu(acc_imu: np.ndarray, R_imu_cam: np.ndarray) -> np.ndarray:
+    """R_imu_body: body z down (against the mean specific force), x along the view (see the module docstring)."""
+    z = -acc_imu / np.linalg.norm(acc_imu)
+    x = R_imu_cam[:, 2] if abs(R_imu_cam[:, 2] @ z) < 0.9 else -R_imu_cam[:, 1]
+    x = x - (x @ z) * z
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(z, x), z])
+
+
+def _exp(w: np.ndarray) -> np.ndarray:
+    th = float(np.linalg.norm(w))
+    K = skew(w)
+    if th < 1e-9:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * K @ K
+
+
+def imu_attitude(imu: np.ndarray, R_imu_body: np.ndarray) -> np.ndarray:
+    """(N,4) t_s, roll, pitch, yaw of the body from (M,7) IMU rows (t_ns, gyro xyz rad/s, accel xyz
+    m/s^2), at ATTITUDE_RATE_HZ: Mahony's filter with integral feedback, what a flight controller's
+    attitude estimate does without a magnetometer. Started level (the body frame is defined level over
+    the first second) with the gyro bias b known, as a flight controller calibrates its gyros at boot,
+    it integrates the gyro less b, pulled toward the accelerometer's gravity with the cruising gains:
+
+        e = u_meas x u_est          (measured and estimated "up" in the IMU frame)
+        w = gyro - b + kp e         (the rate integrated)
+        db/dt = -ki e               (the bias: what the correction keeps having to add)
+
+    b is the mean gyro over the first second when the IMU is at rest then. A recording that starts
+    moving leaves b to the integral, with the converging gains throughout: small gains need an exact b
+    (a residual bias r tilts the estimate by about r / kp), and the bias about the vertical cannot be
+    found from the accelerometer in level flight. Expect degrees of error then (reported against the
+    ground truth).
+    """
+    t = imu[:, 0] * 1e-9
+    gyro0 = imu[t <= t[0] + 1.0, 1:4]
+    if len(gyro0) > 10 and float(np.max(gyro0.std(axis=0))) < _REST_GYRO_STD:
+        return _mahony(imu, R_imu_body, gyro0.mean(axis=0), ATTITUDE_KP, ATTITUDE_KI)
+    return _mahony(imu, R_imu_body, np.zeros(3), ATTITUDE_KP_CONVERGING, ATTITUDE_KI_CONVERGING)
+
+
+def _mahony(imu: np.ndarray, R_imu_body: np.ndarray, b0: np.ndarray, kp: float, ki: float) -> np.ndarray:
+    """:func:`imu_attitude`'s filter from bias ``b0`` with gains ``kp``, ``ki``: the attitude rows."""
+    t = imu[:, 0] * 1e-9
+    R = R_imu_body.T.copy()  # R_lvl_imu at the start: the body frame is level there by its definition
+    b = b0.astype(float).copy()
+    out = []
+    next_t = t[0]
+    up = np.array([0.0, 0.0, -1.0])
+    for i in range(1, len(t)):
+        dt = t[i] - t[i - 1]
+        u_meas = imu[i, 4:7] / max(np.linalg.norm(imu[i, 4:7]), 1e-9)
+        e = np.cross(u_meas, R.T @ up)
+        b -= ki * e * dt
+        R = R @ _exp((imu[i, 1:4] - b + kp * e) * dt)
+        if t[i] >= next_t:
+            U, _, Vt = np.linalg.svd(R)
+            R = U @ Vt
+            out.append((t[i], *euler321_from_R(R @ R_imu_body)))
+            next_t = t[i] + 1.0 / ATTITUDE_RATE_HZ
+    return np.array(out)
+
+
+def tilt_error_deg(attitude: np.ndarray, t_truth_s: np.ndarray, R_lvl_body_truth: np.ndarray) -> dict[str, float]:
+    """How far the roll/pitch given to mavvo are from the truth: the angle between the true and the
+    estimated "down" in the body frame (yaw does not count), at each attitude sample (nearest truth);
+    median and 95th percentile, degrees."""
+    idx = np.clip(np.searchsorted(t_truth_s, attitude[:, 0]), 0, len(t_truth_s) - 1)
+    down_true = R_lvl_body_truth[idx, 2, :]  # third row: the level frame's z in body coordinates
+    down_est = np.array([R_from_euler321(r, p, y)[2, :] for _, r, p, y in attitude])
+    err = np.degrees(np.arccos(np.clip(np.sum(down_true * down_est, axis=1), -1.0, 1.0)))
+    return {"median": round(float(np.median(err)), 3), "p95": round(float(np.percentile(err, 95)), 3)}
+
+
+def load_euroc(root: Path, overrides: dict[str, Any], *, attitude: str = "imu", attitude_noise_deg: float = 0.1, seed: int = 0) -> ReplayInput:
+    """The dataset at ``root`` (the folder holding mav0, or mav0 itself); ``overrides``: settings that
+    replace the ones derived from the dataset."""
+    mav0 = root if root.name == "mav0" else root / "mav0"
+    cam = _sensor_yaml(mav0 / "cam0" / "sensor.yaml")
+    try:
+        T_imu_cam = np.array(cam["T_BS"]["data"], dtype=float).reshape(4, 4)
+        fu, fv, cu, cv = (float(x) for x in cam["intrinsics"])
+        width, height = (int(x) for x in cam["resolution"])
+        dist = tuple(float(x) for x in cam.get("distortion_coefficients", ()))
+        rate = float(cam.get("rate_hz", 20.0))
+    except (KeyError, TypeError, ValueError) as e:
+        raise ConfigError(f"{mav0 / 'cam0' / 'sensor.yaml'}: expected T_BS (4x4), intrinsics [fu, fv, cu, cv], resolution [w, h]: {e}") from e
+    if cam.get("distortion_model", "radial-tangential") != "radial-tangential":
+        raise ConfigError(f"{mav0 / 'cam0' / 'sensor.yaml'}: distortion_model: expected radial-tangential, got {cam.get('distortion_model')!r}")
+    imu = _csv(mav0 / "imu0" / "data.csv", 7)
+    if len(imu) < 10:
+        raise ConfigError(f"{mav0 / 'imu0' / 'data.csv'}: expected IMU samples, found {len(imu)}")
+    R_imu_cam, t_imu_cam = T_imu_cam[:3, :3], T_imu_cam[:3, 3]
+    first_s = imu[:, 0] * 1e-9 <= imu[0, 0] * 1e-9 + 1.0
+    R_imu_body = _body_from_imu(imu[first_s, 4:7].mean(axis=0), R_imu_cam)
+    R_body_cam = R_imu_body.T @ R_imu_cam
+    lever = R_imu_body.T @ t_imu_cam
+    data = merge({
+        "camera": {"source": "euroc", "width_px": width, "height_px": height, "rate_hz": rate, "fx_px": fu, "fy_px": fv, "cx_px": cu, "cy_px": cv,
+                   "model": "pinhole", "distortion": list(dist)},
+        "mounting": {"R_body_cam": R_body_cam.round(9).tolist(), "lever_arm_m": lever.round(6).tolist()},
+        "odometry": {"scale": {"source": "altitude"}},
+    }, overrides)
+    gt_path = mav0 / "state_groundtruth_estimate0" / "data.csv"
+    gt = _csv(gt_path, 8) if gt_path.is_file() else None
+    warnings: list[str] = []
+    if gt is None:
+        # The height for scale comes from the ground truth: without it, a height from the configuration.
+        odometry = overrides.get("odometry")
+        scale = odometry.get("scale") if isinstance(odometry, dict) else None
+        chosen = scale.get("source") if isinstance(scale, dict) else None  # a malformed one is parse_config's to name
+        if chosen not in ("fixed", "carried"):
+            data = merge(data, {"odometry": {"scale": {"source": "fixed"}}})
+    config = parse_config(data, f"{mav0} (with --config)")
+    if gt is None:
+        sc = config.odometry.scale
+        how = (f"a fixed height of {sc.fixed_height_m:g} m above flat ground (odometry.scale.fixed_height_m)" if sc.source == "fixed"
+               else "depths carried between keyframes, from an assumed first depth (odometry.scale.initial_depth_m)")
+        warnings.append(
+            f"{gt_path}: missing: no reference (unless --ground-truth gives one), no attitude error to report, and no height: metric scale from {how}; "
+            "give the flight's height with --config (odometry: {scale: {source: fixed, fixed_height_m: H}})"
+        )
+    rng = np.random.default_rng(seed)
+    notes: dict[str, Any] = {"attitude": attitude}
+    if attitude == "truth":
+        if gt is None:
+            raise ConfigError(f"{gt_path}: missing; --attitude truth needs the ground truth")
+        att = []
+        for row in gt[:: max(int(round(len(gt) / ((gt[-1, 0] - gt[0, 0]) * 1e-9 * ATTITUDE_RATE_HZ))), 1)]:
+            r, p, y = euler321_from_R(_D @ R_from_quat_wxyz(row[4:8]) @ R_imu_body)
+            n = np.radians(attitude_noise_deg) * rng.standard_normal(2)
+            att.append((row[0] * 1e-9, r + n[0], p + n[1], y))
+        attitude_rows = np.array(att)
+        notes["attitude_noise_deg"] = attitude_noise_deg
+    else:
+        attitude_rows = imu_attitude(imu, R_imu_body)
+    heights = np.zeros((0, 2))
+    reference = None
+    if gt is not None:
+        t_gt = gt[:, 0] * 1e-9
+        step = max(int(round(len(gt) / ((t_gt[-1] - t_gt[0]) * HEIGHT_RATE_HZ))), 1)
+        z = gt[::step, 3]
+        heights = np.column_stack([t_gt[::step], z - z[0] + HEIGHT_NOISE_M * rng.standard_normal(len(z))])
+        R_lvl_imu = np.array([_D @ R_from_quat_wxyz(q) for q in gt[:, 4:8]])
+        p_cam = gt[:, 1:4] @ _D.T + R_lvl_imu @ t_imu_cam  # the camera centre: what mavvo estimates
+        reference = PoseSeries(t_gt, p_cam, np.array([quat_wxyz_from_R(R @ R_imu_body) for R in R_lvl_imu]))
+        notes["attitude_tilt_error_deg"] = tilt_error_deg(attitude_rows, t_gt, R_lvl_imu @ R_imu_body)
+    series = FcSeries(str(root), "euroc", attitude_rows, np.zeros((0, 2)), heights)
+    frames_csv = _frame_rows(mav0 / "cam0" / "data.csv")
+    problems: list[str] = []
+    frames = []
+    gap = config.timing.max_attitude_gap_s
+    for k, (t_ns, name) in enumerate(frames_csv):
+        path = mav0 / "cam0" / "data" / name
+        if not path.is_file():
+            problems.append(f"{path}: missing; the frames after it are not replayed")
+            break
+        t = int(t_ns) * 1e-9
+        frames.append(ReplayFrame(k, t, t + gap, None, image_loader(path)))
+    return ReplayInput("euroc", str(root), config, series_messages(series, boot_epoch_s=float(np.floor(imu[0, 0] * 1e-9))), frames, reference,
+                       "ground truth" if reference is not None else "", notes=notes, problems=problems, warnings=warnings)

@@ -1,0 +1,1 @@
+"""The project's own developer tooling: run from a checkout, never installed."""
