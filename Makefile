@@ -28,6 +28,8 @@ $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test,bench]'
+	@# The distribution's PyGObject, for the gst: camera (says what to install where it is missing).
+	$(BIN)/python tools/link_system_gi.py
 	$(BIN)/python -m mavvo.estimation.warmup
 	@touch $(STAMP)
 
@@ -72,11 +74,22 @@ bench: $(STAMP)
 # Install on the companion computer (sudo make install): the package into a venv made in PREFIX (never
 # a copied one), the settings under ETCDIR (kept if present), the unit, the mavvo user; then check-config
 # and preflight. SYSTEM=0 installs the files only (no user, no systemctl): for a staging directory.
+# CAMERA=picamera2 (Raspberry Pi CSI cameras) or CAMERA=gst (Jetson, GStreamer pipelines) makes the venv
+# with --system-site-packages from the distribution's python3, which sees its libcamera / PyGObject;
+# install those first (docs/camera.md). CAMERA=v4l2 (default) needs nothing from the system.
 PREFIX  ?= /opt/mavvo
 ETCDIR  ?= /etc/mavvo
 UNITDIR ?= /etc/systemd/system
 CACHEDIR ?= /var/cache/mavvo
 SYSTEM  ?= 1
+CAMERA  ?= v4l2
+ifneq ($(filter $(CAMERA),picamera2 gst),)
+VENV_FLAGS := --system-site-packages
+INSTALL_PYTHON ?= /usr/bin/python3
+else
+VENV_FLAGS :=
+INSTALL_PYTHON ?= $(PYTHON)
+endif
 
 install:
 	@test "$(SYSTEM)" = 0 || test "$$(id -u)" = 0 || { echo "make install: needs root: sudo make install"; exit 1; }
@@ -84,7 +97,8 @@ install:
 	@if [ "$(abspath $(PREFIX))" != "$(CURDIR)" ]; then \
 		tar --exclude=.venv --exclude=.git --exclude='*.egg-info' --exclude=__pycache__ --exclude=mavvo-sim-out \
 			-cf - mavvo config systemd pyproject.toml README.md Makefile | tar -xf - -C $(PREFIX); fi
-	$(PYTHON) -m venv --clear $(PREFIX)/.venv
+	@case "$(CAMERA)" in v4l2|gst|picamera2) ;; *) echo "make install: CAMERA=$(CAMERA): expected v4l2, gst or picamera2"; exit 2;; esac
+	$(INSTALL_PYTHON) -m venv --clear $(VENV_FLAGS) $(PREFIX)/.venv
 	$(PREFIX)/.venv/bin/python -m pip install --quiet --upgrade pip
 	$(PREFIX)/.venv/bin/python -m pip install --quiet $(PREFIX)
 	@# setuptools builds in the source tree: what it leaves there is no part of the installed copy.

@@ -12,7 +12,7 @@ import sys
 from typing import Sequence
 
 from mavvo import __version__
-from mavvo.commands import calibrate, check_config, inspect, monitor, preflight, replay, run, sim
+from mavvo.commands import calibrate, camera, check_config, inspect, monitor, preflight, replay, run, sim
 from mavvo.errors import ConfigError, MavvoError
 
 log = logging.getLogger("mavvo")
@@ -25,7 +25,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="store_true", help="same as --log-level debug")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    for command in (run, check_config, preflight, sim, replay, inspect, calibrate, monitor):
+    for command in (run, check_config, preflight, camera, sim, replay, inspect, calibrate, monitor):
         command.add_parser(sub)
     return p
 

@@ -6,9 +6,11 @@ its exposure time on the host clock: the driver's timestamp when it has one (V4L
 on the monotonic clock), else the grab time minus ``camera.latency_ms``. File and folder sources replay
 their own timestamps from the moment they are opened, paced in real time.
 
-``camera.source`` forms: ``/dev/videoN`` (V4L2), a video file, a folder of images with a
-``timestamps.txt`` (``TIMESTAMP_S FILENAME`` per line), or ``SCHEME:ARGUMENT`` for a source the caller
-registers (the CLI registers ``sim:SCENARIO``, the simulator's rendered camera).
+``camera.source`` forms: ``/dev/videoN`` (V4L2), ``gst:PIPELINE`` (a GStreamer pipeline,
+:mod:`mavvo.service.camera_gst`), ``picamera2:INDEX`` (a libcamera camera through Picamera2,
+:mod:`mavvo.service.camera_picamera2`), a video file, a folder of images with a ``timestamps.txt``
+(``TIMESTAMP_S FILENAME`` per line), or ``SCHEME:ARGUMENT`` for a source the caller registers (the CLI
+registers ``sim:SCENARIO``, the simulator's rendered camera). Devices are reopened when they fail.
 """
 
 from __future__ import annotations
@@ -20,14 +22,13 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Literal, Protocol, runtime_checkable
+from typing import Callable, Protocol, runtime_checkable
 
 import cv2
 import numpy as np
 
-from mavvo.geometry.camera_model import CameraIntrinsics
-from mavvo.options import bounded
 from mavvo.errors import CameraEnded, CameraError, CameraLost, FrameRefused
+from mavvo.service.camera_options import CameraOptions
 from mavvo.service.timing import Clock, FlightControllerState
 from mavvo.types import Frame
 
@@ -41,19 +42,6 @@ log = logging.getLogger(__name__)
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".tif", ".tiff")
 _DRIVER_STAMP_PLAUSIBLE_S = 1.0
 _V4L2_READ_TIMEOUT_MS = 1000.0
-
-
-@dataclass(frozen=True)
-class CameraOptions(CameraIntrinsics):
-    """The camera: its intrinsics (:class:`CameraIntrinsics`), where frames come from and how they are stamped."""
-
-    source: str = bounded("/dev/video0", "/dev/videoN (V4L2), a video file, an image folder with timestamps.txt, or sim:SCENARIO")
-    rate_hz: float = bounded(20.0, "frame rate requested from a device", gt=0, le=240)
-    timestamps: Literal["auto", "driver", "grab"] = bounded("auto", "exposure time from the driver's timestamp (auto: when plausible) or the grab time minus latency_ms")
-    latency_ms: float = bounded(30.0, "grab time minus this is the exposure time, when the driver gives none", ge=0, le=1000)
-    queue_size: int = bounded(2, "frames waiting for the worker; the oldest is dropped when full", ge=1, le=64)
-    reconnect_max_s: float = bounded(5.0, "longest back-off between attempts to reopen a lost camera", gt=0, le=600)
-    lost_after_s: float = bounded(30.0, "a camera that fails and cannot be reopened for this long ends the service non-zero, for systemd to restart it", gt=0, le=3600)
 
 
 @runtime_checkable
@@ -163,6 +151,7 @@ class V4L2Source:
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, options.height_px)
         cap.set(cv2.CAP_PROP_FPS, options.rate_hz)
         cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # the newest frame, not a backlog
+        _set_v4l2_controls(cap, device, options)
         # OpenCV's V4L2 read waits up to 10 s for a frame unless told otherwise (where the build honours it).
         self._timeout_honoured = bool(cap.set(cv2.CAP_PROP_READ_TIMEOUT_MSEC, _V4L2_READ_TIMEOUT_MS))
         self._cap = cap
@@ -192,6 +181,20 @@ class V4L2Source:
         if self._cap is not None:
             self._cap.release()
             self._cap = None
+
+
+def _set_v4l2_controls(cap: cv2.VideoCapture, device: str, options: CameraOptions) -> None:
+    """A fixed exposure (V4L2 counts it in units of 100 us) and gain where set; CameraError naming the
+    key when the driver has no such control."""
+    wanted = []
+    if options.exposure_us > 0:
+        wanted += [("exposure_us", cv2.CAP_PROP_AUTO_EXPOSURE, 1.0), ("exposure_us", cv2.CAP_PROP_EXPOSURE, options.exposure_us / 100.0)]
+    if options.gain > 0:
+        wanted.append(("gain", cv2.CAP_PROP_GAIN, options.gain))
+    for key, prop, value in wanted:
+        if not cap.set(prop, value):
+            cap.release()
+            raise CameraError(f"camera.{key}: camera.source {device} has no such V4L2 control (or refused {value}); set it to 0 for the driver's automatic one")
 
 
 class _PacedSource:
@@ -418,16 +421,32 @@ def open_source(
     scheme, sep, arg = spec.partition(":")
     if sep and schemes and scheme in schemes:
         return schemes[scheme](arg, options, clock, fc)
-    if spec.startswith("/dev/video"):
-        return ReconnectingSource(
-            lambda: V4L2Source(spec, options, clock), clock, reconnect_max_s=options.reconnect_max_s, lost_after_s=options.lost_after_s, name=spec,
-        )
+    device: Callable[[], FrameSource] | None = None
+    if sep and scheme == "gst":
+        from mavvo.service.camera_gst import GstSource
+
+        _refuse_controls(options, ("exposure_us", "gain", "readout_ms"), "a gst: source takes its controls in the pipeline description (e.g. v4l2src extra-controls=...)")
+        device = lambda: GstSource(arg, options, clock)  # noqa: E731
+    elif sep and scheme == "picamera2":
+        from mavvo.service.camera_picamera2 import Picamera2Source
+
+        device = lambda: Picamera2Source(arg, options, clock)  # noqa: E731
+    elif spec.startswith("/dev/video"):
+        _refuse_controls(options, ("readout_ms",), "a V4L2 frame is stamped as the driver stamps it")
+        device = lambda: V4L2Source(spec, options, clock)  # noqa: E731
+    if device is not None:
+        return ReconnectingSource(device, clock, reconnect_max_s=options.reconnect_max_s, lost_after_s=options.lost_after_s, name=spec)
     p = Path(spec)
     if p.is_dir():
         return ImageFolderSource(p, clock, (options.width_px, options.height_px))
     if p.is_file():
         return VideoFileSource(p, clock)
-    known = ", ".join(f"{s}:" for s in (schemes or {}))
-    raise CameraError(
-        f"camera.source {spec!r}: expected /dev/videoN, a video file, an image folder" + (f" or {known}ARGUMENT" if known else "") + "; nothing there"
-    )
+    known = ", ".join(f"{s}:" for s in ("gst", "picamera2", *(schemes or {})))
+    raise CameraError(f"camera.source {spec!r}: expected /dev/videoN, a video file, an image folder or {known}ARGUMENT; nothing there")
+
+
+def _refuse_controls(options: CameraOptions, keys: tuple[str, ...], why: str) -> None:
+    """CameraError naming the first of ``keys`` set away from its default (0) for a source that cannot apply it."""
+    for key in keys:
+        if getattr(options, key):
+            raise CameraError(f"camera.{key}: {getattr(options, key)} is not supported by camera.source {options.source!r}: {why}; set it to 0")
