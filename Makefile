@@ -6,7 +6,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup sim test soak faults draws bench install clean
+.PHONY: setup sim test lint soak faults draws bench install clean
 
 setup: $(STAMP)
 
@@ -41,9 +41,15 @@ sim: $(STAMP)
 
 # Each run first compiles the kernels the sources changed since the last (a second when none did), so
 # that no test's service spends its start-up compiling.
-test: $(STAMP)
+test: lint
 	$(BIN)/python -m mavvo.estimation.warmup
 	$(BIN)/python -m pytest -q -m "not slow" --durations=15
+
+# ruff (pyproject.toml): the usual bug finders, sorted imports, and the format, checked, not rewritten
+# (`.venv/bin/ruff format . && .venv/bin/ruff check --fix .` rewrites).
+lint: $(STAMP)
+	$(BIN)/ruff check mavvo tools tests benchmarks
+	$(BIN)/ruff format --check mavvo tools tests benchmarks
 
 # The long runs make test skips (about 15 minutes): the solver soak, the survey and faults flights,
 # the fault suite's real-time cases, 1200 fuzzed settings files, make install into a staging folder.

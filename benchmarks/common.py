@@ -13,8 +13,8 @@ import os
 import platform
 import re
 import resource
-import sys
 import statistics
+import sys
 import time
 from pathlib import Path
 from types import ModuleType
@@ -22,7 +22,6 @@ from typing import Callable
 
 import cv2
 import numpy as np
-
 
 # A Raspberry Pi 4 core against one core of the machines the benchmarks were run on: its figures are
 # estimated as this many times these.

@@ -11,8 +11,8 @@ the stated IMU noise. Errors are in the camera frames against the true relative 
 from __future__ import annotations
 
 import argparse
-import math
 import datetime as dt
+import math
 import os
 import statistics
 import sys
@@ -28,12 +28,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import cv2  # noqa: E402
 
 from benchmarks.common import load_average, machine, publish  # noqa: E402
-from benchmarks.compare import BEST_PEER_HEADER, SUCCESS_ROT_DEG, SUCCESS_TRANS_DEG, YAW_PRIOR_NOISE_DEG, TrialErrors, best_peer_cells  # noqa: E402
-from mavvo.estimation.warmup import warm_kernels  # noqa: E402
+from benchmarks.compare import (  # noqa: E402
+    BEST_PEER_HEADER,
+    SUCCESS_ROT_DEG,
+    SUCCESS_TRANS_DEG,
+    YAW_PRIOR_NOISE_DEG,
+    TrialErrors,
+    best_peer_cells,
+)
 from mavvo import geometry as solvers  # noqa: E402
+from mavvo.estimation.relpose import RelposeOptions, estimate_relpose_known_gravity  # noqa: E402
+from mavvo.estimation.warmup import warm_kernels  # noqa: E402
 from mavvo.geometry.camera_model import CameraModel  # noqa: E402
 from mavvo.geometry.frames import angle_between_rad, rotation_angle_rad  # noqa: E402
-from mavvo.estimation.relpose import RelposeOptions, estimate_relpose_known_gravity  # noqa: E402
 from mavvo.sim.world.twoview import TwoViewScene, add_outliers, make_scene  # noqa: E402
 
 try:
@@ -322,7 +329,7 @@ def side_by_side(
             for trial in range(trials):
                 scene, uv1, uv2 = side_scene(rng, n, trial, IMU_SIGMA_RAD, outliers)
                 for name, fn in methods.items():
-                    ms, (pose, iters) = timed(lambda fn=fn: fn(scene, uv1, uv2, trial), clock)
+                    ms, (pose, iters) = timed(lambda fn=fn, scene=scene, uv1=uv1, uv2=uv2, trial=trial: fn(scene, uv1, uv2, trial), clock)
                     rot, trans = errors_deg(pose, scene)
                     per[name]["ms"].append(ms)
                     per[name]["rot"].append(rot)

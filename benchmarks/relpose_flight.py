@@ -178,7 +178,7 @@ def run(quick: bool, plots: Path | None) -> str:
                      f"{np.median(e.trans_deg):.2f} | {r['us']:.0f} |")
     lines += ["", f"mavvo with the attitude sigma against the peers ({', '.join(m for m in method_names if not m.startswith('mavvo'))}) on the same pairs:", "",
               "| flight | roll/pitch error | " + " | ".join(BEST_PEER_HEADER) + " |", "|---|---|" + "---|" * len(BEST_PEER_HEADER)]
-    for (scenario, kind, level), group in _groups(rows).items():
+    for (scenario, _kind, _level), group in _groups(rows).items():
         peers = {m: r["errors"] for m, r in group.items() if not m.startswith("mavvo")}  # OpenCV always, PoseLib where installed
         cells = best_peer_cells(group["mavvo, attitude sigma"]["errors"], peers)
         lines.append(f"| {scenario} | {_error_label(group['mavvo, attitude sigma'])} | " + " | ".join(cells) + " |")

@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     ]
     rows = ["| view (640x480) | render ms | / one warpPerspective |", "|---|---|---|"]
     for name, renderer, R, p in cases:
-        us = per_call_us(lambda: renderer.render(R, p))
+        us = per_call_us(lambda renderer=renderer, R=R, p=p: renderer.render(R, p))
         rows.append(f"| {name} | {us / 1000:.2f} | {us / reference_us:.1f}x |")
         print(rows[-1], file=sys.stderr)
     img = cases[1][1].render(nadir, [0.0, 0.0, -30.0])

@@ -20,9 +20,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.common import PI4_FACTOR, interleaved_us, load_average, machine, minor_page_faults, publish  # noqa: E402
 from mavvo import geometry as solvers  # noqa: E402
 from mavvo.geometry.frames import angle_between_rad, rot_x, rotation_angle_rad  # noqa: E402
-from benchmarks.common import PI4_FACTOR, interleaved_us, load_average, machine, minor_page_faults, publish  # noqa: E402
 from mavvo.sim.world.twoview import TwoViewScene, make_scene  # noqa: E402
 
 try:

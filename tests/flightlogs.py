@@ -12,19 +12,19 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-
-from mavvo.service.settings import ServiceConfig, config_yaml
-from mavvo.sim.world.camera import SimCamera
-from mavvo.sim.world.clock import LockstepClock
-from mavvo.geometry.frames import R_from_euler321, quat_wxyz_from_R
 from log_writers import write_dataflash, write_ulog
-from mavvo.service.mavlink import mavutil
+
 from mavvo.evaluation.metrics import PoseSeries
 from mavvo.evaluation.report import write_tum
+from mavvo.geometry.frames import R_from_euler321, quat_wxyz_from_R
+from mavvo.service.mavlink import mavutil
+from mavvo.service.settings import ServiceConfig, config_yaml
 from mavvo.sim.scenarios.loader import load_scenario
 from mavvo.sim.scenarios.service_run import config_for
-from mavvo.sim.world.trajectories import make_trajectory
+from mavvo.sim.world.camera import SimCamera
+from mavvo.sim.world.clock import LockstepClock
 from mavvo.sim.world.scene import World
+from mavvo.sim.world.trajectories import make_trajectory
 
 BOOT_S = 100.0
 UNIX_AT_BOOT_US = 1_790_000_000_000_000

@@ -11,8 +11,8 @@ import pytest
 
 from mavvo.errors import CameraError
 from mavvo.service.camera import open_source
-from mavvo.service.camera_picamera2 import Picamera2Source, exposure_mid_time_s, picamera2_controls
 from mavvo.service.camera_options import CameraOptions
+from mavvo.service.camera_picamera2 import Picamera2Source, exposure_mid_time_s, picamera2_controls
 
 
 class StillClock:

@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from mavvo.service.camera import CameraOptions, FrameQueue, VideoFileSource, open_source
 from mavvo.errors import CameraEnded, CameraError
+from mavvo.service.camera import CameraOptions, FrameQueue, VideoFileSource, open_source
 from mavvo.service.timing import MonotonicClock
 from mavvo.types import Frame
 

@@ -12,8 +12,8 @@ import sys
 import time
 
 import pytest
-
 from conftest import free_port
+
 from mavvo.cli import main
 from mavvo.sim.scenarios.loader import load_scenario
 

@@ -20,6 +20,7 @@ from mavvo.cli import main
 from mavvo.service.settings import ServiceConfig, load_config
 from tools.faults.config_fuzz import KINDS, mutated_config
 
+
 @st.composite
 def mutated_files(draw) -> bytes:
     """One settings file from the shared generator (tools/faults/config_fuzz.py), its seed drawn."""

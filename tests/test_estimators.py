@@ -11,13 +11,20 @@ import math
 import numpy as np
 import pytest
 
-from mavvo.estimation.estimators import GroundHomography, PureRotation, UprightEssential, decompose_upright, upright_e, yaw_of
+from mavvo.estimation.estimators import (
+    GroundHomography,
+    PureRotation,
+    UprightEssential,
+    decompose_upright,
+    upright_e,
+    yaw_of,
+)
 from mavvo.estimation.general5pt import estimate_general_relpose
 from mavvo.estimation.ransac import RansacOptions, lo_ransac
 from mavvo.geometry.frames import rot_z, rotation_angle_rad
 from mavvo.geometry.ground_2pt import ground_pose_from_homography
 from mavvo.geometry.refine import tilt_rotation
-from mavvo.geometry.residuals import ground_sq, rotation_sq, sampson_sq_upright
+from mavvo.geometry.residuals import ground_sq, rotation_sq
 from mavvo.sim.world.twoview import TwoViewScene, add_outliers, make_scene
 
 EXACT_SQ = 1e-24  # squared residual (rad^2) of an exact model on exact data: rounding only

@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from log_writers import write_dataflash, write_ulog
 
 from mavvo.errors import ConfigError
-from log_writers import write_dataflash, write_ulog
 from mavvo.offline.fc_logs import read_fc_log
 
 ROLL_DEG = [1.0, 2.0, 3.0, 4.0]

@@ -8,12 +8,12 @@ import threading
 
 import numpy as np
 import pytest
-
 from conftest import free_port
-from mavvo.sim.world.clock import LockstepClock, RealClock
-from mavvo.sim.world.faults import FaultSchedule, FaultSpec
+
 from mavvo.sim.flight_controller.autopilot import SimFlightController
 from mavvo.sim.flight_controller.spec import FlightControllerSpec
+from mavvo.sim.world.clock import LockstepClock, RealClock
+from mavvo.sim.world.faults import FaultSchedule, FaultSpec
 from mavvo.sim.world.trajectories import FigureEightSpec, HoverSpec, make_trajectory
 
 ATTITUDE = 30

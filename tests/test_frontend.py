@@ -3,10 +3,9 @@ grid, bad input is refused."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
-
-import cv2
 
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import R_from_euler321

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mavvo.geometry import ground_pose_from_homography, solve_ground_2pt_batch
 from mavvo.geometry.frames import rotation_angle_rad
 from mavvo.geometry.residuals import ground_sq
-from mavvo.geometry import ground_pose_from_homography, solve_ground_2pt_batch
 from mavvo.sim.world.twoview import make_scene
 
 

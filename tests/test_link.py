@@ -15,12 +15,12 @@ import pytest
 from mavvo.errors import ConfigError
 from mavvo.service.link import Link, LinkOptions, SystemStatus, parse_url, read_signing_key
 from mavvo.service.timing import MonotonicClock
-from tests.conftest import wait_for
-from mavvo.sim.world.clock import RealClock
-from mavvo.sim.world.faults import FaultSchedule, FaultSpec
 from mavvo.sim.flight_controller.autopilot import SimFlightController
 from mavvo.sim.flight_controller.spec import FlightControllerSpec
+from mavvo.sim.world.clock import RealClock
+from mavvo.sim.world.faults import FaultSchedule, FaultSpec
 from mavvo.sim.world.trajectories import HoverSpec, make_trajectory
+from tests.conftest import wait_for
 
 
 class Recorder:

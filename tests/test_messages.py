@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from mavvo.service import messages
 from mavvo.geometry.frames import R_from_euler321
+from mavvo.service import messages
 from mavvo.types import PoseEstimate, StateReason, VisionState, VoDiagnostics
 
 

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from mavvo.errors import ConfigError
-from mavvo.geometry.frames import R_from_euler321
 from mavvo.evaluation.metrics import PoseSeries, align_umeyama, associate, evaluate
 from mavvo.evaluation.report import read_tum, write_report, write_tum
+from mavvo.geometry.frames import R_from_euler321
 from mavvo.sim.world.trajectories import LawnmowerSpec, make_trajectory
 
 

@@ -10,13 +10,13 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from mavvo.service.yaml_loader import build
+from mavvo.evaluation.metrics import Evaluation, PoseSeries, evaluate
 from mavvo.geometry.frames import R_from_euler321
 from mavvo.odometry.pipeline import Odometry, OdometryOptions
-from mavvo.types import PoseEstimate
-from mavvo.evaluation.metrics import Evaluation, PoseSeries, evaluate
+from mavvo.service.yaml_loader import build
 from mavvo.sim.scenarios.loader import Scenario, load_scenario
 from mavvo.sim.scenarios.paired_frames import PairedSequence
+from mavvo.types import PoseEstimate
 
 
 @dataclass(frozen=True)

@@ -8,15 +8,22 @@ import math
 import numpy as np
 import pytest
 
-from mavvo.odometry.filter import FilterOptions, PoseFilter, Update, wrap_angle
-from mavvo.geometry.frames import rot_z
-from mavvo.odometry.keyframes import Keyframe, KeyframeOptions, carry_depths, keyframe_reason
-from mavvo.odometry.scale import ScaleEstimate, ScaleOptions, estimate_scale, ground_depth, scale_from_scene_depth, triangulate_unit
-from mavvo.odometry.pipeline import Odometry, _Measurement
 from mavvo.estimation.relpose import RelposeFailure, _failure
-from mavvo.types import PairedFrame, ScaleSource, StateReason
+from mavvo.geometry.frames import rot_z
+from mavvo.odometry.filter import FilterOptions, PoseFilter, Update, wrap_angle
+from mavvo.odometry.keyframes import Keyframe, KeyframeOptions, carry_depths, keyframe_reason
+from mavvo.odometry.pipeline import Odometry, _Measurement
+from mavvo.odometry.scale import (
+    ScaleEstimate,
+    ScaleOptions,
+    estimate_scale,
+    ground_depth,
+    scale_from_scene_depth,
+    triangulate_unit,
+)
 from mavvo.sim.scenarios.loader import load_scenario
 from mavvo.sim.world.twoview import make_scene
+from mavvo.types import PairedFrame, ScaleSource, StateReason
 
 
 def _unit_geometry(scene):

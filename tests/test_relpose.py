@@ -8,14 +8,19 @@ import cv2
 import numpy as np
 import pytest
 
+import mavvo.estimation.attitude_refine as attitude_refine
+from mavvo.estimation.estimators import upright_e, yaw_of
+from mavvo.estimation.relpose import (
+    RelposeOptions,
+    estimate_relpose_known_gravity,
+    estimate_upright_relpose,
+    required_iterations,
+)
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import angle_between_rad, rot_z, rotation_angle_rad
-from mavvo.estimation.estimators import upright_e, yaw_of
-from mavvo.estimation.relpose import RelposeOptions, estimate_relpose_known_gravity, estimate_upright_relpose, required_iterations
-import mavvo.estimation.attitude_refine as attitude_refine
 from mavvo.geometry.refine import refine_upright, tilt_rotation
 from mavvo.geometry.residuals import sampson_sq_upright
-from mavvo.sim.world.twoview import add_outliers, make_scene
+from mavvo.sim.world.twoview import TwoViewScene, add_outliers, make_scene
 
 FOCAL_PX = 500.0
 THRESHOLD_RAD = 1.5 / FOCAL_PX  # 3 sigma of 0.5 px noise
@@ -205,7 +210,7 @@ def test_the_refinement_ends_at_the_minimum_of_the_sampson_cost(free_tilt: bool)
         tilt = dict(tilt_sigma_rad=sigma, noise_sigma_rad=noise) if free_tilt else {}
         fit = refine_upright(yaw_of(s.R_2_1), s.t_2_1, s.f1_lvl, s.f2_lvl, iterations=50, **tilt)
 
-        def cost(x: np.ndarray) -> float:
+        def cost(x: np.ndarray, s: TwoViewScene = s) -> float:
             g1 = s.f1_lvl @ tilt_rotation(x[4:6]).T
             g2 = s.f2_lvl @ tilt_rotation(x[6:8]).T
             total = float(sampson_sq_upright(upright_e(x[0], x[1:4] / np.linalg.norm(x[1:4]))[None], g1, g2)[0].sum())
@@ -335,9 +340,9 @@ def test_ground_model_forced_where_it_cannot_apply_falls_back_to_essential() -> 
 def test_yaw_of_a_hypothesis_is_read_from_e_alone() -> None:
     """The yaw filter sees the decomposition's yaw in E: exactly for any t with a horizontal part,
     up to pi for t along gravity, whatever the scale and sign of E."""
-    from mavvo.geometry.frames import skew
     from mavvo.estimation.estimators import _near_yaw
     from mavvo.geometry import essential_to_vector
+    from mavvo.geometry.frames import skew
 
     rng = np.random.default_rng(31)
     for i in range(400):
@@ -374,8 +379,8 @@ def test_tracks_that_slide_the_wrong_way_along_their_epipolar_lines_are_not_inli
     """A track that moves along its epipolar line the other way than the scene's motion takes it (a
     corner that is no point of the scene) has no epipolar error; cheirality finds it, and the result's
     inliers leave it out, while the true tracks stay in."""
-    from mavvo.geometry.residuals import sampson_sq_upright
     from mavvo.estimation.estimators import upright_e
+    from mavvo.geometry.residuals import sampson_sq_upright
 
     rng = np.random.default_rng(5)
     scene = make_scene(rng, 300, motion="forward", mount="forward", pixel_noise_px=0.3, focal_px=FOCAL_PX)
@@ -542,9 +547,9 @@ def test_the_attitude_is_judged_by_the_upright_essential_not_by_the_model_gric_c
     attitude looked bad and the general 5-point took over (over flat ground it then found the plane's
     other pose, a 10 deg tilt and a vertical translation, in the faults flight). The attitude is judged
     by the upright essential fit, which explains the scene with the roll/pitch as given."""
+    from mavvo.estimation.estimators import upright_e
     from mavvo.estimation.relpose import _Fit, _general_if_attitude_is_worse
     from mavvo.geometry.residuals import sampson_sq_upright
-    from mavvo.estimation.estimators import upright_e
 
     scene, outlier = _scene(31, n=300, outliers=0.1, motion="sideways", depth_fraction=1.0)
     f1, f2 = scene.f1_lvl, scene.f2_lvl

@@ -5,8 +5,8 @@ and the partial report."""
 from __future__ import annotations
 
 import json
-import time
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -15,17 +15,17 @@ import yaml
 
 from mavvo.cli import main
 from mavvo.errors import ConfigError
-from mavvo.service.recorder import RecordOptions, Recorder
+from mavvo.offline.driver import replay
+from mavvo.offline.recording import load_recording
+from mavvo.offline.time_offset import estimate_offset
+from mavvo.service.recorder import Recorder, RecordOptions
 from mavvo.service.settings import ServiceConfig
 from mavvo.service.timing import Pairing
 from mavvo.service.tlog import payload, read_tlog, write_record
-from mavvo.types import Frame
-from mavvo.sim.world.clock import LockstepClock
-from mavvo.offline.recording import load_recording
-from mavvo.offline.driver import replay
 from mavvo.sim.scenarios.loader import load_scenario
 from mavvo.sim.scenarios.service_run import run_daemon_in_sim
-from mavvo.offline.time_offset import estimate_offset
+from mavvo.sim.world.clock import LockstepClock
+from mavvo.types import Frame
 
 sys.path.insert(0, str(Path(__file__).parent))
 from flightlogs import make_euroc, make_log_flight  # noqa: E402

@@ -7,12 +7,12 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
 from conftest import free_port
-from mavvo.service.camera import FrameSource
+
 from mavvo.errors import CameraError, ConfigError
-from mavvo.sim.scenarios.loader import Scenario, load_scenario, scenario_names
+from mavvo.service.camera import FrameSource
 from mavvo.sim.scenarios.flight import Simulation
+from mavvo.sim.scenarios.loader import Scenario, load_scenario, scenario_names
 
 
 @pytest.mark.parametrize("name", scenario_names())

@@ -17,12 +17,12 @@ import time
 import numpy as np
 import pytest
 
-from mavvo.service.camera import InjectedSource, ReconnectingSource
 from mavvo.errors import CameraEnded, CameraError
+from mavvo.service.camera import InjectedSource, ReconnectingSource
 from mavvo.service.settings import OutputOptions, ServiceConfig
-from mavvo.sim.world.faults import FaultSpec
 from mavvo.sim.scenarios.loader import load_scenario
 from mavvo.sim.scenarios.service_run import run_daemon_in_sim
+from mavvo.sim.world.faults import FaultSpec
 
 
 @pytest.fixture(scope="module")

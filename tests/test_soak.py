@@ -11,11 +11,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mavvo.geometry import (
+    solve_upright_3pt,
+    solve_upright_3pt_batch,
+    upright_constraint_residual,
+    upright_pose_from_essential,
+)
 from mavvo.geometry.frames import angle_between_rad, rotation_angle_rad
-from mavvo.geometry import solve_upright_3pt, solve_upright_3pt_batch, upright_constraint_residual, upright_pose_from_essential
-from mavvo.sim.world.faults import FaultSpec
 from mavvo.sim.scenarios.loader import load_scenario
 from mavvo.sim.scenarios.service_run import run_daemon_in_sim
+from mavvo.sim.world.faults import FaultSpec
 from mavvo.sim.world.twoview import TwoViewScene, make_scene
 
 pytestmark = pytest.mark.slow

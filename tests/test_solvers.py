@@ -7,7 +7,6 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from mavvo.geometry.frames import angle_between_rad, rotation_angle_rad
 from mavvo.geometry import (
     epipolar_rows,
     essential_from_vector,
@@ -18,6 +17,7 @@ from mavvo.geometry import (
     upright_constraint_residual,
     upright_pose_from_essential,
 )
+from mavvo.geometry.frames import angle_between_rad, rotation_angle_rad
 from mavvo.sim.world.twoview import TwoViewScene, make_scene
 
 MOTIONS = ("sideways", "forward", "random")

@@ -104,7 +104,9 @@ def test_a_slow_stream_is_interpolated_on_the_rotation_and_its_uncertainty_grows
 def test_yaw_is_interpolated_the_short_way_across_pi():
     clock = FakeClock()
     state = FlightControllerState(clock)
-    yaw = lambda t: math.remainder(math.pi - 0.02 + 0.4 * t, math.tau)  # crosses +pi at t = 0.05
+    def yaw(t: float) -> float:  # crosses +pi at t = 0.05
+        return math.remainder(math.pi - 0.02 + 0.4 * t, math.tau)
+
     feed(state, clock, np.arange(0.0, 0.2, 0.01), latency_s=0.0, yaw=yaw)
     p = state.pair(0.055)
     assert p.status == "paired" and abs(math.remainder(p.yaw_rad - yaw(0.055), math.tau)) < 1e-5  # not pi - 0.02 + ... - 2 pi

@@ -25,7 +25,14 @@ from mavvo.estimation.estimators import decompose_upright, upright_e, yaw_of
 from mavvo.estimation.general5pt import estimate_general_start, estimate_ground_plane_relpose, sees_ground
 from mavvo.estimation.ransac import RansacResult
 from mavvo.geometry.frames import rot_z
-from mavvo.geometry.refine import gauss_newton_upright, refine_upright, rotate_row, tilt_matrix, tilt_rotation, upright_tuple
+from mavvo.geometry.refine import (
+    gauss_newton_upright,
+    refine_upright,
+    rotate_row,
+    tilt_matrix,
+    tilt_rotation,
+    upright_tuple,
+)
 from mavvo.geometry.residuals import UNMAPPABLE_SQ, rotation_sq_point, sampson_sq_point, sampson_sq_upright
 from mavvo.geometry.upright_pose import behind_upright, point_behind
 from mavvo.jit import kernel

@@ -21,14 +21,14 @@ from typing import Literal
 
 import numpy as np
 
+from mavvo.estimation.ransac import CostsFromResiduals
 from mavvo.geometry import essential_to_vector, solve_upright_4pt, solve_upright_linear5pt
 from mavvo.geometry.frames import rot_z
 from mavvo.geometry.ground_2pt import homography_from_similarity, solve_ground_2pt_samples
-from mavvo.geometry.upright_3pt import solve_samples as solve_upright_3pt_samples
-from mavvo.geometry.upright_pose import upright_pose_kernel
 from mavvo.geometry.refine import fit_rotation, gauss_newton_upright, ground_similarity, upright_vector
 from mavvo.geometry.residuals import ground_msac, ground_sq, rotation_sq, sampson_msac_upright, sampson_sq_upright
-from mavvo.estimation.ransac import CostsFromResiduals
+from mavvo.geometry.upright_3pt import solve_samples as solve_upright_3pt_samples
+from mavvo.geometry.upright_pose import upright_pose_kernel
 from mavvo.jit import kernel
 
 __all__ = ["UprightEssential", "GroundHomography", "PureRotation", "upright_e", "decompose_upright", "yaw_of"]

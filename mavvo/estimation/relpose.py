@@ -35,20 +35,34 @@ from typing import Literal, Mapping
 
 import numpy as np
 
-from mavvo.options import bounded
-from mavvo.types import StrEnum
-
-from mavvo.estimation.attitude_refine import Correction, pose_err_sq, refine_at_threshold, refine_essential, robust_sigma, upright_from_general, yaw_parallax_rad
-from mavvo.estimation.estimators import SAMPLE_SIZE, GroundHomography, MinimalSolver, NonminimalSolver, PureRotation, UprightEssential
-from mavvo.estimation.estimators import yaw_of
+from mavvo.estimation.attitude_refine import (
+    Correction,
+    pose_err_sq,
+    refine_at_threshold,
+    refine_essential,
+    robust_sigma,
+    upright_from_general,
+    yaw_parallax_rad,
+)
+from mavvo.estimation.estimators import (
+    SAMPLE_SIZE,
+    GroundHomography,
+    MinimalSolver,
+    NonminimalSolver,
+    PureRotation,
+    UprightEssential,
+    yaw_of,
+)
 from mavvo.estimation.general5pt import estimate_general_relpose, sampson_sq_general
 from mavvo.estimation.ransac import RansacOptions, RansacResult, RansacStats, lo_ransac, required_iterations
+from mavvo.geometry import as_bearing_pair, ground_pose_from_homography
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import as_rotation, rot_z
 from mavvo.geometry.refine import kabsch, tilt_rotation
 from mavvo.geometry.residuals import ground_sq, rotation_sq, rotation_sq_point
 from mavvo.jit import kernel
-from mavvo.geometry import as_bearing_pair, ground_pose_from_homography
+from mavvo.options import bounded
+from mavvo.types import StrEnum
 
 __all__ = [
     "RelposeFailure",

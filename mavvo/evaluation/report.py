@@ -14,8 +14,8 @@ from typing import Any, Iterable, Literal
 import numpy as np
 
 from mavvo.errors import ConfigError
-from mavvo.geometry.frames import R_from_euler321
 from mavvo.evaluation.metrics import Evaluation, PoseSeries, evaluate
+from mavvo.geometry.frames import R_from_euler321
 
 GROUND_TRUTH_FILE = "ground_truth.tum"  # a simulated flight's truth, written beside its recording
 

@@ -11,7 +11,11 @@ from mavvo.geometry.essential import (
     essential_to_vector,
     upright_constraint_residual,
 )
-from mavvo.geometry.ground_2pt import ground_homography_from_similarity, ground_pose_from_homography, solve_ground_2pt_batch
+from mavvo.geometry.ground_2pt import (
+    ground_homography_from_similarity,
+    ground_pose_from_homography,
+    solve_ground_2pt_batch,
+)
 from mavvo.geometry.upright_3pt import solve_upright_3pt, solve_upright_3pt_batch
 from mavvo.geometry.upright_4pt import solve_upright_4pt
 from mavvo.geometry.upright_linear5pt import solve_upright_linear5pt

@@ -34,7 +34,6 @@ import numpy as np
 
 from mavvo.jit import kernel
 
-
 # The det cubic of the 4-point, or the 5th singular value of the linear 5-point, vanishes on a
 # horizontal plane (rank 4). Relative to the largest coefficient / singular value.
 MIN_DEGENERACY_RATIO = 1e-9

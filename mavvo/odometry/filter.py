@@ -17,10 +17,9 @@ scipy.stats with it, 0.8 s of the service's 1.3 s of imports before its first es
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import enum
 import math
+from dataclasses import dataclass
 
 import numpy as np
 

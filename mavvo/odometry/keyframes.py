@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mavvo.options import bounded
 from mavvo.geometry.frames import rot_z
+from mavvo.options import bounded
 
 __all__ = ["KeyframeOptions", "Keyframe", "KeyframePose", "KeyframeChain", "keyframe_reason", "carry_depths"]
 

@@ -49,16 +49,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mavvo.estimation.relpose import RelposeFailure, RelposeOptions, UprightRelpose, estimate_upright_relpose
 from mavvo.geometry.camera_model import CameraModel
-from mavvo.options import bounded
-from mavvo.odometry.filter import FilterOptions, PoseFilter, Update, wrap_angle
 from mavvo.geometry.frames import R_lvl_body, R_lvl_cam, as_rotation, euler321_from_R
 from mavvo.geometry.medians import median
 from mavvo.geometry.refine import tilt_rotation
+from mavvo.odometry.filter import FilterOptions, PoseFilter, Update, wrap_angle
 from mavvo.odometry.frontend import Frontend, FrontendOptions, Tracks
 from mavvo.odometry.keyframes import Keyframe, KeyframeChain, KeyframeOptions, carry_depths, keyframe_reason
-from mavvo.estimation.relpose import RelposeFailure, RelposeOptions, UprightRelpose, estimate_upright_relpose
 from mavvo.odometry.scale import ScaleEstimate, ScaleOptions, estimate_scale, scale_from_scene_depth, triangulate_unit
+from mavvo.options import bounded
 from mavvo.types import PairedFrame, PoseEstimate, ScaleSource, StateReason, VisionState, VoDiagnostics
 
 __all__ = ["OdometryOptions", "Odometry"]

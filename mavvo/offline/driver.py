@@ -29,18 +29,18 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from mavvo.service.camera import InjectedSource
-from mavvo.service.daemon import Daemon, DaemonSummary
 from mavvo.errors import ConfigError, MavvoError
-from mavvo.service.link import us_to_s
-from mavvo.service.settings import ServiceConfig
-from mavvo.service.tlog import payload
-from mavvo.types import PoseEstimate, ScaleSource, StateReason, VisionState
-from mavvo.sim.world.clock import LockstepClock
-from mavvo.service.mavlink import mavutil
-from mavvo.sim.flight_controller.autopilot import RECORDED_TYPES, Received
 from mavvo.evaluation.metrics import PoseSeries
 from mavvo.evaluation.report import vision_estimates
+from mavvo.service.camera import InjectedSource
+from mavvo.service.daemon import Daemon, DaemonSummary
+from mavvo.service.link import us_to_s
+from mavvo.service.mavlink import mavutil
+from mavvo.service.settings import ServiceConfig
+from mavvo.service.tlog import payload
+from mavvo.sim.flight_controller.autopilot import RECORDED_TYPES, Received
+from mavvo.sim.world.clock import LockstepClock
+from mavvo.types import PoseEstimate, ScaleSource, StateReason, VisionState
 
 log = logging.getLogger(__name__)
 

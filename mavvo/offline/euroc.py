@@ -27,12 +27,12 @@ import numpy as np
 import yaml
 
 from mavvo.errors import ConfigError
-from mavvo.geometry.frames import R_from_euler321, R_from_quat_wxyz, euler321_from_R, quat_wxyz_from_R, skew
-from mavvo.service.settings import parse_config
-from mavvo.offline.fc_logs import FcSeries, series_messages
 from mavvo.evaluation.metrics import PoseSeries
-from mavvo.offline.recording import merge
+from mavvo.geometry.frames import R_from_euler321, R_from_quat_wxyz, euler321_from_R, quat_wxyz_from_R, skew
 from mavvo.offline.driver import ReplayFrame, ReplayInput, image_loader
+from mavvo.offline.fc_logs import FcSeries, series_messages
+from mavvo.offline.recording import merge
+from mavvo.service.settings import parse_config
 
 __all__ = ["load_euroc", "read_euroc_groundtruth"]
 

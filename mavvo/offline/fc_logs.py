@@ -20,18 +20,17 @@ from __future__ import annotations
 import contextlib
 import io
 import os
-import struct
 import sys
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any, Iterator
 
 import numpy as np
 
 from mavvo.errors import ConfigError
-from mavvo.service.tlog import read_tlog
 from mavvo.service.mavlink import dfreader, mavutil
+from mavvo.service.tlog import read_tlog
 
 __all__ = ["FcSeries", "read_fc_log", "series_messages"]
 

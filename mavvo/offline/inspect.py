@@ -19,8 +19,8 @@ from typing import Any
 import numpy as np
 
 from mavvo.errors import ConfigError
-from mavvo.service.timing import TimingOptions
 from mavvo.offline.sources import log_pairing_gap_s
+from mavvo.service.timing import TimingOptions
 
 __all__ = ["SeriesInfo", "Missing", "Inspection", "inspect_source", "series_info"]
 

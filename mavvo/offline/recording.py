@@ -13,13 +13,13 @@ import json
 from pathlib import Path
 from typing import Any
 
-from mavvo.service.yaml_loader import load_yaml
 from mavvo.errors import ConfigError
+from mavvo.evaluation.report import GROUND_TRUTH_FILE, read_tum
+from mavvo.offline.driver import ReplayFrame, ReplayInput, image_loader
 from mavvo.service.recorder import FORMAT_VERSION, FRAME_COLUMNS
 from mavvo.service.settings import parse_config
 from mavvo.service.tlog import message_id, payload, read_tlog, source_component
-from mavvo.evaluation.report import GROUND_TRUTH_FILE, read_tum
-from mavvo.offline.driver import ReplayFrame, ReplayInput, image_loader
+from mavvo.service.yaml_loader import load_yaml
 
 __all__ = ["is_recording", "load_recording", "merge"]
 

@@ -21,10 +21,10 @@ from typing import Any
 
 import numpy as np
 
-from mavvo.types import StateReason
 from mavvo.evaluation.metrics import Evaluation, PoseSeries, evaluate
-from mavvo.offline.driver import QualityRow, ReplayInput, ReplayResult
 from mavvo.evaluation.report import plot_evaluation, write_tum
+from mavvo.offline.driver import QualityRow, ReplayInput, ReplayResult
+from mavvo.types import StateReason
 
 __all__ = ["reference_at", "write_replay_report"]
 

@@ -18,17 +18,17 @@ from typing import Any, Iterator
 import cv2
 import numpy as np
 
-from mavvo.service.yaml_loader import load_yaml
-from mavvo.service.camera import read_frame_index
 from mavvo.errors import CameraError, ConfigError
-from mavvo.geometry.frames import R_from_euler321
-from mavvo.service.settings import ServiceConfig, parse_config
-from mavvo.offline.fc_logs import FcSeries, read_fc_log, series_messages
 from mavvo.evaluation.metrics import PoseSeries
-from mavvo.offline.recording import is_recording, load_recording
-from mavvo.offline.driver import ReplayFrame, ReplayInput
 from mavvo.evaluation.report import read_tum
+from mavvo.geometry.frames import R_from_euler321
+from mavvo.offline.driver import ReplayFrame, ReplayInput
+from mavvo.offline.fc_logs import FcSeries, read_fc_log, series_messages
+from mavvo.offline.recording import is_recording, load_recording
 from mavvo.offline.time_offset import attitude_rotation_rates, camera_rotation_rates, estimate_offset
+from mavvo.service.camera import read_frame_index
+from mavvo.service.settings import ServiceConfig, parse_config
+from mavvo.service.yaml_loader import load_yaml
 
 __all__ = ["open_replay_source", "VideoFrames", "read_reference"]
 

@@ -23,8 +23,8 @@ from typing import Iterable
 import cv2
 import numpy as np
 
-from mavvo.geometry.camera_model import CameraModel
 from mavvo.errors import ConfigError
+from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import R_from_euler321
 
 __all__ = ["OffsetEstimate", "camera_rotation_rates", "attitude_rotation_rates", "estimate_offset"]

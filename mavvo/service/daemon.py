@@ -36,15 +36,15 @@ from typing import Callable
 
 import numpy as np
 
-from mavvo.estimation.warmup import warm_kernels
-from mavvo.service import messages, sdnotify
-from mavvo.service.camera import FrameQueue, FrameSource, SourceFactory, open_source
 from mavvo.errors import CameraEnded, CameraLost, FrameRefused
-from mavvo.service.latency import LatencyStats, LatencyTracker
-from mavvo.service.link import Link, SystemStatus
+from mavvo.estimation.warmup import warm_kernels
 from mavvo.odometry.ahead import TrackAhead
 from mavvo.odometry.frontend import Tracks
 from mavvo.odometry.pipeline import Odometry
+from mavvo.service import messages, sdnotify
+from mavvo.service.camera import FrameQueue, FrameSource, SourceFactory, open_source
+from mavvo.service.latency import LatencyStats, LatencyTracker
+from mavvo.service.link import Link, SystemStatus
 from mavvo.service.recorder import Recorder, RecordingError
 from mavvo.service.settings import ServiceConfig, config_yaml
 from mavvo.service.timing import Clock, FlightControllerState, MonotonicClock, wait_for_pairing

@@ -38,13 +38,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Protocol
 
-from mavvo.options import bounded
 from mavvo.errors import ConfigError, LinkError
+from mavvo.options import bounded
 from mavvo.service import signing
 from mavvo.service.mavlink import SOCKET_SCHEMES, mavutil
 from mavvo.service.timing import Clock
 from mavvo.types import StrEnum
-
 
 __all__ = ["LinkOptions", "LinkListener", "Link", "SystemStatus", "Tap", "parse_url", "read_signing_key", "stamp_us", "us_to_s"]
 

@@ -40,8 +40,8 @@ from typing import IO, Any, Callable, Literal
 import cv2
 
 from mavvo import __version__
-from mavvo.options import bounded
 from mavvo.errors import ConfigError, RecordingError
+from mavvo.options import bounded
 from mavvo.service.link import COMPONENT_ID
 from mavvo.service.timing import Clock, MonotonicClock, Pairing
 from mavvo.service.tlog import write_record

@@ -19,16 +19,16 @@ from typing import Any, Literal
 
 import numpy as np
 
-from mavvo.geometry.frames import R_BODY_CAM_NADIR
-from mavvo.service.camera import CameraOptions
-from mavvo.options import bounded
-from mavvo.service.yaml_loader import build, load_yaml
 from mavvo.errors import ConfigError
+from mavvo.geometry.frames import R_BODY_CAM_NADIR
+from mavvo.odometry.pipeline import OdometryOptions
+from mavvo.options import bounded
+from mavvo.service.camera import CameraOptions
 from mavvo.service.link import LinkOptions, parse_url
 from mavvo.service.messages import Autopilot
-from mavvo.odometry.pipeline import OdometryOptions
 from mavvo.service.recorder import RecordOptions
 from mavvo.service.timing import TimingOptions
+from mavvo.service.yaml_loader import build, load_yaml
 
 __all__ = ["MountingOptions", "OutputOptions", "ServiceOptions", "ServiceConfig", "load_config", "parse_config", "config_yaml", "default_yaml"]
 

@@ -18,8 +18,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import enum
-import io
 import hashlib
+import io
 import json
 import os
 import re
@@ -44,9 +44,9 @@ from mavvo.service.daemon import Daemon
 from mavvo.service.link import Link, LinkOptions
 from mavvo.service.mavlink import mavutil
 from mavvo.service.timing import MonotonicClock
-from tools.faults.config_fuzz import mutated_config
 from mavvo.sim.scenarios.loader import load_scenario
 from mavvo.sim.scenarios.service_run import SimRun, run_daemon_in_sim
+from tools.faults.config_fuzz import mutated_config
 
 __all__ = ["Outcome", "FaultRow", "CASES", "FAST_CASES", "run_cases", "markdown_table", "main"]
 

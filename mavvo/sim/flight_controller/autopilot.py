@@ -34,13 +34,13 @@ from typing import Any, Callable
 
 import numpy as np
 
-from mavvo.service.mavlink import SOCKET_SCHEMES, mavutil
 from mavvo.errors import LinkError
+from mavvo.service.mavlink import SOCKET_SCHEMES, mavutil
+from mavvo.sim.flight_controller.estimator import SimEstimator
+from mavvo.sim.flight_controller.sensors import attitude_sample, baro_height_sample, range_sample
+from mavvo.sim.flight_controller.spec import VISION_READY_PARAMS, FlightControllerSpec
 from mavvo.sim.world.clock import Clock
 from mavvo.sim.world.faults import FaultSchedule
-from mavvo.sim.flight_controller.sensors import attitude_sample, baro_height_sample, range_sample
-from mavvo.sim.flight_controller.estimator import SimEstimator
-from mavvo.sim.flight_controller.spec import VISION_READY_PARAMS, FlightControllerSpec
 from mavvo.sim.world.trajectories import Trajectory
 
 log = logging.getLogger(__name__)

@@ -16,17 +16,17 @@ from collections.abc import Callable
 
 import numpy as np
 
+from mavvo.evaluation.metrics import PoseSeries
 from mavvo.geometry.frames import euler321_from_R
 from mavvo.service.timing import FlightControllerState
-from mavvo.types import Frame
+from mavvo.sim.flight_controller.autopilot import SimFlightController
+from mavvo.sim.scenarios.loader import Scenario, load_scenario
 from mavvo.sim.world.camera import HostClock, HostTimedCamera, SimCamera
 from mavvo.sim.world.clock import LockstepClock, RealClock
 from mavvo.sim.world.faults import FaultSchedule
-from mavvo.sim.flight_controller.autopilot import SimFlightController
-from mavvo.evaluation.metrics import PoseSeries
-from mavvo.sim.scenarios.loader import Scenario, load_scenario
-from mavvo.sim.world.trajectories import make_trajectory
 from mavvo.sim.world.scene import World
+from mavvo.sim.world.trajectories import make_trajectory
+from mavvo.types import Frame
 
 log = logging.getLogger(__name__)
 

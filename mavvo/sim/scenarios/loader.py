@@ -14,14 +14,14 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from mavvo.errors import ConfigError
 from mavvo.options import bounded
 from mavvo.service.yaml_loader import build, load_yaml
-from mavvo.errors import ConfigError
+from mavvo.sim.flight_controller.spec import FlightControllerSpec
 from mavvo.sim.world.camera import CameraSpec
 from mavvo.sim.world.faults import FaultSpec
-from mavvo.sim.flight_controller.spec import FlightControllerSpec
-from mavvo.sim.world.trajectories import TRAJECTORY_SPECS, HoverSpec, TrajectorySpec
 from mavvo.sim.world.scene import BoxSpec, WorldSpec
+from mavvo.sim.world.trajectories import TRAJECTORY_SPECS, HoverSpec, TrajectorySpec
 
 SCENARIO_DIR = Path(__file__).resolve().parent
 

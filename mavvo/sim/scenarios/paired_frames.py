@@ -14,15 +14,15 @@ from typing import Iterator
 import numpy as np
 
 from mavvo.errors import CameraError
-from mavvo.types import PairedFrame
+from mavvo.evaluation.metrics import PoseSeries
+from mavvo.sim.flight_controller.sensors import attitude_sample, baro_height_sample, range_sample
+from mavvo.sim.scenarios.loader import Scenario
 from mavvo.sim.world.camera import SimCamera
 from mavvo.sim.world.clock import LockstepClock
 from mavvo.sim.world.faults import FaultSchedule
-from mavvo.evaluation.metrics import PoseSeries
-from mavvo.sim.scenarios.loader import Scenario
-from mavvo.sim.flight_controller.sensors import attitude_sample, baro_height_sample, range_sample
-from mavvo.sim.world.trajectories import make_trajectory
 from mavvo.sim.world.scene import World
+from mavvo.sim.world.trajectories import make_trajectory
+from mavvo.types import PairedFrame
 
 
 class PairedSequence:

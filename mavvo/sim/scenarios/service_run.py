@@ -22,18 +22,17 @@ from typing import Any, Callable
 
 import numpy as np
 
+from mavvo.evaluation.flight_safety import FlightSafety, VisionSample, flight_safety
+from mavvo.evaluation.metrics import Evaluation, PoseSeries, evaluate
+from mavvo.evaluation.report import GROUND_TRUTH_FILE, vision_estimates, write_report, write_tum
 from mavvo.geometry.camera_model import CameraIntrinsics
 from mavvo.service.camera import CameraOptions
 from mavvo.service.daemon import Daemon, DaemonSummary, LockstepProgress
-from mavvo.service.timing import Clock
 from mavvo.service.settings import MountingOptions, ServiceConfig, as_matrix3
-from mavvo.sim.world.camera import CameraSpec
-from mavvo.evaluation.flight_safety import FlightSafety, VisionSample, flight_safety
-from mavvo.evaluation.metrics import Evaluation, PoseSeries, evaluate
-
-from mavvo.evaluation.report import GROUND_TRUTH_FILE, vision_estimates, write_report, write_tum
-from mavvo.sim.scenarios.loader import Scenario
+from mavvo.service.timing import Clock
 from mavvo.sim.scenarios.flight import Simulation
+from mavvo.sim.scenarios.loader import Scenario
+from mavvo.sim.world.camera import CameraSpec
 
 log = logging.getLogger(__name__)
 

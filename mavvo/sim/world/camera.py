@@ -14,16 +14,16 @@ from typing import Callable, Literal, Protocol
 
 import numpy as np
 
+from mavvo.errors import CameraEnded, CameraError
 from mavvo.geometry.camera_model import CameraIntrinsics
 from mavvo.options import bounded
-from mavvo.errors import CameraEnded, CameraError
-from mavvo.types import Frame
 from mavvo.sim.world.clock import Clock
 from mavvo.sim.world.faults import FaultSchedule
 from mavvo.sim.world.render import Renderer, apply_effects
+from mavvo.sim.world.scene import World
 from mavvo.sim.world.trajectories import Trajectory
 from mavvo.sim.world.twoview import mount_rotation
-from mavvo.sim.world.scene import World
+from mavvo.types import Frame
 
 _DARK_GAIN = 0.05
 

@@ -20,9 +20,9 @@ from typing import ClassVar, Literal, Union
 
 import numpy as np
 
-from mavvo.options import bounded
-from mavvo.geometry.frames import euler321_from_R
 from mavvo.evaluation.metrics import PoseSeries
+from mavvo.geometry.frames import euler321_from_R
+from mavvo.options import bounded
 
 GRAVITY_M_S2 = 9.80665
 _G_NED = np.array([0.0, 0.0, GRAVITY_M_S2])
