@@ -83,8 +83,9 @@ def machine(poselib: ModuleType | None) -> str:
                 break
     except OSError:
         pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}, OpenCV {cv2.__version__}" + (
-        f", PoseLib {getattr(poselib, '__version__', 'installed')}" if poselib else ", PoseLib not installed"
+    return (
+        f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}, OpenCV {cv2.__version__}"
+        + (f", PoseLib {getattr(poselib, '__version__', 'installed')}" if poselib else ", PoseLib not installed")
     )
 
 

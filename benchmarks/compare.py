@@ -15,7 +15,10 @@ from typing import Mapping
 
 import numpy as np
 
-SUCCESS_ROT_DEG, SUCCESS_TRANS_DEG = 2.0, 10.0  # a pose is found: rotation error and translation direction error under these
+SUCCESS_ROT_DEG, SUCCESS_TRANS_DEG = (
+    2.0,
+    10.0,
+)  # a pose is found: rotation error and translation direction error under these
 YAW_PRIOR_NOISE_DEG = 1.0  # mavvo is told the flight controller's yaw change, as the odometry tells it, this far off
 BOOTSTRAP_DRAWS = 2000
 INTERVAL = (5.0, 95.0)  # percentiles of the bootstrap difference: a 90% interval
@@ -82,14 +85,24 @@ def best_peer_cells(ours: TrialErrors, peers: Mapping[str, TrialErrors]) -> list
         lowest = min(peers, key=lambda m: float(np.median(getattr(peers[m], field))))
         p = paired_medians(getattr(ours, field), getattr(peers[lowest], field))
         both = ours.found_trials & peers[lowest].found_trials
-        common = (f"on the {np.count_nonzero(both)} both found {np.median(getattr(ours, field)[both]):.4f} vs "
-                  f"{np.median(getattr(peers[lowest], field)[both]):.4f}") if np.any(both) else "none found by both"
+        common = (
+            (
+                f"on the {np.count_nonzero(both)} both found {np.median(getattr(ours, field)[both]):.4f} vs "
+                f"{np.median(getattr(peers[lowest], field)[both]):.4f}"
+            )
+            if np.any(both)
+            else "none found by both"
+        )
         # Four decimals: over flat ground the rotation medians are 0.005 deg, and the gaps 0.0001-0.001.
-        cells.append(f"{p.ours_deg:.4f} vs {p.peer_deg:.4f} ({lowest}): {p.diff_low_deg:+.4f} to {p.diff_high_deg:+.4f}, "
-                     f"lower on {p.ours_lower_share:.0%}; {common}")
+        cells.append(
+            f"{p.ours_deg:.4f} vs {p.peer_deg:.4f} ({lowest}): {p.diff_low_deg:+.4f} to {p.diff_high_deg:+.4f}, "
+            f"lower on {p.ours_lower_share:.0%}; {common}"
+        )
     return cells
 
 
-BEST_PEER_HEADER = ("success: mavvo vs best peer",
-                    "rotation median (deg): mavvo vs lowest peer, 90% interval of the difference, mavvo lower on; the two medians on the pairs both found",
-                    "translation median (deg): the same")
+BEST_PEER_HEADER = (
+    "success: mavvo vs best peer",
+    "rotation median (deg): mavvo vs lowest peer, 90% interval of the difference, mavvo lower on; the two medians on the pairs both found",
+    "translation median (deg): the same",
+)

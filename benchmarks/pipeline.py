@@ -189,8 +189,17 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenario", default="survey", help="shipped scenario name or YAML path (default survey)")
     parser.add_argument("--frames", type=int, default=300, help="frames to render and time (default 300)")
-    parser.add_argument("--repeats", type=int, default=3, help="runs over the frames, mavvo and OpenCV interleaved per frame (default 3)")
-    parser.add_argument("--threads", action="store_true", help="also measure one and two threads on a backlog of frames (wall-clock time)")
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=3,
+        help="runs over the frames, mavvo and OpenCV interleaved per frame (default 3)",
+    )
+    parser.add_argument(
+        "--threads",
+        action="store_true",
+        help="also measure one and two threads on a backlog of frames (wall-clock time)",
+    )
     parser.add_argument("--markdown", type=Path, help="rewrite this benchmark's section of this markdown file")
     args = parser.parse_args(argv)
     cv2.setNumThreads(1)
@@ -221,9 +230,13 @@ def main(argv: list[str] | None = None) -> int:
         ms = 1e3 * stages.get(name, 0.0) / n
         rows.append(f"| {name} | {ms:.2f} | {100 * ms / mean_ms:.0f}% | {PI4_FACTOR * ms:.1f} |")
     rest = mean_ms - 1e3 * sum(stages.values()) / n
-    rows.append(f"| the rest (matching, triangulation, keyframes) | {rest:.2f} | {100 * rest / mean_ms:.0f}% | {PI4_FACTOR * rest:.1f} |")
+    rows.append(
+        f"| the rest (matching, triangulation, keyframes) | {rest:.2f} | {100 * rest / mean_ms:.0f}% | {PI4_FACTOR * rest:.1f} |"
+    )
     rows.append(f"| **all** | **{mean_ms:.2f}** | | **{PI4_FACTOR * mean_ms:.1f}** |")
-    rows.append(f"| OpenCV pipeline (KLT, `findEssentialMat` USAC_MAGSAC, `recoverPose`) | {cv_ms:.2f} | | {PI4_FACTOR * cv_ms:.1f} |")
+    rows.append(
+        f"| OpenCV pipeline (KLT, `findEssentialMat` USAC_MAGSAC, `recoverPose`) | {cv_ms:.2f} | | {PI4_FACTOR * cv_ms:.1f} |"
+    )
     cam = scenario.camera
     section = "\n".join(
         [
@@ -244,22 +257,26 @@ def main(argv: list[str] | None = None) -> int:
             f"mavvo / OpenCV = **{ratio:.2f}x** (goal: within 1.3x; {'met' if ratio <= 1.3 else 'missed'}). The OpenCV pipeline has "
             "no backward check, scale, keyframes or filter. Peak memory allocated during a run: "
             f"{peak / 2**20:.1f} MiB.",
-            *([] if not threads else [
-                "",
-                "### One and two threads",
-                "",
-                f"The same {n} frames all waiting (a backlog: the camera faster than the odometry), {max(args.repeats, 5)} runs of each "
-                f"set-up in turn, medians; wall-clock time, since work done in parallel shows nowhere else, with the {load_average()} "
-                "at the end beside it (a busy host inflates it). Every set-up gave the same estimates to the last bit. "
-                "The service tracks ahead only when the next frame is already queued, so a camera slower than the odometry sees "
-                "one thread's figure.",
-                "",
-                *_threads_rows(threads),
-                "",
-                f"On a 4-core Raspberry Pi 4 (cores about {PI4_FACTOR}x slower) the service's set-up would take about "
-                f"{PI4_FACTOR * threads[-1][1]:.0f} ms a frame against {PI4_FACTOR * threads[0][1]:.0f} ms on one thread (an estimate: "
-                "these are two cores of this machine).",
-            ]),
+            *(
+                []
+                if not threads
+                else [
+                    "",
+                    "### One and two threads",
+                    "",
+                    f"The same {n} frames all waiting (a backlog: the camera faster than the odometry), {max(args.repeats, 5)} runs of each "
+                    f"set-up in turn, medians; wall-clock time, since work done in parallel shows nowhere else, with the {load_average()} "
+                    "at the end beside it (a busy host inflates it). Every set-up gave the same estimates to the last bit. "
+                    "The service tracks ahead only when the next frame is already queued, so a camera slower than the odometry sees "
+                    "one thread's figure.",
+                    "",
+                    *_threads_rows(threads),
+                    "",
+                    f"On a 4-core Raspberry Pi 4 (cores about {PI4_FACTOR}x slower) the service's set-up would take about "
+                    f"{PI4_FACTOR * threads[-1][1]:.0f} ms a frame against {PI4_FACTOR * threads[0][1]:.0f} ms on one thread (an estimate: "
+                    "these are two cores of this machine).",
+                ]
+            ),
             END,
         ]
     )

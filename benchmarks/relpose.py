@@ -66,7 +66,9 @@ def errors_deg(pose: Pose | None, scene: TwoViewScene) -> tuple[float, float]:
     nt = np.linalg.norm(t)
     if not np.all(np.isfinite(R)) or nt == 0:
         return float("inf"), float("inf")
-    return float(np.degrees(rotation_angle_rad(R, scene.R_c2_c1))), float(np.degrees(angle_between_rad(t / nt, scene.t_c2_c1)))
+    return float(np.degrees(rotation_angle_rad(R, scene.R_c2_c1))), float(
+        np.degrees(angle_between_rad(t / nt, scene.t_c2_c1))
+    )
 
 
 def closest(poses: list[Pose], scene: TwoViewScene) -> tuple[float, float]:
@@ -80,8 +82,14 @@ def in_front(scene: TwoViewScene, min_z: float = 0.1) -> TwoViewScene:
     keep = (scene.f1_cam[:, 2] > min_z) & (scene.f2_cam[:, 2] > min_z)
     if keep.all():
         return scene
-    return replace(scene, f1_lvl=scene.f1_lvl[keep], f2_lvl=scene.f2_lvl[keep], f1_cam=scene.f1_cam[keep],
-                   f2_cam=scene.f2_cam[keep], points_ned=scene.points_ned[keep])
+    return replace(
+        scene,
+        f1_lvl=scene.f1_lvl[keep],
+        f2_lvl=scene.f2_lvl[keep],
+        f1_cam=scene.f1_cam[keep],
+        f2_cam=scene.f2_cam[keep],
+        points_ned=scene.points_ned[keep],
+    )
 
 
 def pixels(scene: TwoViewScene, rows: slice | np.ndarray = slice(None)) -> tuple[np.ndarray, np.ndarray]:
@@ -118,7 +126,9 @@ def opencv_poses(scene: TwoViewScene, n: int, method: int = cv2.RANSAC) -> list[
 MINIMAL = {
     "upright 3-point": lambda s: closest(upright_poses(solvers.solve_upright_3pt(s.f1_lvl[:3], s.f2_lvl[:3]), s, 3), s),
     "upright 4-point": lambda s: closest(upright_poses(solvers.solve_upright_4pt(s.f1_lvl[:4], s.f2_lvl[:4]), s, 4), s),
-    "upright linear 5-point": lambda s: closest(upright_poses(solvers.solve_upright_linear5pt(s.f1_lvl[:5], s.f2_lvl[:5]), s, 5), s),
+    "upright linear 5-point": lambda s: closest(
+        upright_poses(solvers.solve_upright_linear5pt(s.f1_lvl[:5], s.f2_lvl[:5]), s, 5), s
+    ),
     "standard 5-point (OpenCV)": lambda s: closest(opencv_poses(s, 5), s),
 }
 
@@ -133,9 +143,15 @@ def _estimator(s: TwoViewScene, tilt_sigma_rad: float | None = None) -> tuple[fl
 def least_squares_methods(imu_sigma_rad: float) -> dict[str, Callable[[TwoViewScene], tuple[float, float]]]:
     return {
         "upright 3-point LO-RANSAC + refinement (mavvo)": _estimator,
-        "same + roll/pitch refinement under the IMU prior": lambda s: _estimator(s, max(imu_sigma_rad, np.radians(0.01))),
-        "upright 4-point, least squares": lambda s: closest(upright_poses(solvers.solve_upright_4pt(s.f1_lvl, s.f2_lvl), s, len(s.f1_lvl)), s),
-        "upright linear 5-point, least squares": lambda s: closest(upright_poses(solvers.solve_upright_linear5pt(s.f1_lvl, s.f2_lvl), s, len(s.f1_lvl)), s),
+        "same + roll/pitch refinement under the IMU prior": lambda s: _estimator(
+            s, max(imu_sigma_rad, np.radians(0.01))
+        ),
+        "upright 4-point, least squares": lambda s: closest(
+            upright_poses(solvers.solve_upright_4pt(s.f1_lvl, s.f2_lvl), s, len(s.f1_lvl)), s
+        ),
+        "upright linear 5-point, least squares": lambda s: closest(
+            upright_poses(solvers.solve_upright_linear5pt(s.f1_lvl, s.f2_lvl), s, len(s.f1_lvl)), s
+        ),
         "standard 5-point (OpenCV RANSAC + recoverPose)": lambda s: closest(opencv_poses(s, len(s.f1_lvl)), s),
     }
 
@@ -152,13 +168,30 @@ def paper_sweep(kind: str, sweep: str, trials: int, levels: np.ndarray) -> dict[
             methods = MINIMAL if kind == "minimal" else least_squares_methods(imu)
             errs: dict[str, list[tuple[float, float]]] = {m: [] for m in methods}
             for _ in range(trials):
-                scene = in_front(make_scene(rng, n_points + 2, motion=motion, mount="forward", distance_m=10.0, depth_fraction=0.5,
-                                            baseline_fraction=0.1, max_tilt_rad=np.radians(15.0), pixel_noise_px=px,
-                                            imu_noise_rad=imu, focal_px=FOCAL_PX))
+                scene = in_front(
+                    make_scene(
+                        rng,
+                        n_points + 2,
+                        motion=motion,
+                        mount="forward",
+                        distance_m=10.0,
+                        depth_fraction=0.5,
+                        baseline_fraction=0.1,
+                        max_tilt_rad=np.radians(15.0),
+                        pixel_noise_px=px,
+                        imu_noise_rad=imu,
+                        focal_px=FOCAL_PX,
+                    )
+                )
                 if len(scene.f1_cam) < n_points:
                     continue  # rare: a point near the edge of view 2
-                scene = replace(scene, f1_lvl=scene.f1_lvl[:n_points], f2_lvl=scene.f2_lvl[:n_points],
-                                f1_cam=scene.f1_cam[:n_points], f2_cam=scene.f2_cam[:n_points])
+                scene = replace(
+                    scene,
+                    f1_lvl=scene.f1_lvl[:n_points],
+                    f2_lvl=scene.f2_lvl[:n_points],
+                    f1_cam=scene.f1_cam[:n_points],
+                    f2_cam=scene.f2_cam[:n_points],
+                )
                 for name, fn in methods.items():
                     errs[name].append(fn(scene))
             for name, e in errs.items():
@@ -170,7 +203,9 @@ def paper_sweep(kind: str, sweep: str, trials: int, levels: np.ndarray) -> dict[
     return out
 
 
-def plot_sweep(path: Path, title: str, xlabel: str, levels: np.ndarray, data: dict[str, dict[str, np.ndarray]], stat: str) -> None:
+def plot_sweep(
+    path: Path, title: str, xlabel: str, levels: np.ndarray, data: dict[str, dict[str, np.ndarray]], stat: str
+) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -246,6 +281,7 @@ IMU_LEVELS = np.linspace(0.0, 1.0, 6)
 
 # --------------------------------------------------------------------------- side by side
 
+
 def timed(fn: Callable[[], object], clock: Callable[[], float] = time.thread_time) -> tuple[float, object]:
     """Time (ms) by ``clock`` and the result: the calling thread's CPU time unless a section measures
     threads working in parallel (benchmarks/common.py: why not the wall clock)."""
@@ -257,7 +293,9 @@ def timed(fn: Callable[[], object], clock: Callable[[], float] = time.thread_tim
 IMU_SIGMA_RAD = np.radians(0.05)
 
 
-def run_mavvo(tilt_sigma_rad: float | None, yaw_prior: bool = False) -> Callable[[TwoViewScene, np.ndarray, np.ndarray, int], tuple[Pose | None, int]]:
+def run_mavvo(
+    tilt_sigma_rad: float | None, yaw_prior: bool = False
+) -> Callable[[TwoViewScene, np.ndarray, np.ndarray, int], tuple[Pose | None, int]]:
     """mavvo's relative pose; with ``yaw_prior`` told the yaw between the level frames within
     ``YAW_PRIOR_NOISE_DEG`` (seeded by the trial), as the odometry tells it the flight controller's."""
     opt = RelposeOptions(max_iterations=1000, confidence=CONFIDENCE, tilt_sigma_deg=math.degrees(tilt_sigma_rad or 0.0))
@@ -266,9 +304,20 @@ def run_mavvo(tilt_sigma_rad: float | None, yaw_prior: bool = False) -> Callable
         prior = None
         if yaw_prior:
             R = scene.R_lvl_cam2 @ scene.R_c2_c1 @ scene.R_lvl_cam1.T
-            prior = math.atan2(R[1, 0], R[0, 0]) + math.radians(YAW_PRIOR_NOISE_DEG) * np.random.default_rng(seed).standard_normal()
+            prior = (
+                math.atan2(R[1, 0], R[0, 0])
+                + math.radians(YAW_PRIOR_NOISE_DEG) * np.random.default_rng(seed).standard_normal()
+            )
         r = estimate_relpose_known_gravity(
-            uv1, uv2, CAMERA, scene.R_lvl_cam1, scene.R_lvl_cam2, max_err_px=THRESHOLD_PX, seed=seed, options=opt, yaw_prior_rad=prior
+            uv1,
+            uv2,
+            CAMERA,
+            scene.R_lvl_cam1,
+            scene.R_lvl_cam2,
+            max_err_px=THRESHOLD_PX,
+            seed=seed,
+            options=opt,
+            yaw_prior_rad=prior,
         )
         return ((r.R_c2_c1, r.t_c2_c1) if r.success else None), r.upright.iterations
 
@@ -287,7 +336,9 @@ def run_opencv(method: int) -> Callable[[TwoViewScene, np.ndarray, np.ndarray, i
     return fn
 
 
-def run_poselib(defaults: bool = False) -> Callable[[TwoViewScene, np.ndarray, np.ndarray, int], tuple[Pose | None, int]]:
+def run_poselib(
+    defaults: bool = False,
+) -> Callable[[TwoViewScene, np.ndarray, np.ndarray, int], tuple[Pose | None, int]]:
     """PoseLib's relative pose at p = 0.99 and no least number of iterations, or with its defaults."""
     cam = {"model": "PINHOLE", "width": 640, "height": 480, "params": [FOCAL_PX, FOCAL_PX, 320.0, 240.0]}
 
@@ -301,17 +352,31 @@ def run_poselib(defaults: bool = False) -> Callable[[TwoViewScene, np.ndarray, n
     return fn
 
 
-def side_scene(rng: np.random.Generator, n: int, trial: int, imu_noise_rad: float, outliers: float) -> tuple[TwoViewScene, np.ndarray, np.ndarray]:
+def side_scene(
+    rng: np.random.Generator, n: int, trial: int, imu_noise_rad: float, outliers: float
+) -> tuple[TwoViewScene, np.ndarray, np.ndarray]:
     """A scene of the side-by-side runs and its pixels (N, 2) in both views: forward-looking camera,
     motion cycling sideways / forward / random with the trial, 0.5 px noise, uniform outliers."""
-    scene = make_scene(rng, n, motion=("sideways", "forward", "random")[trial % 3], mount="forward", depth_fraction=0.5,
-                       baseline_fraction=0.1, pixel_noise_px=0.5, imu_noise_rad=imu_noise_rad, focal_px=FOCAL_PX)
+    scene = make_scene(
+        rng,
+        n,
+        motion=("sideways", "forward", "random")[trial % 3],
+        mount="forward",
+        depth_fraction=0.5,
+        baseline_fraction=0.1,
+        pixel_noise_px=0.5,
+        imu_noise_rad=imu_noise_rad,
+        focal_px=FOCAL_PX,
+    )
     scene, _ = add_outliers(in_front(scene), outliers, rng, fov_half_rad=np.radians(30.0))
     return (scene, *pixels(scene))
 
 
 def side_by_side(
-    trials: int, sizes: tuple[int, ...], outlier_levels: tuple[float, ...], clock: Callable[[], float] = time.thread_time
+    trials: int,
+    sizes: tuple[int, ...],
+    outlier_levels: tuple[float, ...],
+    clock: Callable[[], float] = time.thread_time,
 ) -> tuple[list[dict], dict[str, str]]:
     methods: dict[str, Callable[..., tuple[Pose | None, int]]] = {
         "mavvo": run_mavvo(IMU_SIGMA_RAD),
@@ -329,18 +394,26 @@ def side_by_side(
             for trial in range(trials):
                 scene, uv1, uv2 = side_scene(rng, n, trial, IMU_SIGMA_RAD, outliers)
                 for name, fn in methods.items():
-                    ms, (pose, iters) = timed(lambda fn=fn, scene=scene, uv1=uv1, uv2=uv2, trial=trial: fn(scene, uv1, uv2, trial), clock)
+                    ms, (pose, iters) = timed(
+                        lambda fn=fn, scene=scene, uv1=uv1, uv2=uv2, trial=trial: fn(scene, uv1, uv2, trial), clock
+                    )
                     rot, trans = errors_deg(pose, scene)
                     per[name]["ms"].append(ms)
                     per[name]["rot"].append(rot)
                     per[name]["trans"].append(trans)
                     per[name]["it"].append(iters)
             for name, d in per.items():
-                rows.append({
-                    "n": n, "outliers": outliers, "method": name,
-                    "ms": statistics.median(d["ms"]), "rot": statistics.median(d["rot"]),
-                    "trans": statistics.median(d["trans"]), "it": statistics.median(d["it"]),
-                })
+                rows.append(
+                    {
+                        "n": n,
+                        "outliers": outliers,
+                        "method": name,
+                        "ms": statistics.median(d["ms"]),
+                        "rot": statistics.median(d["rot"]),
+                        "trans": statistics.median(d["trans"]),
+                        "it": statistics.median(d["it"]),
+                    }
+                )
             print(f"  N={n} outliers={outliers:.0%} done", file=sys.stderr)
     settings = {
         "mavvo": f"`estimate_relpose_known_gravity`, max_err_px {THRESHOLD_PX}, confidence {CONFIDENCE}, "
@@ -397,17 +470,31 @@ def attitude_sweep(trials: int, n: int = 300, outliers: float = 0.2) -> list[dic
             scene, uv1, uv2 = side_scene(rng, n, trial, math.radians(level), outliers)
             for k, fn in enumerate(methods.values()):
                 per[k, trial] = errors_deg(fn(scene, uv1, uv2, trial)[0], scene)
-        rows += [{"level": level, "method": name, "trials": trials, "errors": TrialErrors(per[k, :, 0], per[k, :, 1])} for k, name in enumerate(methods)]
+        rows += [
+            {"level": level, "method": name, "trials": trials, "errors": TrialErrors(per[k, :, 0], per[k, :, 1])}
+            for k, name in enumerate(methods)
+        ]
         print(f"  roll/pitch noise {level} deg done", file=sys.stderr)
     return rows
 
 
 def attitude_sweep_markdown(rows: list[dict]) -> list[str]:
-    lines = ["| roll/pitch error per view | method | success | rotation err (deg) | translation err (deg) |", "|---|---|---:|---:|---:|"]
-    lines += [f"| {r['level']:g} deg | {r['method']} | {r['errors'].found} of {r['trials']} | {np.median(r['errors'].rot_deg):.3f} | "
-              f"{np.median(r['errors'].trans_deg):.2f} |" for r in rows]
-    lines += ["", f"{ATTITUDE_SWEEP_MAVVO} against the peers on the same trials:", "",
-              "| roll/pitch error per view | " + " | ".join(BEST_PEER_HEADER) + " |", "|---|" + "---|" * len(BEST_PEER_HEADER)]
+    lines = [
+        "| roll/pitch error per view | method | success | rotation err (deg) | translation err (deg) |",
+        "|---|---|---:|---:|---:|",
+    ]
+    lines += [
+        f"| {r['level']:g} deg | {r['method']} | {r['errors'].found} of {r['trials']} | {np.median(r['errors'].rot_deg):.3f} | "
+        f"{np.median(r['errors'].trans_deg):.2f} |"
+        for r in rows
+    ]
+    lines += [
+        "",
+        f"{ATTITUDE_SWEEP_MAVVO} against the peers on the same trials:",
+        "",
+        "| roll/pitch error per view | " + " | ".join(BEST_PEER_HEADER) + " |",
+        "|---|" + "---|" * len(BEST_PEER_HEADER),
+    ]
     for level in dict.fromkeys(r["level"] for r in rows):
         at = {r["method"]: r["errors"] for r in rows if r["level"] == level}
         peers = {m: e for m, e in at.items() if not m.startswith("mavvo")}
@@ -469,7 +556,12 @@ def run(quick: bool, plots: Path | None, docs_root: Path | None) -> str:
         "closest to the truth counts, as in the paper. The estimator rows use a 3 px threshold and no outliers.",
         "",
     ]
-    names = {("minimal", "pixel"): "minimal_pixel", ("minimal", "imu"): "minimal_imu", ("least squares", "pixel"): "ls_pixel", ("least squares", "imu"): "ls_imu"}
+    names = {
+        ("minimal", "pixel"): "minimal_pixel",
+        ("minimal", "imu"): "minimal_imu",
+        ("least squares", "pixel"): "ls_pixel",
+        ("least squares", "imu"): "ls_imu",
+    }
     for (kind, sweep), data in sweeps.items():
         levels = PIXEL_LEVELS if sweep == "pixel" else IMU_LEVELS
         xlabel = "pixel noise (px)" if sweep == "pixel" else "roll/pitch noise (deg), 0.5 px pixel noise"
@@ -480,7 +572,9 @@ def run(quick: bool, plots: Path | None, docs_root: Path | None) -> str:
             rel = os.path.relpath(png, docs_root) if docs_root else png
             lines.append(f"![{kind}, {sweep} noise]({rel})")
             lines.append("")
-        lines.append(f"{kind}, {sweep} noise at the largest level ({levels[-1]:g}), {stat} rotation / translation error (deg):")
+        lines.append(
+            f"{kind}, {sweep} noise at the largest level ({levels[-1]:g}), {stat} rotation / translation error (deg):"
+        )
         lines.append("")
         lines.append("| method | sideways | forward |")
         lines.append("|---|---:|---:|")
@@ -524,7 +618,11 @@ def threads_section(trials: int) -> str:
     for label, n_threads in (("1 thread", 1), (f"all {os.cpu_count()} cores", -1)):
         cv2.setNumThreads(n_threads)
         r, _ = side_by_side(trials, (1000,), (0.5,), time.perf_counter)  # wall clock: the point is parallel work
-        rows += [dict(x, method=f"{x['method']} ({label})" if x["method"].startswith("OpenCV") else x["method"]) for x in r if not x["method"].startswith("mavvo,")]
+        rows += [
+            dict(x, method=f"{x['method']} ({label})" if x["method"].startswith("OpenCV") else x["method"])
+            for x in r
+            if not x["method"].startswith("mavvo,")
+        ]
     cv2.setNumThreads(1)
     lines = [
         THREADS_BEGIN,

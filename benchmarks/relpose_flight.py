@@ -83,8 +83,18 @@ def mavvo(camera: CameraModel, with_sigma: bool) -> Method:
 
     def run(p: TrackedPair, R1: np.ndarray, R2: np.ndarray, sigma_rad: float, seed: int):  # type: ignore[no-untyped-def]
         prior = p.yaw_2_1 + math.radians(YAW_PRIOR_NOISE_DEG) * np.random.default_rng(seed).standard_normal()
-        r = estimate_relpose_known_gravity(p.uv1, p.uv2, camera, R1, R2, max_err_px=THRESHOLD_PX, seed=seed, options=opt,
-                                           attitude_sigma_rad=(sigma_rad, sigma_rad) if with_sigma else None, yaw_prior_rad=prior)
+        r = estimate_relpose_known_gravity(
+            p.uv1,
+            p.uv2,
+            camera,
+            R1,
+            R2,
+            max_err_px=THRESHOLD_PX,
+            seed=seed,
+            options=opt,
+            attitude_sigma_rad=(sigma_rad, sigma_rad) if with_sigma else None,
+            yaw_prior_rad=prior,
+        )
         return (r.R_c2_c1, r.t_c2_c1) if r.success else None
 
     return run
@@ -93,7 +103,9 @@ def mavvo(camera: CameraModel, with_sigma: bool) -> Method:
 def opencv(camera: CameraModel) -> Method:
     def run(p: TrackedPair, R1: np.ndarray, R2: np.ndarray, sigma_rad: float, seed: int):  # type: ignore[no-untyped-def]
         cv2.setRNGSeed(seed)
-        E, mask = cv2.findEssentialMat(p.uv1, p.uv2, camera.K, method=cv2.USAC_MAGSAC, prob=0.99, threshold=THRESHOLD_PX)
+        E, mask = cv2.findEssentialMat(
+            p.uv1, p.uv2, camera.K, method=cv2.USAC_MAGSAC, prob=0.99, threshold=THRESHOLD_PX
+        )
         if E is None or E.shape != (3, 3):
             return None
         _, R, t, _ = cv2.recoverPose(E, p.uv1, p.uv2, camera.K, mask=mask)
@@ -103,17 +115,28 @@ def opencv(camera: CameraModel) -> Method:
 
 
 def poselib_method(camera: CameraModel, defaults: bool) -> Method:
-    cam = {"model": "PINHOLE", "width": camera.width_px, "height": camera.height_px, "params": [camera.fx_px, camera.fy_px, camera.cx_px, camera.cy_px]}
+    cam = {
+        "model": "PINHOLE",
+        "width": camera.width_px,
+        "height": camera.height_px,
+        "params": [camera.fx_px, camera.fy_px, camera.cx_px, camera.cy_px],
+    }
 
     def run(p: TrackedPair, R1: np.ndarray, R2: np.ndarray, sigma_rad: float, seed: int):  # type: ignore[no-untyped-def]
-        ransac = {"max_epipolar_error": THRESHOLD_PX, "seed": seed} if defaults else {"max_epipolar_error": THRESHOLD_PX, "success_prob": 0.99, "min_iterations": 0, "seed": seed}
+        ransac = (
+            {"max_epipolar_error": THRESHOLD_PX, "seed": seed}
+            if defaults
+            else {"max_epipolar_error": THRESHOLD_PX, "success_prob": 0.99, "min_iterations": 0, "seed": seed}
+        )
         pose, _ = poselib.estimate_relative_pose(p.uv1, p.uv2, cam, cam, ransac, {})
         return pose.R, pose.t
 
     return run
 
 
-def evaluate(pairs: list[TrackedPair], methods: dict[str, Method], kind: str, level_deg: float, seed: int) -> dict[str, tuple[TrialErrors, float]]:
+def evaluate(
+    pairs: list[TrackedPair], methods: dict[str, Method], kind: str, level_deg: float, seed: int
+) -> dict[str, tuple[TrialErrors, float]]:
     """Each method's errors per pair and its median time per call (us), every method on the same
     attitude errors."""
     rng = np.random.default_rng(seed)
@@ -134,7 +157,9 @@ def evaluate(pairs: list[TrackedPair], methods: dict[str, Method], kind: str, le
                 trans = math.degrees(angle_between_rad(pose[1] / np.linalg.norm(pose[1]), p.t_c2_c1))
             out[name]["rot"].append(rot)
             out[name]["trans"].append(trans)
-    return {m: (TrialErrors(np.array(d["rot"]), np.array(d["trans"])), statistics.median(d["us"])) for m, d in out.items()}
+    return {
+        m: (TrialErrors(np.array(d["rot"]), np.array(d["trans"])), statistics.median(d["us"])) for m, d in out.items()
+    }
 
 
 def run(quick: bool, plots: Path | None) -> str:
@@ -144,12 +169,17 @@ def run(quick: bool, plots: Path | None) -> str:
     method_names: list[str] = []
     n_pairs = {}
     for name, duration in scenarios.items():
-        flights = [tracked_pairs(name, duration, frontend_options=FRONTEND, variant=v) for v in range(1 if quick else FLIGHTS)]
+        flights = [
+            tracked_pairs(name, duration, frontend_options=FRONTEND, variant=v) for v in range(1 if quick else FLIGHTS)
+        ]
         camera = flights[0][1]  # the scenario's camera: the same in every flight
         pairs = [p for flight, _ in flights for p in flight]
         n_pairs[name] = (len(pairs), int(np.median([len(p.uv1) for p in pairs])))
-        methods: dict[str, Method] = {"mavvo, roll/pitch exact": mavvo(camera, False), "mavvo, attitude sigma": mavvo(camera, True),
-                                      "OpenCV USAC_MAGSAC": opencv(camera)}
+        methods: dict[str, Method] = {
+            "mavvo, roll/pitch exact": mavvo(camera, False),
+            "mavvo, attitude sigma": mavvo(camera, True),
+            "OpenCV USAC_MAGSAC": opencv(camera),
+        }
         if poselib is not None:
             methods["PoseLib p=0.99"] = poselib_method(camera, False)
             methods["PoseLib defaults"] = poselib_method(camera, True)
@@ -158,7 +188,17 @@ def run(quick: bool, plots: Path | None) -> str:
             for level in levels:
                 res = evaluate(pairs, methods, kind, level, seed=int(level * 100) + (7 if kind == "correlated" else 0))
                 for m, (errors, us) in res.items():
-                    rows.append({"scenario": name, "kind": kind, "level": level, "method": m, "errors": errors, "us": us, "pairs": len(pairs)})
+                    rows.append(
+                        {
+                            "scenario": name,
+                            "kind": kind,
+                            "level": level,
+                            "method": m,
+                            "errors": errors,
+                            "us": us,
+                            "pairs": len(pairs),
+                        }
+                    )
                 print(f"  {name} {kind} {level} deg done", file=sys.stderr)
     lines = [
         BEGIN,
@@ -167,28 +207,46 @@ def run(quick: bool, plots: Path | None) -> str:
         f"Measured {dt.date.today().isoformat()} on {machine(poselib)}; {load_average()} at the end; "
         "pairs 0.5 s apart from the simulated camera, tracked by mavvo's frontend; per-thread CPU time per call, medians; "
         "regenerate with `make bench`. "
-        + "; ".join(f"{k}: {n} pairs over {1 if quick else FLIGHTS} textures, median {m} tracks" for k, (n, m) in n_pairs.items()) + ".",
+        + "; ".join(
+            f"{k}: {n} pairs over {1 if quick else FLIGHTS} textures, median {m} tracks"
+            for k, (n, m) in n_pairs.items()
+        )
+        + ".",
         "",
         "| flight | roll/pitch error | method | success | rotation err (deg) | translation err (deg) | time (us) |",
         "|---|---|---|---:|---:|---:|---:|",
     ]
     for r in rows:
         e = r["errors"]
-        lines.append(f"| {r['scenario']} | {_error_label(r)} | {r['method']} | {e.found} of {r['pairs']} | {np.median(e.rot_deg):.3f} | "
-                     f"{np.median(e.trans_deg):.2f} | {r['us']:.0f} |")
-    lines += ["", f"mavvo with the attitude sigma against the peers ({', '.join(m for m in method_names if not m.startswith('mavvo'))}) on the same pairs:", "",
-              "| flight | roll/pitch error | " + " | ".join(BEST_PEER_HEADER) + " |", "|---|---|" + "---|" * len(BEST_PEER_HEADER)]
+        lines.append(
+            f"| {r['scenario']} | {_error_label(r)} | {r['method']} | {e.found} of {r['pairs']} | {np.median(e.rot_deg):.3f} | "
+            f"{np.median(e.trans_deg):.2f} | {r['us']:.0f} |"
+        )
+    lines += [
+        "",
+        f"mavvo with the attitude sigma against the peers ({', '.join(m for m in method_names if not m.startswith('mavvo'))}) on the same pairs:",
+        "",
+        "| flight | roll/pitch error | " + " | ".join(BEST_PEER_HEADER) + " |",
+        "|---|---|" + "---|" * len(BEST_PEER_HEADER),
+    ]
     for (scenario, _kind, _level), group in _groups(rows).items():
-        peers = {m: r["errors"] for m, r in group.items() if not m.startswith("mavvo")}  # OpenCV always, PoseLib where installed
+        peers = {
+            m: r["errors"] for m, r in group.items() if not m.startswith("mavvo")
+        }  # OpenCV always, PoseLib where installed
         cells = best_peer_cells(group["mavvo, attitude sigma"]["errors"], peers)
         lines.append(f"| {scenario} | {_error_label(group['mavvo, attitude sigma'])} | " + " | ".join(cells) + " |")
     if plots is not None:
-        lines += ["", f"![success against roll/pitch noise]({_plot(plots / 'relpose_flight_success.png', rows, method_names)})"]
+        lines += [
+            "",
+            f"![success against roll/pitch noise]({_plot(plots / 'relpose_flight_success.png', rows, method_names)})",
+        ]
     return "\n".join(lines + ["", END])
 
 
 def _error_label(row: dict) -> str:
-    return f"{row['level']:g} deg " + ("per view" if row["kind"] == "independent" else f"bias + {CORRELATED_NOISE_DEG:g} deg")
+    return f"{row['level']:g} deg " + (
+        "per view" if row["kind"] == "independent" else f"bias + {CORRELATED_NOISE_DEG:g} deg"
+    )
 
 
 def _groups(rows: list[dict]) -> dict[tuple[str, str, float], dict[str, dict]]:
@@ -209,7 +267,11 @@ def _plot(path: Path, rows: list[dict], methods: list[str]) -> str:
     fig, axes = plt.subplots(1, len(scen), figsize=(5 * len(scen), 3.4), sharey=True)
     for ax, s in zip(np.atleast_1d(axes), scen):
         for m in methods:
-            pts = [(r["level"], r["errors"].found / r["pairs"]) for r in rows if r["scenario"] == s and r["method"] == m and r["kind"] == "independent"]
+            pts = [
+                (r["level"], r["errors"].found / r["pairs"])
+                for r in rows
+                if r["scenario"] == s and r["method"] == m and r["kind"] == "independent"
+            ]
             ax.plot([a for a, _ in pts], [100 * b for _, b in pts], marker="o", label=m)
         ax.set_title(f"{s}: independent roll/pitch errors", fontsize=9)
         ax.set_xlabel("roll/pitch noise per view and axis [deg]")
@@ -226,7 +288,9 @@ def _plot(path: Path, rows: list[dict], methods: list[str]) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="shorter flights, one texture each")
-    ap.add_argument("--markdown", type=Path, default=None, help="write the table into this file between the relpose-flight markers")
+    ap.add_argument(
+        "--markdown", type=Path, default=None, help="write the table into this file between the relpose-flight markers"
+    )
     ap.add_argument("--plots", type=Path, default=None, help="write the success plot into this folder")
     args = ap.parse_args(argv)
     section = run(args.quick, args.plots)

@@ -36,10 +36,14 @@ def main(argv: list[str] | None = None) -> int:
     pinhole = CameraModel(640, 480, 500.0, 500.0, 319.5, 239.5)
     radtan = CameraModel(640, 480, 420.0, 420.0, 322.0, 236.0, "pinhole", (-0.28, 0.07, 0.0005, -0.0003))
     world = World.build(WorldSpec())
-    boxed = World.build(WorldSpec(boxes=tuple(BoxSpec(north_m=8.0 * i, east_m=6.0 * (i % 3), height_m=3.0 + i) for i in range(6))))
+    boxed = World.build(
+        WorldSpec(boxes=tuple(BoxSpec(north_m=8.0 * i, east_m=6.0 * (i % 3), height_m=3.0 + i) for i in range(6)))
+    )
     tile = world.layers[0].tile
     H = np.array([[0.9, 0.1, 30.0], [-0.1, 0.9, 50.0], [1e-5, 2e-5, 1.0]])
-    reference_us = per_call_us(lambda: cv2.warpPerspective(tile, H, (640, 480), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP))
+    reference_us = per_call_us(
+        lambda: cv2.warpPerspective(tile, H, (640, 480), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    )
     rng = np.random.default_rng(0)
     nadir = R_from_euler321(0.05, -0.03, 0.4) @ R_BODY_CAM_NADIR
     cases = [

@@ -42,7 +42,10 @@ def recovered(Es: list[tuple[np.ndarray, np.ndarray]], scene: TwoViewScene, tol:
 
 
 def mavvo_poses(scene: TwoViewScene) -> list[tuple[np.ndarray, np.ndarray]]:
-    return [solvers.upright_pose_from_essential(E, scene.f1_lvl, scene.f2_lvl) for E in solvers.solve_upright_3pt(scene.f1_lvl, scene.f2_lvl)]
+    return [
+        solvers.upright_pose_from_essential(E, scene.f1_lvl, scene.f2_lvl)
+        for E in solvers.solve_upright_3pt(scene.f1_lvl, scene.f2_lvl)
+    ]
 
 
 def poselib_poses(scene: TwoViewScene) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -83,7 +86,13 @@ def run(n_scenes: int) -> str:
     peer5 = us.get("poselib5")
     rows: list[tuple[str, float, str]] = [("mavvo `solve_upright_3pt`, one call", single3, "goal < 20 us")]
     for B in (1, 64, 1024):
-        rows.append((f"mavvo `solve_upright_3pt_batch`, B = {B}, per sample", batch[B], "goal within 2x of PoseLib's call" if B == 64 else ""))
+        rows.append(
+            (
+                f"mavvo `solve_upright_3pt_batch`, B = {B}, per sample",
+                batch[B],
+                "goal within 2x of PoseLib's call" if B == 64 else "",
+            )
+        )
     rows.append(("mavvo `solve_upright_4pt` (4 points), one call", us["4pt"], ""))
     rows.append(("mavvo `solve_upright_linear5pt` (5 points), one call", us["linear5pt"], ""))
     if peer3 is not None and peer5 is not None:
@@ -101,9 +110,17 @@ def run(n_scenes: int) -> str:
     # Accuracy on the two drone cases: share of noise-free scenes recovered within 1e-6 rad.
     rng = np.random.default_rng(1)
     cases = {
-        "(a) motion along gravity": [make_scene(rng, 3, motion="vertical", mount=("nadir", "oblique")[i % 2]) for i in range(n_scenes)],
-        "(b) nadir camera over flat ground": [make_scene(rng, 3, motion=("sideways", "forward", "random")[i % 3], structure="ground") for i in range(n_scenes)],
-        "general scenes": [make_scene(rng, 3, motion=("sideways", "forward", "random")[i % 3], mount=("nadir", "oblique")[i % 2]) for i in range(n_scenes)],
+        "(a) motion along gravity": [
+            make_scene(rng, 3, motion="vertical", mount=("nadir", "oblique")[i % 2]) for i in range(n_scenes)
+        ],
+        "(b) nadir camera over flat ground": [
+            make_scene(rng, 3, motion=("sideways", "forward", "random")[i % 3], structure="ground")
+            for i in range(n_scenes)
+        ],
+        "general scenes": [
+            make_scene(rng, 3, motion=("sideways", "forward", "random")[i % 3], mount=("nadir", "oblique")[i % 2])
+            for i in range(n_scenes)
+        ],
     }
     acc_rows = []
     for name, data in cases.items():
@@ -131,7 +148,11 @@ def run(n_scenes: int) -> str:
     ]
     for name, t_us, goal in rows:
         lines.append(f"| {name} | {t_us:.2f} | {ratio(t_us, peer3)} | {PI4_FACTOR * t_us:.1f} | {goal} |")
-    b64 = "n/a" if peer3 is None else f"{batch[64] / peer3:.2f}x PoseLib's call ({'met' if batch[64] <= 2 * peer3 else 'missed'})"
+    b64 = (
+        "n/a"
+        if peer3 is None
+        else f"{batch[64] / peer3:.2f}x PoseLib's call ({'met' if batch[64] <= 2 * peer3 else 'missed'})"
+    )
     lines += [
         "",
         f"Goals: the 3-point at B = 64 (what the sampling draws) is {batch[64]:.2f} us per sample, {b64}; "

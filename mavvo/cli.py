@@ -19,9 +19,17 @@ log = logging.getLogger("mavvo")
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="mavvo", description="Visual odometry for drones over MAVLink: roll/pitch from the flight controller, pose back to it.")
+    p = argparse.ArgumentParser(
+        prog="mavvo",
+        description="Visual odometry for drones over MAVLink: roll/pitch from the flight controller, pose back to it.",
+    )
     p.add_argument("--version", action="version", version=f"mavvo {__version__}")
-    p.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"), help="log detail on stderr (default info)")
+    p.add_argument(
+        "--log-level",
+        default="info",
+        choices=("debug", "info", "warning", "error"),
+        help="log detail on stderr (default info)",
+    )
     p.add_argument("-v", "--verbose", action="store_true", help="same as --log-level debug")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 

@@ -58,8 +58,11 @@ def refresh_cache() -> list[Path]:
     digest = hashlib.sha256(b"".join(p.read_bytes() for p in sources)).hexdigest()
     stems = {p.stem for p in sources}
     # <module>.<function>-<line>: how numba names a kernel's cache files (then .py<version>...)
-    fresh = {f"{Path(inspect.getsourcefile(k.py_func) or '').stem}.{k.py_func.__qualname__}-{k.py_func.__code__.co_firstlineno}"
-             for k in _KERNELS if getattr(k, "signatures", None)}
+    fresh = {
+        f"{Path(inspect.getsourcefile(k.py_func) or '').stem}.{k.py_func.__qualname__}-{k.py_func.__code__.co_firstlineno}"
+        for k in _KERNELS
+        if getattr(k, "signatures", None)
+    }
     removed: list[Path] = []
     for cache_dir in sorted({Path(c.cache_path) for c in caches}):
         stamp = cache_dir / _STAMP_FILE

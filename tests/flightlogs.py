@@ -48,8 +48,16 @@ def _samples(trajectory, duration_s: float, rate_hz: float, rng: np.random.Gener
 
 
 def make_log_flight(
-    tmp: Path, *, kind: str = "tlog", video: str = "folder", scenario: str = "figure_eight", duration_s: float = 16.0,
-    video_start_s: float = 1.5, video_end_s: float | None = None, with_attitude: bool = True, with_local_position: bool = False,
+    tmp: Path,
+    *,
+    kind: str = "tlog",
+    video: str = "folder",
+    scenario: str = "figure_eight",
+    duration_s: float = 16.0,
+    video_start_s: float = 1.5,
+    video_end_s: float | None = None,
+    with_attitude: bool = True,
+    with_local_position: bool = False,
     attitude_rate_hz: float = 50.0,
 ) -> LogFlight:
     """Write a log (``tlog``, ``bin`` or ``ulg``), a video (``folder`` with timestamps.txt or ``avi``)
@@ -70,11 +78,37 @@ def make_log_flight(
         mav = mavutil().mavlink
         enc = mav.MAVLink(None, srcSystem=1, srcComponent=1)
         events = [(t, mav.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3)) for t in np.arange(0.0, duration_s, 1.0)]
-        events += [(t, mav.MAVLink_attitude_message(int(round((t + BOOT_S) * 1e3)), r, p, y, 0, 0, 0)) for t, r, p, y, _ in att]
-        events += [(t, mav.MAVLink_global_position_int_message(int(round((t + BOOT_S) * 1e3)), 0, 0, 0, int(h * 1e3), 0, 0, 0, 0)) for t, h in heights]
-        events += [(t, mav.MAVLink_distance_sensor_message(int(round((t + BOOT_S) * 1e3)), 20, 4000, int(round(r * 100)), 0, 0, 25, 255)) for t, r in ranges]
+        events += [
+            (t, mav.MAVLink_attitude_message(int(round((t + BOOT_S) * 1e3)), r, p, y, 0, 0, 0)) for t, r, p, y, _ in att
+        ]
+        events += [
+            (
+                t,
+                mav.MAVLink_global_position_int_message(
+                    int(round((t + BOOT_S) * 1e3)), 0, 0, 0, int(h * 1e3), 0, 0, 0, 0
+                ),
+            )
+            for t, h in heights
+        ]
+        events += [
+            (
+                t,
+                mav.MAVLink_distance_sensor_message(
+                    int(round((t + BOOT_S) * 1e3)), 20, 4000, int(round(r * 100)), 0, 0, 25, 255
+                ),
+            )
+            for t, r in ranges
+        ]
         if with_local_position:
-            events += [(t, mav.MAVLink_local_position_ned_message(int(round((t + BOOT_S) * 1e3)), *traj.state(t).p_ned_m, 0, 0, 0)) for t, _ in heights]
+            events += [
+                (
+                    t,
+                    mav.MAVLink_local_position_ned_message(
+                        int(round((t + BOOT_S) * 1e3)), *traj.state(t).p_ned_m, 0, 0, 0
+                    ),
+                )
+                for t, _ in heights
+            ]
         events.sort(key=lambda e: e[0])
         with log.open("wb") as f:
             for t, msg in events:
@@ -84,23 +118,49 @@ def make_log_flight(
         us = lambda ts: (np.asarray(ts, dtype=float) + BOOT_S) * 1e6  # noqa: E731
         quats = [quat_wxyz_from_R(R_from_euler321(r, p, y)) for _, r, p, y, _ in att]
         topics = {
-            "vehicle_attitude": ([("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"), ("float[4]", "q")],
-                                 {"timestamp": us([a[0] for a in att]) + 800, "timestamp_sample": us([a[0] for a in att]), "q": np.array(quats).reshape(-1, 4)}),
-            "distance_sensor": ([("uint64_t", "timestamp"), ("float", "min_distance"), ("float", "max_distance"), ("float", "current_distance"),
-                                 ("int8_t", "signal_quality"), ("uint8_t", "orientation")],
-                                {"timestamp": us([t for t, _ in ranges]), "min_distance": np.full(len(ranges), 0.2), "max_distance": np.full(len(ranges), 40.0),
-                                 "current_distance": np.array([r for _, r in ranges]), "signal_quality": np.full(len(ranges), -1), "orientation": np.full(len(ranges), 25)}),
-            "vehicle_air_data": ([("uint64_t", "timestamp"), ("float", "baro_alt_meter")],
-                                 {"timestamp": us([t for t, _ in heights]), "baro_alt_meter": 488.0 + np.array([h for _, h in heights])}),
+            "vehicle_attitude": (
+                [("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"), ("float[4]", "q")],
+                {
+                    "timestamp": us([a[0] for a in att]) + 800,
+                    "timestamp_sample": us([a[0] for a in att]),
+                    "q": np.array(quats).reshape(-1, 4),
+                },
+            ),
+            "distance_sensor": (
+                [
+                    ("uint64_t", "timestamp"),
+                    ("float", "min_distance"),
+                    ("float", "max_distance"),
+                    ("float", "current_distance"),
+                    ("int8_t", "signal_quality"),
+                    ("uint8_t", "orientation"),
+                ],
+                {
+                    "timestamp": us([t for t, _ in ranges]),
+                    "min_distance": np.full(len(ranges), 0.2),
+                    "max_distance": np.full(len(ranges), 40.0),
+                    "current_distance": np.array([r for _, r in ranges]),
+                    "signal_quality": np.full(len(ranges), -1),
+                    "orientation": np.full(len(ranges), 25),
+                },
+            ),
+            "vehicle_air_data": (
+                [("uint64_t", "timestamp"), ("float", "baro_alt_meter")],
+                {"timestamp": us([t for t, _ in heights]), "baro_alt_meter": 488.0 + np.array([h for _, h in heights])},
+            ),
         }
         write_ulog(log, topics)
     else:
         log = tmp / "flight.bin"
         formats = {
-            "ATT": (60, "Qffffff", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw"), "BARO": (61, "QBf", "TimeUS,I,Alt"),
+            "ATT": (60, "Qffffff", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw"),
+            "BARO": (61, "QBf", "TimeUS,I,Alt"),
             "RFND": (62, "QBfBB", "TimeUS,Instance,Dist,Stat,Orient"),
         }
-        recs = [("ATT", (int((t + BOOT_S) * 1e6), 0.0, np.degrees(r), 0.0, np.degrees(p), 0.0, np.degrees(y) % 360)) for t, r, p, y, _ in att]
+        recs = [
+            ("ATT", (int((t + BOOT_S) * 1e6), 0.0, np.degrees(r), 0.0, np.degrees(p), 0.0, np.degrees(y) % 360))
+            for t, r, p, y, _ in att
+        ]
         recs += [("BARO", (int((t + BOOT_S) * 1e6), 0, h)) for t, h in heights]
         recs += [("RFND", (int((t + BOOT_S) * 1e6), 0, r, 4, 25)) for t, r in ranges]
         recs.sort(key=lambda r: r[1][0])
@@ -119,7 +179,13 @@ def make_log_flight(
         (out / "timestamps.txt").write_text("\n".join(lines) + "\n", encoding="utf-8")
     else:
         out = tmp / "flight.avi"
-        w = cv2.VideoWriter(str(out), cv2.VideoWriter_fourcc(*"MJPG"), float(sc.camera.rate_hz), (sc.camera.width_px, sc.camera.height_px), False)
+        w = cv2.VideoWriter(
+            str(out),
+            cv2.VideoWriter_fourcc(*"MJPG"),
+            float(sc.camera.rate_hz),
+            (sc.camera.width_px, sc.camera.height_px),
+            False,
+        )
         for t in times:
             w.write(cam.render_at(float(t)))
         w.release()
@@ -128,7 +194,6 @@ def make_log_flight(
     ts = traj.truth_series(times, sc.camera.lever_arm_m)
     write_tum(truth, PoseSeries(times + BOOT_S, ts.positions_xyz_m, ts.orientations_quat_wxyz))
     return LogFlight(log, out, config, BOOT_S + video_start_s, duration_s, truth)
-
 
 
 EUROC_T0_NS = 1_403_636_579_763_555_584
@@ -151,21 +216,31 @@ def make_euroc(tmp: Path, *, scenario: str = "figure_eight", duration_s: float =
     for t in np.arange(0.0, duration_s, 1 / 200.0):
         st = traj.state(float(t))
         f_body = st.R_ned_body.T @ (st.a_ned_m_s2 - np.array([0.0, 0.0, 9.81]))
-        rows.append(f"{ns(t)},{','.join(repr(float(x)) for x in R_body_imu.T @ st.omega_body_rad_s)},{','.join(repr(float(x)) for x in R_body_imu.T @ f_body)}")
-    (mav0 / "imu0" / "data.csv").write_text("#timestamp [ns],w_x,w_y,w_z,a_x,a_y,a_z\n" + "\n".join(rows) + "\n", encoding="utf-8")
+        rows.append(
+            f"{ns(t)},{','.join(repr(float(x)) for x in R_body_imu.T @ st.omega_body_rad_s)},{','.join(repr(float(x)) for x in R_body_imu.T @ f_body)}"
+        )
+    (mav0 / "imu0" / "data.csv").write_text(
+        "#timestamp [ns],w_x,w_y,w_z,a_x,a_y,a_z\n" + "\n".join(rows) + "\n", encoding="utf-8"
+    )
     gt = []
     for t in np.arange(0.0, duration_s, 1 / 200.0):
         st = traj.state(float(t))
         q = quat_wxyz_from_R(D @ st.R_ned_body @ R_body_imu)
-        gt.append(f"{ns(t)},{','.join(repr(float(x)) for x in D @ st.p_ned_m)},{','.join(repr(float(x)) for x in q)},0,0,0,0,0,0,0,0,0")
-    (mav0 / "state_groundtruth_estimate0" / "data.csv").write_text("#timestamp,p_x,p_y,p_z,q_w,q_x,q_y,q_z,v,v,v,bw,bw,bw,ba,ba,ba\n" + "\n".join(gt) + "\n", encoding="utf-8")
+        gt.append(
+            f"{ns(t)},{','.join(repr(float(x)) for x in D @ st.p_ned_m)},{','.join(repr(float(x)) for x in q)},0,0,0,0,0,0,0,0,0"
+        )
+    (mav0 / "state_groundtruth_estimate0" / "data.csv").write_text(
+        "#timestamp,p_x,p_y,p_z,q_w,q_x,q_y,q_z,v,v,v,bw,bw,bw,ba,ba,ba\n" + "\n".join(gt) + "\n", encoding="utf-8"
+    )
     c = sc.camera
     R_imu_cam = R_body_imu.T @ c.R_body_cam()
     T = np.eye(4)
     T[:3, :3] = R_imu_cam
     T[:3, 3] = R_body_imu.T @ np.asarray(c.lever_arm_m)
     (mav0 / "cam0" / "sensor.yaml").write_text(
-        "%YAML:1.0\nsensor_type: camera\nT_BS:\n  cols: 4\n  rows: 4\n  data: [" + ", ".join(repr(float(x)) for x in T.ravel()) + "]\n"
+        "%YAML:1.0\nsensor_type: camera\nT_BS:\n  cols: 4\n  rows: 4\n  data: ["
+        + ", ".join(repr(float(x)) for x in T.ravel())
+        + "]\n"
         f"rate_hz: {c.rate_hz}\nresolution: [{c.width_px}, {c.height_px}]\ncamera_model: pinhole\n"
         f"intrinsics: [{c.fx_px}, {c.fy_px}, {c.cx_px}, {c.cy_px}]\ndistortion_model: radial-tangential\n"
         f"distortion_coefficients: [{', '.join(str(float(x)) for x in (tuple(c.distortion) + (0.0,) * 4)[:4])}]\n",

@@ -20,7 +20,10 @@ def write_ulog(path: str | Path, topics: dict[str, tuple[list[tuple[str, str]], 
     from pyulog import ULog
 
     log = ULog(None)
-    formats = {name: ULog.MessageFormat((name + ":" + "".join(f"{t} {n};" for t, n in fields)).encode(), None) for name, (fields, _) in topics.items()}
+    formats = {
+        name: ULog.MessageFormat((name + ":" + "".join(f"{t} {n};" for t, n in fields)).encode(), None)
+        for name, (fields, _) in topics.items()
+    }
     log._message_formats = formats
     data = []
     for msg_id, (name, (_, cols)) in enumerate(topics.items()):
@@ -44,7 +47,9 @@ _FMT_ID = 128
 _FMT_BODY = "BB4s16s64s"
 
 
-def write_dataflash(path: str | Path, formats: dict[str, tuple[int, str, str]], records: Iterable[tuple[str, tuple[Any, ...]]]) -> Path:
+def write_dataflash(
+    path: str | Path, formats: dict[str, tuple[int, str, str]], records: Iterable[tuple[str, tuple[Any, ...]]]
+) -> Path:
     """A dataflash .bin: ``formats`` maps a name to (id, format characters, comma-separated columns),
     ``records`` are (name, values) in order. Formats use pymavlink's DFReader type characters."""
     FORMAT_TO_STRUCT = dfreader().FORMAT_TO_STRUCT
@@ -54,16 +59,20 @@ def write_dataflash(path: str | Path, formats: dict[str, tuple[int, str, str]], 
     scales = {}
     with p.open("wb") as f:
         fmt_struct = struct.Struct("<" + _FMT_BODY)
-        f.write(bytes([0xA3, 0x95, _FMT_ID]) + fmt_struct.pack(_FMT_ID, 3 + fmt_struct.size, b"FMT", b"BBnNZ", b"Type,Length,Name,Format,Columns"))
+        f.write(
+            bytes([0xA3, 0x95, _FMT_ID])
+            + fmt_struct.pack(_FMT_ID, 3 + fmt_struct.size, b"FMT", b"BBnNZ", b"Type,Length,Name,Format,Columns")
+        )
         for name, (msg_id, chars, columns) in formats.items():
             st = struct.Struct("<" + "".join(FORMAT_TO_STRUCT[c][0] for c in chars))
             structs[name], scales[name] = (msg_id, st), [FORMAT_TO_STRUCT[c][1] for c in chars]
-            f.write(bytes([0xA3, 0x95, _FMT_ID]) + fmt_struct.pack(msg_id, 3 + st.size, name.encode(), chars.encode(), columns.encode()))
+            f.write(
+                bytes([0xA3, 0x95, _FMT_ID])
+                + fmt_struct.pack(msg_id, 3 + st.size, name.encode(), chars.encode(), columns.encode())
+            )
         for name, values in records:
             msg_id, st = structs[name]
             packed = [v if s is None else int(round(v / s)) for v, s in zip(values, scales[name])]
             packed = [v.encode() if isinstance(v, str) else v for v in packed]
             f.write(bytes([0xA3, 0x95, msg_id]) + st.pack(*packed))
     return p
-
-

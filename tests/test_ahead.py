@@ -40,7 +40,12 @@ def _frontend() -> Frontend:
 
 
 def _same(a: Tracks, b: Tracks) -> bool:
-    return a.tracked == b.tracked and np.array_equal(a.ids, b.ids) and np.array_equal(a.uv_px, b.uv_px) and np.array_equal(a.f_cam, b.f_cam)
+    return (
+        a.tracked == b.tracked
+        and np.array_equal(a.ids, b.ids)
+        and np.array_equal(a.uv_px, b.uv_px)
+        and np.array_equal(a.f_cam, b.f_cam)
+    )
 
 
 def test_tracks_made_ahead_on_the_helper_thread_are_those_made_in_turn():
@@ -138,7 +143,9 @@ def _run_queued(track_ahead: bool, paired) -> tuple[list, dict[str, int]]:
 
     scenario = load_scenario("hover")
     base = config_for(scenario, ServiceConfig(), "udpout:127.0.0.1:9")
-    cfg = dataclasses.replace(base, service=dataclasses.replace(base.service, heading_wait_max_s=0.0, track_ahead=track_ahead))
+    cfg = dataclasses.replace(
+        base, service=dataclasses.replace(base.service, heading_wait_max_s=0.0, track_ahead=track_ahead)
+    )
     source = InjectedSource()
     for pf in paired:
         source.push(pf.image, pf.t_exposure_s, pf.seq)

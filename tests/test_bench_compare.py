@@ -71,11 +71,16 @@ def test_the_common_medians_are_over_the_trials_both_found() -> None:
     rot_without = best_peer_cells(without, {"peer": peer})[1]
     rot_wrong = best_peer_cells(wrong_pose, {"peer": peer})[1]
     assert rot_without.startswith("0.0455 vs 0.0455") and rot_wrong.startswith("0.0425 vs 0.0455")
-    assert rot_without.endswith("on the 3 both found 0.0430 vs 0.0410") and rot_wrong.endswith("on the 3 both found 0.0430 vs 0.0410")
+    assert rot_without.endswith("on the 3 both found 0.0430 vs 0.0410") and rot_wrong.endswith(
+        "on the 3 both found 0.0430 vs 0.0410"
+    )
 
 
 def test_nothing_found_by_both_is_said() -> None:
-    cells = best_peer_cells(TrialErrors(np.array([5.0, 0.1]), np.array([1.0, 20.0])), {"peer": TrialErrors(np.array([0.1, 0.1]), np.array([1.0, 20.0]))})
+    cells = best_peer_cells(
+        TrialErrors(np.array([5.0, 0.1]), np.array([1.0, 20.0])),
+        {"peer": TrialErrors(np.array([0.1, 0.1]), np.array([1.0, 20.0]))},
+    )
     assert cells[0] == "0 vs 1 (peer)"
     assert cells[1].endswith("none found by both")
 

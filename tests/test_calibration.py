@@ -25,7 +25,10 @@ _PX_PER_SQUARE = 60
 def _texture(board: BoardSpec) -> tuple[np.ndarray, float]:
     """The board's image (white margin of one square) and its metres per texture pixel."""
     if board.charuco:
-        size = ((board.cols + 2) * _PX_PER_SQUARE, (board.rows + 2) * _PX_PER_SQUARE)  # the board itself, then a square of margin
+        size = (
+            (board.cols + 2) * _PX_PER_SQUARE,
+            (board.rows + 2) * _PX_PER_SQUARE,
+        )  # the board itself, then a square of margin
         img = board.charuco_board().generateImage(size, marginSize=_PX_PER_SQUARE)
         return img, board.square_m / _PX_PER_SQUARE
     sq = _PX_PER_SQUARE
@@ -34,7 +37,7 @@ def _texture(board: BoardSpec) -> tuple[np.ndarray, float]:
     for j in range(n_y):
         for i in range(n_x):
             if (i + j) % 2 == 0:
-                img[(j + 1) * sq:(j + 2) * sq, (i + 1) * sq:(i + 2) * sq] = 0
+                img[(j + 1) * sq : (j + 2) * sq, (i + 1) * sq : (i + 2) * sq] = 0
     return img, board.square_m / sq
 
 
@@ -56,7 +59,9 @@ def render_views(board: BoardSpec, n: int, seed: int, K: np.ndarray = K_TRUE) ->
         ray = np.linalg.solve(K, np.array([*target, 1.0]))
         t = ray * z - R @ centre  # the board's centre on the ray to the target pixel
         Hm = K @ np.column_stack([R[:, 0], R[:, 1], t]) @ S
-        img = cv2.warpPerspective(tex, Hm, (W, H), flags=cv2.INTER_AREA, borderMode=cv2.BORDER_CONSTANT, borderValue=128)
+        img = cv2.warpPerspective(
+            tex, Hm, (W, H), flags=cv2.INTER_AREA, borderMode=cv2.BORDER_CONSTANT, borderValue=128
+        )
         corners = (K @ (R @ board.corners_m().T + t[:, None])).T
         uv = corners[:, :2] / corners[:, 2:]
         if np.all((uv > 15) & (uv < [W - 15, H - 15])):
@@ -107,7 +112,9 @@ def test_charuco_board_is_found_and_calibrated():
     board = BoardSpec(8, 6, 0.03, charuco=True)
     detections = [d for d in (detect(v, board) for v in render_views(board, 40, seed=5)) if d is not None]
     assert len(detections) >= 30
-    i = calibrate(detections, (W, H)).intrinsics  # ChArUco corners are noisier (0.23 px RMS here against 0.07): more views
+    i = calibrate(
+        detections, (W, H)
+    ).intrinsics  # ChArUco corners are noisier (0.23 px RMS here against 0.07): more views
     for got, want in ((i.fx_px, 612.0), (i.fy_px, 608.0), (i.cx_px, 331.0), (i.cy_px, 236.5)):
         assert got == pytest.approx(want, rel=0.01)
 
@@ -118,39 +125,68 @@ def test_the_command_writes_a_camera_section_that_check_config_accepts(tmp_path,
     for k, v in enumerate(views):
         cv2.imwrite(str(folder / f"{k:03d}.png"), v)
     out, plot = tmp_path / "camera.yaml", tmp_path / "calibration.png"
-    assert main(["calibrate", str(folder), "--board", "9x6", "--square-m", "0.03", "--out", str(out), "--plot", str(plot)]) == 0
+    assert (
+        main(["calibrate", str(folder), "--board", "9x6", "--square-m", "0.03", "--out", str(out), "--plot", str(plot)])
+        == 0
+    )
     err = capsys.readouterr().err
     assert "24 frames read, board found in 24" in err and "reprojection RMS" in err
     cam = yaml.safe_load(out.read_text())["camera"]
     assert cam["fx_px"] == pytest.approx(612.0, rel=0.01) and cam["width_px"] == 640
     assert main(["check-config", str(out)]) == 0
     assert plot.stat().st_size > 10_000
-    assert main(["calibrate", str(folder), "--board", "9x6", "--square-m", "0.03", "--out", str(out)]) == 2  # never over a file
+    assert (
+        main(["calibrate", str(folder), "--board", "9x6", "--square-m", "0.03", "--out", str(out)]) == 2
+    )  # never over a file
     assert "exists" in capsys.readouterr().err
 
 
 def test_other_tools_files_are_read(tmp_path):
-    want = CameraIntrinsics(752, 480, 458.654, 457.296, 367.215, 248.375, "pinhole", (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05))
-    fs = cv2.FileStorage(str(tmp_path / "opencv.yaml"), cv2.FILE_STORAGE_WRITE)  # as OpenCV's calibration sample writes it
+    want = CameraIntrinsics(
+        752, 480, 458.654, 457.296, 367.215, 248.375, "pinhole", (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05)
+    )
+    fs = cv2.FileStorage(
+        str(tmp_path / "opencv.yaml"), cv2.FILE_STORAGE_WRITE
+    )  # as OpenCV's calibration sample writes it
     fs.write("image_width", 752)
     fs.write("image_height", 480)
     fs.write("camera_matrix", np.array([[458.654, 0, 367.215], [0, 457.296, 248.375], [0, 0, 1]]))
     fs.write("distortion_coefficients", np.array([[-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05, 0.0]]))
     fs.release()
     ros = {
-        "image_width": 752, "image_height": 480, "camera_name": "cam0", "distortion_model": "plumb_bob",
+        "image_width": 752,
+        "image_height": 480,
+        "camera_name": "cam0",
+        "distortion_model": "plumb_bob",
         "camera_matrix": {"rows": 3, "cols": 3, "data": [458.654, 0, 367.215, 0, 457.296, 248.375, 0, 0, 1]},
-        "distortion_coefficients": {"rows": 1, "cols": 5, "data": [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05, 0.0]},
+        "distortion_coefficients": {
+            "rows": 1,
+            "cols": 5,
+            "data": [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05, 0.0],
+        },
     }
     (tmp_path / "ros.yaml").write_text(yaml.safe_dump(ros))
-    kalibr = {"cam0": {"camera_model": "pinhole", "intrinsics": [458.654, 457.296, 367.215, 248.375], "distortion_model": "radtan",
-                       "distortion_coeffs": [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05], "resolution": [752, 480]}}
+    kalibr = {
+        "cam0": {
+            "camera_model": "pinhole",
+            "intrinsics": [458.654, 457.296, 367.215, 248.375],
+            "distortion_model": "radtan",
+            "distortion_coeffs": [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05],
+            "resolution": [752, 480],
+        }
+    }
     (tmp_path / "kalibr.yaml").write_text(yaml.safe_dump(kalibr))
     for name in ("opencv.yaml", "ros.yaml", "kalibr.yaml"):
         got = read_intrinsics(tmp_path / name)
         assert got == want, name
-    fisheye = {"cam0": {"intrinsics": [380.0, 381.0, 320.0, 240.0], "distortion_model": "equidistant",
-                        "distortion_coeffs": [0.01, -0.002, 0.0003, -0.00001], "resolution": [640, 480]}}
+    fisheye = {
+        "cam0": {
+            "intrinsics": [380.0, 381.0, 320.0, 240.0],
+            "distortion_model": "equidistant",
+            "distortion_coeffs": [0.01, -0.002, 0.0003, -0.00001],
+            "resolution": [640, 480],
+        }
+    }
     (tmp_path / "fisheye.yaml").write_text(yaml.safe_dump(fisheye))
     assert read_intrinsics(tmp_path / "fisheye.yaml").model == "fisheye"
     (tmp_path / "other.yaml").write_text("a: 1\n")

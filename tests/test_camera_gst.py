@@ -25,8 +25,9 @@ from mavvo.service.camera_options import CameraOptions
 from mavvo.service.timing import MonotonicClock
 
 pytestmark = pytest.mark.skipif(
-    not gst_available(), reason="GStreamer's Python bindings are not importable: sudo apt-get install python3-gi python3-gst-1.0 "
-    "gir1.2-gst-plugins-base-1.0 gstreamer1.0-plugins-base gstreamer1.0-plugins-good; then make setup"
+    not gst_available(),
+    reason="GStreamer's Python bindings are not importable: sudo apt-get install python3-gi python3-gst-1.0 "
+    "gir1.2-gst-plugins-base-1.0 gstreamer1.0-plugins-base gstreamer1.0-plugins-good; then make setup",
 )
 
 CAPS = "video/x-raw,width=160,height=120,framerate=30/1"
@@ -135,15 +136,24 @@ def test_a_camera_that_fails_is_reopened_when_it_comes_back(tmp_path: Path) -> N
 
 
 def test_the_appended_sink_converts_to_grey() -> None:
-    assert sink_description("v4l2src device=/dev/video1") == "v4l2src device=/dev/video1 ! videoconvert ! video/x-raw,format=GRAY8 ! appsink name=mavvo"
+    assert (
+        sink_description("v4l2src device=/dev/video1")
+        == "v4l2src device=/dev/video1 ! videoconvert ! video/x-raw,format=GRAY8 ! appsink name=mavvo"
+    )
     assert sink_description("videotestsrc ! appsink name=mine") == "videotestsrc ! appsink name=mine"
 
 
 def test_mavvo_camera_lists_and_measures_a_gstreamer_test_source() -> None:
     listed = subprocess.run([sys.executable, "-m", "mavvo", "camera"], capture_output=True, text=True, timeout=60)
-    assert listed.returncode == 0 and re.search(r"gst:PIPELINE\s+gstreamer\s+GStreamer 1\.", listed.stdout), listed.stdout + listed.stderr
-    out = subprocess.run([sys.executable, "-m", "mavvo", "camera", "--source", f"gst:{LIVE}", "--seconds", "2", "--json"],
-                         capture_output=True, text=True, timeout=60)
+    assert listed.returncode == 0 and re.search(r"gst:PIPELINE\s+gstreamer\s+GStreamer 1\.", listed.stdout), (
+        listed.stdout + listed.stderr
+    )
+    out = subprocess.run(
+        [sys.executable, "-m", "mavvo", "camera", "--source", f"gst:{LIVE}", "--seconds", "2", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert out.returncode == 0, out.stderr
     import json
 
@@ -162,11 +172,32 @@ def test_mavvo_run_flies_on_a_gstreamer_camera_against_the_simulated_flight_cont
         "camera: {source: 'gst:videotestsrc is-live=true pattern=ball ! video/x-raw,width=640,height=480,framerate=20/1', rate_hz: 20.0}\n"
         f"link: {{url: 'udpout:127.0.0.1:{port}'}}\nservice: {{state_file: ''}}\n"
     )
-    fc = subprocess.Popen([sys.executable, "-m", "mavvo", "sim", "--fc-only", "--scenario", "hover", "--mavlink", f"udpin:127.0.0.1:{port}",
-                           "--out", str(tmp_path / "fc")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    fc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "mavvo",
+            "sim",
+            "--fc-only",
+            "--scenario",
+            "hover",
+            "--mavlink",
+            f"udpin:127.0.0.1:{port}",
+            "--out",
+            str(tmp_path / "fc"),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         time.sleep(1.0)
-        run = subprocess.Popen([sys.executable, "-m", "mavvo", "run", "--config", str(cfg)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        run = subprocess.Popen(
+            [sys.executable, "-m", "mavvo", "run", "--config", str(cfg)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         try:
             time.sleep(8.0)
         finally:

@@ -13,7 +13,9 @@ FISHEYE = CameraModel(800, 600, 285.0, 286.0, 401.0, 299.0, "fisheye", (-0.012, 
 def _points(rng: np.random.Generator, n: int, half_angle: float) -> np.ndarray:
     ang = half_angle * np.sqrt(rng.uniform(0, 1, n))
     phi = rng.uniform(-np.pi, np.pi, n)
-    return np.stack([np.sin(ang) * np.cos(phi), np.sin(ang) * np.sin(phi), np.cos(ang)], axis=1) * rng.uniform(1, 20, (n, 1))
+    return np.stack([np.sin(ang) * np.cos(phi), np.sin(ang) * np.sin(phi), np.cos(ang)], axis=1) * rng.uniform(
+        1, 20, (n, 1)
+    )
 
 
 def test_pinhole_projection_matches_opencv() -> None:

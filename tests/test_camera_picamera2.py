@@ -72,7 +72,9 @@ class FakePicamera2FollowingDocumentedAPI:
         yuv[:h] = 100  # luma
         yuv[h:] = 200  # chroma planes below it, as YUV420 arrives
         self.sensor_ns += 20_000_000
-        req = FakeRequestFollowingPicamera2API(yuv, {"SensorTimestamp": self.sensor_ns, "ExposureTime": 4000, "AnalogueGain": 2.0})
+        req = FakeRequestFollowingPicamera2API(
+            yuv, {"SensorTimestamp": self.sensor_ns, "ExposureTime": 4000, "AnalogueGain": 2.0}
+        )
         self.requests.append(req)
         return req
 
@@ -91,12 +93,19 @@ def test_the_middle_rows_mid_exposure_from_the_sensor_timestamp() -> None:
 
 
 def test_frames_carry_the_luma_plane_and_the_mid_exposure_stamp() -> None:
-    opts = CameraOptions(source="picamera2:0", width_px=320, height_px=240, rate_hz=50.0, readout_ms=12.0, exposure_us=3000, gain=1.5)
+    opts = CameraOptions(
+        source="picamera2:0", width_px=320, height_px=240, rate_hz=50.0, readout_ms=12.0, exposure_us=3000, gain=1.5
+    )
     clock = StillClock(1000.05)
     src = Picamera2Source("0", opts, clock, picamera2_cls=FakePicamera2FollowingDocumentedAPI)
     cam = FakePicamera2FollowingDocumentedAPI.instances[-1]
     assert cam.started and cam.config["main"] == {"size": (320, 240), "format": "YUV420"}
-    assert cam.config["controls"] == {"FrameDurationLimits": (20000, 20000), "AeEnable": False, "ExposureTime": 3000, "AnalogueGain": 1.5}
+    assert cam.config["controls"] == {
+        "FrameDurationLimits": (20000, 20000),
+        "AeEnable": False,
+        "ExposureTime": 3000,
+        "AnalogueGain": 1.5,
+    }
     f = src.read(1.0)
     assert f is not None and f.image.shape == (240, 320) and np.all(f.image == 100) and f.seq == 0
     assert f.t_exposure_s == pytest.approx(1000.02 - 0.002 + 0.006, abs=1e-9)
@@ -119,7 +128,9 @@ def test_a_missing_camera_or_library_is_a_clear_error(monkeypatch: pytest.Monkey
     with pytest.raises(CameraError, match="expected picamera2:INDEX with a camera number, got 'front'"):
         Picamera2Source("front", CameraOptions(), StillClock(0.0), picamera2_cls=FakePicamera2FollowingDocumentedAPI)
     monkeypatch.setitem(sys.modules, "picamera2", None)  # as on a machine without it: the import fails
-    with pytest.raises(CameraError, match=r"picamera2 needs python3-libcamera: install it with apt .* --system-site-packages"):
+    with pytest.raises(
+        CameraError, match=r"picamera2 needs python3-libcamera: install it with apt .* --system-site-packages"
+    ):
         open_source(CameraOptions(source="picamera2:0"), StillClock(0.0))
 
 

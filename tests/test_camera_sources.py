@@ -60,7 +60,10 @@ def test_video_file_frames_are_grey_and_stamped_from_the_container(tmp_path):
 
 
 def test_unknown_source_names_itself():
-    with pytest.raises(CameraError, match=r"camera.source 'nowhere/video.mp4': expected /dev/videoN, a video file, an image folder or gst:, picamera2:, sim:ARGUMENT"):
+    with pytest.raises(
+        CameraError,
+        match=r"camera.source 'nowhere/video.mp4': expected /dev/videoN, a video file, an image folder or gst:, picamera2:, sim:ARGUMENT",
+    ):
         open_source(CameraOptions(source="nowhere/video.mp4"), StillClock(), {"sim": lambda *a: None})
 
 

@@ -21,8 +21,22 @@ from mavvo.sim.scenarios.loader import load_scenario
 def test_fc_only_serves_a_plain_pymavlink_client(mavutil, tmp_path):
     port = free_port()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "mavvo", "sim", "--fc-only", "--mavlink", f"udpin:127.0.0.1:{port}", "--scenario", "hover", "--out", str(tmp_path)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        [
+            sys.executable,
+            "-m",
+            "mavvo",
+            "sim",
+            "--fc-only",
+            "--mavlink",
+            f"udpin:127.0.0.1:{port}",
+            "--scenario",
+            "hover",
+            "--out",
+            str(tmp_path),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     try:
         client = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
@@ -93,8 +107,23 @@ def test_sim_seed_replaces_the_scenarios_own(monkeypatch):
 
 def test_sim_realtime_json_summary(tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-m", "mavvo", "sim", "--scenario", "hover", "--duration", "8", "--realtime", "--json", "--out", str(tmp_path)],
-        capture_output=True, text=True, timeout=120,
+        [
+            sys.executable,
+            "-m",
+            "mavvo",
+            "sim",
+            "--scenario",
+            "hover",
+            "--duration",
+            "8",
+            "--realtime",
+            "--json",
+            "--out",
+            str(tmp_path),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout)  # stdout holds the one JSON object and nothing else
@@ -113,12 +142,35 @@ def _two_terminals(tmp_path, fc_scenario: str, camera_scenario: str, run_s: floa
     README's two-terminal example does: (the flight controller's report, the service's log)."""
     port = free_port()
     cfg = tmp_path / "run.yaml"
-    cfg.write_text(f"camera: {{source: 'sim:{camera_scenario}', latency_ms: 20.0}}\nlink: {{url: 'udpout:127.0.0.1:{port}'}}\nservice: {{state_file: ''}}\n")
-    fc = subprocess.Popen([sys.executable, "-m", "mavvo", "sim", "--fc-only", "--scenario", fc_scenario, "--mavlink", f"udpin:127.0.0.1:{port}",
-                           "--out", str(tmp_path / "fc")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    cfg.write_text(
+        f"camera: {{source: 'sim:{camera_scenario}', latency_ms: 20.0}}\nlink: {{url: 'udpout:127.0.0.1:{port}'}}\nservice: {{state_file: ''}}\n"
+    )
+    fc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "mavvo",
+            "sim",
+            "--fc-only",
+            "--scenario",
+            fc_scenario,
+            "--mavlink",
+            f"udpin:127.0.0.1:{port}",
+            "--out",
+            str(tmp_path / "fc"),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         time.sleep(2.0)  # started by hand: the service comes later than the flight controller
-        run = subprocess.Popen([sys.executable, "-m", "mavvo", "run", "--config", str(cfg)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        run = subprocess.Popen(
+            [sys.executable, "-m", "mavvo", "run", "--config", str(cfg)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         try:
             time.sleep(run_s)
         finally:
@@ -139,7 +191,10 @@ def test_two_terminal_simulation_flies_the_flight_controllers_flight(tmp_path):
     fc_out, run_err = _two_terminals(tmp_path, "figure_eight", "figure_eight", 11.0)
     assert "flying figure_eight on the flight controller's clock" in run_err and "ERROR" not in run_err, run_err
     print(fc_out)
-    m = re.search(r"(\d+) vision estimates: ATE ([0-9.]+) m RMSE \(SE\(3\)\), [0-9.]+ m \(Sim\(3\)\), ([0-9.]+)% of ([0-9.]+) m", fc_out)
+    m = re.search(
+        r"(\d+) vision estimates: ATE ([0-9.]+) m RMSE \(SE\(3\)\), [0-9.]+ m \(Sim\(3\)\), ([0-9.]+)% of ([0-9.]+) m",
+        fc_out,
+    )
     assert m is not None, fc_out
     # As accurate as mavvo sim's lockstep run of the same flight (0.04-0.06% of the path here; 54.7 m, 70%, before).
     # Real time: the count depends on how soon the service starts (imports, loading the compiled kernels) on a busy machine.

@@ -45,14 +45,18 @@ def _check(tmp_path: Path, capsys, text: bytes) -> None:
     if code == 0:
         cfg = load_config(f)
         assert isinstance(cfg, ServiceConfig)
-        assert all(math.isfinite(x) and abs(x) < 1e9 for x in _numbers(cfg)), "an accepted file holds an unbounded number"
+        assert all(math.isfinite(x) and abs(x) < 1e9 for x in _numbers(cfg)), (
+            "an accepted file holds an unbounded number"
+        )
     else:
         assert code == 2, err
         assert err.count("\n") == 1 and err.startswith(f"mavvo: {f}") and "Traceback" not in err, err
 
 
 def _fuzz(examples: int):
-    @settings(max_examples=examples, derandomize=True, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+    @settings(
+        max_examples=examples, derandomize=True, deadline=None, suppress_health_check=list(HealthCheck), database=None
+    )
     @given(text=mutated_files())
     def run(tmp_path, capsys, text):
         _check(tmp_path, capsys, text)
@@ -72,13 +76,17 @@ def test_config_fuzz_1200(tmp_path, capsys):
 
 def test_every_numeric_key_has_an_upper_bound():
     """60 keys accepted 1e30 before; now each number has a physical bound (an upper one, at least)."""
+
     def walk(cls, prefix: str):
         hints = typing.get_type_hints(cls)
         for f in dataclasses.fields(cls):
             t = hints[f.name]
             if dataclasses.is_dataclass(t):
                 yield from walk(t, f"{prefix}{f.name}.")
-            elif any(x in (int, float) for x in (t, *typing.get_args(t), *[a for g in typing.get_args(t) for a in typing.get_args(g)])):
+            elif any(
+                x in (int, float)
+                for x in (t, *typing.get_args(t), *[a for g in typing.get_args(t) for a in typing.get_args(g)])
+            ):
                 yield f"{prefix}{f.name}", f.metadata
 
     unbounded = [key for key, md in walk(ServiceConfig, "") if "le" not in md and "lt" not in md]

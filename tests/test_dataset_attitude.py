@@ -67,7 +67,13 @@ def test_in_a_figure_eight_after_a_still_start_the_tilt_stays_within_a_degree():
         st = traj.state(max(t - 2.0, 0.0))  # 2 s still on the ground, then the flight
         a_ned, w_body = (np.zeros(3), np.zeros(3)) if t < 2.0 else (st.a_ned_m_s2, st.omega_body_rad_s)
         f_body = st.R_ned_body.T @ (a_ned - np.array([0.0, 0.0, 9.81]))
-        rows.append([t * 1e9, *(R_body_imu.T @ w_body + BIAS + 0.003 * rng.standard_normal(3)), *(R_body_imu.T @ f_body + 0.05 * rng.standard_normal(3))])
+        rows.append(
+            [
+                t * 1e9,
+                *(R_body_imu.T @ w_body + BIAS + 0.003 * rng.standard_normal(3)),
+                *(R_body_imu.T @ f_body + 0.05 * rng.standard_normal(3)),
+            ]
+        )
         R_truth.append(st.R_ned_body @ R_body_imu)
     imu = np.array(rows)
     R_imu_body = _body_from_imu(imu[imu[:, 0] < 1e9, 4:7].mean(axis=0), np.eye(3)[:, [1, 2, 0]])

@@ -140,10 +140,16 @@ def test_the_general_five_point_is_exact_on_exact_data_whatever_the_roll_pitch()
 @pytest.mark.parametrize("model", ["essential", "ground", "rotation"])
 def test_the_loop_finds_each_exact_model_and_exactly_its_inliers(model: str) -> None:
     rng = np.random.default_rng(6)
-    kwargs = {"essential": dict(motion="random"), "ground": dict(motion="sideways", structure="ground"), "rotation": dict(motion="none")}[model]
+    kwargs = {
+        "essential": dict(motion="random"),
+        "ground": dict(motion="sideways", structure="ground"),
+        "rotation": dict(motion="none"),
+    }[model]
     scene, outlier = add_outliers(make_scene(rng, 200, **kwargs), 0.4, rng)
     f1, f2 = scene.f1_lvl, scene.f2_lvl
-    est = {"essential": UprightEssential(f1, f2), "ground": GroundHomography(f1, f2), "rotation": PureRotation(f1, f2)}[model]
+    est = {"essential": UprightEssential(f1, f2), "ground": GroundHomography(f1, f2), "rotation": PureRotation(f1, f2)}[
+        model
+    ]
     run = lo_ransac(est, RansacOptions(), THRESHOLD_RAD, np.random.default_rng(7))
     assert run.model is not None
     assert np.array_equal(run.inliers, ~outlier)

@@ -34,6 +34,9 @@ def test_slow_case(name, tmp_path):
 def test_the_table_has_a_row_per_case_and_says_what_failed():
     from tools.faults.suite import FaultRow
 
-    rows = [FaultRow("a", Outcome.SURVIVED, 0.25, "nothing", "x"), FaultRow("b", Outcome.FAILED, float("nan"), "all", "y")]
+    rows = [
+        FaultRow("a", Outcome.SURVIVED, 0.25, "nothing", "x"),
+        FaultRow("b", Outcome.FAILED, float("nan"), "all", "y"),
+    ]
     table = markdown_table(rows).splitlines()
     assert table[2] == "| a | survived | 0.25 s | nothing | x |" and table[3] == "| b | failed | - | all | y |"

@@ -16,24 +16,37 @@ ROLL_DEG = [1.0, 2.0, 3.0, 4.0]
 
 
 def test_current_firmware_time_us_and_att(tmp_path):
-    log = write_dataflash(tmp_path / "a.bin", {"ATT": (60, "Qffffff", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw")},
-                          [("ATT", (1_000_000 + 20_000 * k, 0.0, r, 0.0, -r, 0.0, 90.0)) for k, r in enumerate(ROLL_DEG)])
+    log = write_dataflash(
+        tmp_path / "a.bin",
+        {"ATT": (60, "Qffffff", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw")},
+        [("ATT", (1_000_000 + 20_000 * k, 0.0, r, 0.0, -r, 0.0, 90.0)) for k, r in enumerate(ROLL_DEG)],
+    )
     s = read_fc_log(log)
-    assert np.allclose(s.attitude[:, 0], [1.0, 1.02, 1.04, 1.06]) and np.allclose(np.degrees(s.attitude[:, 1]), ROLL_DEG)
+    assert np.allclose(s.attitude[:, 0], [1.0, 1.02, 1.04, 1.06]) and np.allclose(
+        np.degrees(s.attitude[:, 1]), ROLL_DEG
+    )
     assert s.problems == []
 
 
 def test_older_firmware_time_ms(tmp_path):
     """Before: AttributeError: TimeUS, exit 1."""
-    log = write_dataflash(tmp_path / "old.bin", {"ATT": (60, "Iccccc", "TimeMS,RollIn,Roll,PitchIn,Pitch,Yaw")},
-                          [("ATT", (5_000 + 20 * k, 0.0, r, 0.0, -r, 90.0)) for k, r in enumerate(ROLL_DEG)])
+    log = write_dataflash(
+        tmp_path / "old.bin",
+        {"ATT": (60, "Iccccc", "TimeMS,RollIn,Roll,PitchIn,Pitch,Yaw")},
+        [("ATT", (5_000 + 20 * k, 0.0, r, 0.0, -r, 90.0)) for k, r in enumerate(ROLL_DEG)],
+    )
     s = read_fc_log(log)
-    assert np.allclose(s.attitude[:, 0], [5.0, 5.02, 5.04, 5.06]) and np.allclose(np.degrees(s.attitude[:, 1]), ROLL_DEG, atol=0.01)
+    assert np.allclose(s.attitude[:, 0], [5.0, 5.02, 5.04, 5.06]) and np.allclose(
+        np.degrees(s.attitude[:, 1]), ROLL_DEG, atol=0.01
+    )
 
 
 def test_ahr2_when_there_is_no_att(tmp_path):
-    log = write_dataflash(tmp_path / "ahr2.bin", {"AHR2": (61, "Qccf", "TimeUS,Roll,Pitch,Yaw")},
-                          [("AHR2", (2_000_000 + 100_000 * k, r, 0.5, 45.0)) for k, r in enumerate(ROLL_DEG)])
+    log = write_dataflash(
+        tmp_path / "ahr2.bin",
+        {"AHR2": (61, "Qccf", "TimeUS,Roll,Pitch,Yaw")},
+        [("AHR2", (2_000_000 + 100_000 * k, r, 0.5, 45.0)) for k, r in enumerate(ROLL_DEG)],
+    )
     s = read_fc_log(log)
     assert np.allclose(np.degrees(s.attitude[:, 1]), ROLL_DEG, atol=0.01)
     assert any("roll/pitch from AHR2" in p for p in s.problems)
@@ -41,19 +54,26 @@ def test_ahr2_when_there_is_no_att(tmp_path):
 
 def test_text_dataflash_log(tmp_path):
     """Before: parsed as binary, 179 000 'bad header' lines on stderr, then 'no ATT messages'."""
-    lines = ["FMT, 128, 89, FMT, BBnNZ, Type,Length,Name,Format,Columns",
-             "FMT, 60, 31, ATT, Qffffff, TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw"]
+    lines = [
+        "FMT, 128, 89, FMT, BBnNZ, Type,Length,Name,Format,Columns",
+        "FMT, 60, 31, ATT, Qffffff, TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw",
+    ]
     lines += [f"ATT, {1_000_000 + 20_000 * k}, 0.0, {r}, 0.0, {-r}, 0.0, 90.0" for k, r in enumerate(ROLL_DEG)]
     log = tmp_path / "flight.log"
     log.write_text("\n".join(lines) + "\n")
     s = read_fc_log(log)
-    assert np.allclose(np.degrees(s.attitude[:, 1]), ROLL_DEG) and np.allclose(s.attitude[:, 0], [1.0, 1.02, 1.04, 1.06])
+    assert np.allclose(np.degrees(s.attitude[:, 1]), ROLL_DEG) and np.allclose(
+        s.attitude[:, 0], [1.0, 1.02, 1.04, 1.06]
+    )
 
 
 def test_a_damaged_log_keeps_its_noise_off_the_terminal(tmp_path, capfd):
     """Before: 68 316 'bad header' lines on stderr, then the one-line error."""
-    good = write_dataflash(tmp_path / "g.bin", {"ATT": (60, "Qffffff", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw")},
-                           [("ATT", (1_000_000 + 20_000 * k, 0.0, 1.0, 0.0, 1.0, 0.0, 90.0)) for k in range(200)]).read_bytes()
+    good = write_dataflash(
+        tmp_path / "g.bin",
+        {"ATT": (60, "Qffffff", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw")},
+        [("ATT", (1_000_000 + 20_000 * k, 0.0, 1.0, 0.0, 1.0, 0.0, 90.0)) for k in range(200)],
+    ).read_bytes()
     rng = np.random.default_rng(3)
     damaged = bytearray(good)
     for i in rng.integers(200, len(good), 40):  # 40 bytes flipped inside the records
@@ -76,20 +96,66 @@ def _px4_topics(n: int = 50) -> dict:
     roll = np.radians(0.5 * np.arange(n))
     pitch, yaw = np.radians(-3.0), np.radians(120.0)
     # q (w, x, y, z) of Euler 3-2-1 (roll, pitch, yaw), written out so the reader's conversion is checked independently
-    cr, sr, cp, sp, cy, sy = np.cos(roll / 2), np.sin(roll / 2), np.cos(pitch / 2), np.sin(pitch / 2), np.cos(yaw / 2), np.sin(yaw / 2)
-    q = np.column_stack([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy])
+    cr, sr, cp, sp, cy, sy = (
+        np.cos(roll / 2),
+        np.sin(roll / 2),
+        np.cos(pitch / 2),
+        np.sin(pitch / 2),
+        np.cos(yaw / 2),
+        np.sin(yaw / 2),
+    )
+    q = np.column_stack(
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ]
+    )
     ds_t = np.repeat(t_us[::5], 2)
     m = len(t_us[::10])
     return {
         "vehicle_attitude": ([("uint64_t", "timestamp"), ("float[4]", "q")], {"timestamp": t_us, "q": q}),
-        "distance_sensor": ([("uint64_t", "timestamp"), ("float", "min_distance"), ("float", "max_distance"), ("float", "current_distance"),
-                             ("int8_t", "signal_quality"), ("uint8_t", "orientation")],
-                            {"timestamp": ds_t, "min_distance": np.full(len(ds_t), 0.1), "max_distance": np.full(len(ds_t), 8.0),
-                             "current_distance": np.tile([3.0, 7.0], len(ds_t) // 2), "signal_quality": np.tile([100, 100], len(ds_t) // 2),
-                             "orientation": np.tile([25, 0], len(ds_t) // 2)}),
-        "vehicle_local_position": ([("uint64_t", "timestamp"), ("float", "x"), ("float", "y"), ("float", "z"), ("bool", "xy_valid"), ("bool", "z_valid")],
-                                   {"timestamp": t_us[::10], "x": np.arange(float(m)), "y": np.zeros(m), "z": np.full(m, -2.5), "xy_valid": np.ones(m), "z_valid": np.ones(m)}),
-        "vehicle_air_data": ([("uint64_t", "timestamp"), ("float", "baro_alt_meter")], {"timestamp": t_us[::10], "baro_alt_meter": np.full(m, 480.0)}),
+        "distance_sensor": (
+            [
+                ("uint64_t", "timestamp"),
+                ("float", "min_distance"),
+                ("float", "max_distance"),
+                ("float", "current_distance"),
+                ("int8_t", "signal_quality"),
+                ("uint8_t", "orientation"),
+            ],
+            {
+                "timestamp": ds_t,
+                "min_distance": np.full(len(ds_t), 0.1),
+                "max_distance": np.full(len(ds_t), 8.0),
+                "current_distance": np.tile([3.0, 7.0], len(ds_t) // 2),
+                "signal_quality": np.tile([100, 100], len(ds_t) // 2),
+                "orientation": np.tile([25, 0], len(ds_t) // 2),
+            },
+        ),
+        "vehicle_local_position": (
+            [
+                ("uint64_t", "timestamp"),
+                ("float", "x"),
+                ("float", "y"),
+                ("float", "z"),
+                ("bool", "xy_valid"),
+                ("bool", "z_valid"),
+            ],
+            {
+                "timestamp": t_us[::10],
+                "x": np.arange(float(m)),
+                "y": np.zeros(m),
+                "z": np.full(m, -2.5),
+                "xy_valid": np.ones(m),
+                "z_valid": np.ones(m),
+            },
+        ),
+        "vehicle_air_data": (
+            [("uint64_t", "timestamp"), ("float", "baro_alt_meter")],
+            {"timestamp": t_us[::10], "baro_alt_meter": np.full(m, 480.0)},
+        ),
     }
 
 
@@ -99,7 +165,9 @@ def test_px4_ulog_attitude_range_and_local_height(tmp_path):
     assert s.kind == "ulog" and s.problems == []
     assert np.allclose(s.attitude[:, 0], 10.0 + 0.02 * np.arange(50))
     assert np.allclose(np.degrees(s.attitude[:, 1]), 0.5 * np.arange(50), atol=1e-4)
-    assert np.allclose(np.degrees(s.attitude[:, 2]), -3.0, atol=1e-4) and np.allclose(np.degrees(s.attitude[:, 3]), 120.0, atol=1e-4)
+    assert np.allclose(np.degrees(s.attitude[:, 2]), -3.0, atol=1e-4) and np.allclose(
+        np.degrees(s.attitude[:, 3]), 120.0, atol=1e-4
+    )
     assert np.allclose(s.range_m[:, 1], 3.0)  # the downward sensor only, not the forward one at 7 m
     assert np.allclose(s.height_m[:, 1], 2.5) and s.sources["height"] == "vehicle_local_position.z"
     assert np.allclose(s.local_ned_m[:, 1], np.arange(5.0))

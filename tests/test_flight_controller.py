@@ -28,7 +28,12 @@ class Link:
         port = free_port()
         self.clock = LockstepClock()
         self.fc = SimFlightController(
-            f"udpin:127.0.0.1:{port}", trajectory or make_trajectory(HoverSpec()), self.clock, spec, FaultSchedule(tuple(faults)), seed=seed
+            f"udpin:127.0.0.1:{port}",
+            trajectory or make_trajectory(HoverSpec()),
+            self.clock,
+            spec,
+            FaultSchedule(tuple(faults)),
+            seed=seed,
         )
         self.client = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=255, source_component=190)
         self.mav = mavutil.mavlink
@@ -47,7 +52,9 @@ class Link:
         return out
 
     def set_interval(self, msg_id: int, interval_us: float) -> None:
-        self.client.mav.command_long_send(1, 1, self.mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, interval_us, 0, 0, 0, 0, 0)
+        self.client.mav.command_long_send(
+            1, 1, self.mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, interval_us, 0, 0, 0, 0, 0
+        )
 
     def close(self):
         self.client.close()
@@ -83,7 +90,11 @@ def test_heartbeat_only_until_asked_then_attitude_at_the_requested_rate(link):
     L.set_interval(ATTITUDE, 20000)
     msgs = L.run(5.0)
     ack = _of(msgs, "COMMAND_ACK")
-    assert len(ack) == 1 and ack[0].command == L.mav.MAV_CMD_SET_MESSAGE_INTERVAL and ack[0].result == L.mav.MAV_RESULT_ACCEPTED
+    assert (
+        len(ack) == 1
+        and ack[0].command == L.mav.MAV_CMD_SET_MESSAGE_INTERVAL
+        and ack[0].result == L.mav.MAV_RESULT_ACCEPTED
+    )
     att = _of(msgs, "ATTITUDE")
     assert 99 <= len(att) <= 101  # 2 s at 50 Hz
     dt = np.diff([m.time_boot_ms for m in att])
@@ -98,7 +109,13 @@ def test_heartbeat_only_until_asked_then_attitude_at_the_requested_rate(link):
 
 
 def test_attitude_noise_bias_latency_and_boot_clock(link):
-    spec = FlightControllerSpec(attitude_noise_deg=0.2, attitude_bias_deg=(0.5, -0.3), attitude_latency_ms=30.0, boot_offset_s=100.0, clock_drift_ppm=1000.0)
+    spec = FlightControllerSpec(
+        attitude_noise_deg=0.2,
+        attitude_bias_deg=(0.5, -0.3),
+        attitude_latency_ms=30.0,
+        boot_offset_s=100.0,
+        clock_drift_ppm=1000.0,
+    )
     traj = make_trajectory(FigureEightSpec())
     L = link(spec=spec, trajectory=traj, seed=3)
     L.set_interval(ATTITUDE, 10000)
@@ -140,7 +157,10 @@ def test_reboot_restarts_the_boot_clock_and_stops_streams(link):
 
 
 def test_distance_sensor_and_altitude(link):
-    L = link(spec=FlightControllerSpec(rangefinder_noise_m=0.0, baro_noise_m=0.0), trajectory=make_trajectory(HoverSpec(altitude_m=12.0, drift_m=0.0)))
+    L = link(
+        spec=FlightControllerSpec(rangefinder_noise_m=0.0, baro_noise_m=0.0),
+        trajectory=make_trajectory(HoverSpec(altitude_m=12.0, drift_m=0.0)),
+    )
     L.set_interval(DISTANCE_SENSOR, 0)
     L.set_interval(32, 0)
     L.set_interval(33, 0)
@@ -157,7 +177,12 @@ def test_distance_sensor_and_altitude(link):
 
 
 def test_faults_nan_stale_and_corrupt_attitude(link):
-    faults = [FaultSpec("nan_attitude", 1.0, 0.5), FaultSpec("stale_attitude", 2.0, 0.5), FaultSpec("corrupt_bytes", 3.0, 0.5), FaultSpec("link_silence", 4.0, 0.5)]
+    faults = [
+        FaultSpec("nan_attitude", 1.0, 0.5),
+        FaultSpec("stale_attitude", 2.0, 0.5),
+        FaultSpec("corrupt_bytes", 3.0, 0.5),
+        FaultSpec("link_silence", 4.0, 0.5),
+    ]
     L = link(faults=faults)
     L.set_interval(ATTITUDE, 20000)
     att = _of(L.run(5.0), "ATTITUDE")
@@ -223,7 +248,9 @@ def test_real_time_over_tcp(mavutil):
     try:
         client = mavutil.mavlink_connection(f"tcp:127.0.0.1:{port}", source_system=255, source_component=190)
         assert client.recv_match(type="HEARTBEAT", blocking=True, timeout=5) is not None
-        client.mav.command_long_send(1, 1, mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, ATTITUDE, 40000, 0, 0, 0, 0, 0)
+        client.mav.command_long_send(
+            1, 1, mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, ATTITUDE, 40000, 0, 0, 0, 0, 0
+        )
         att = []
         while len(att) < 20:
             m = client.recv_match(type="ATTITUDE", blocking=True, timeout=5)

@@ -134,7 +134,16 @@ def test_a_service_restart_in_flight_is_a_non_event_for_the_ekf(tmp_path):
     cfg = dataclasses.replace(cfg, service=dataclasses.replace(cfg.service, state_file=str(tmp_path / "state.json")))
 
     def camera(until_s: float) -> SimCamera:
-        return SimCamera(sc.camera, sim.world, sim.trajectory, sim.clock, faults=sim.faults, seed=1, advance=sim.advance_to, duration_s=until_s)
+        return SimCamera(
+            sc.camera,
+            sim.world,
+            sim.trajectory,
+            sim.clock,
+            faults=sim.faults,
+            seed=1,
+            advance=sim.advance_to,
+            duration_s=until_s,
+        )
 
     try:
         Daemon(cfg, clock=sim.clock, source=camera(12.0)).run()  # flies, then dies at 12 s
@@ -153,7 +162,9 @@ def test_a_service_restart_in_flight_is_a_non_event_for_the_ekf(tmp_path):
 def test_heading_is_taken_from_the_fc_once_its_yaw_has_settled():
     sc = load_scenario("square")
     sc = dataclasses.replace(
-        sc, trajectory=dataclasses.replace(sc.trajectory, yaw_deg=30.0), duration_s=28.0,
+        sc,
+        trajectory=dataclasses.replace(sc.trajectory, yaw_deg=30.0),
+        duration_s=28.0,
         flight_controller=dataclasses.replace(sc.flight_controller, boot_offset_s=0.0),  # mavvo starts with the FC
     )
     run = run_daemon_in_sim(sc)
@@ -161,7 +172,9 @@ def test_heading_is_taken_from_the_fc_once_its_yaw_has_settled():
     # Control: starting at once, with the heading never following the flight controller's, north is off.
     base = ServiceConfig()
     blind = dataclasses.replace(
-        base, service=dataclasses.replace(base.service, heading_wait_max_s=0.0), odometry=dataclasses.replace(base.odometry, heading_correction_time_s=0.0)
+        base,
+        service=dataclasses.replace(base.service, heading_wait_max_s=0.0),
+        odometry=dataclasses.replace(base.odometry, heading_correction_time_s=0.0),
     )
     off = run_daemon_in_sim(dataclasses.replace(sc, duration_s=7.0), blind)  # the error is there from the start
     assert off.safety.heading_end_error_deg > 5.0
@@ -171,7 +184,9 @@ def test_on_the_ground_before_take_off_the_sent_sigma_stays_small():
     from mavvo.sim.world.trajectories import HoverSpec
 
     # Standing on its landing gear: the camera 0.3 m above the ground, not moving at all.
-    sc = dataclasses.replace(load_scenario("hover"), trajectory=HoverSpec(altitude_m=0.3, drift_m=0.0, duration_s=10.0), duration_s=10.0)
+    sc = dataclasses.replace(
+        load_scenario("hover"), trajectory=HoverSpec(altitude_m=0.3, drift_m=0.0, duration_s=10.0), duration_s=10.0
+    )
     run = run_daemon_in_sim(sc)
     sigma = np.array([math.sqrt(m.covariance[0]) for m in run.vision_messages])
     assert len(sigma) > 100, "the vehicle on the ground should be tracked"

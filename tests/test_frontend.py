@@ -57,7 +57,7 @@ def test_ids_persist_and_new_ones_increase(renderer: Renderer) -> None:
     assert np.all(np.diff(a.ids) > 0) and np.all(np.diff(b.ids) > 0)
     survivors = np.intersect1d(a.ids, b.ids)
     assert len(survivors) == b.tracked > 0.9 * len(a.ids)
-    assert np.all(b.ids[b.tracked:] > a.ids.max())
+    assert np.all(b.ids[b.tracked :] > a.ids.max())
     assert np.allclose(np.linalg.norm(b.f_cam, axis=1), 1.0)
 
 

@@ -13,7 +13,17 @@ from mavvo.sim.world.twoview import make_scene
 
 def _ground_scenes(n: int, seed: int = 0):
     rng = np.random.default_rng(seed)
-    return [make_scene(rng, 6, structure="ground", mount="nadir", motion=("sideways", "forward", "random", "vertical")[i % 4], baseline_fraction=0.3) for i in range(n)]
+    return [
+        make_scene(
+            rng,
+            6,
+            structure="ground",
+            mount="nadir",
+            motion=("sideways", "forward", "random", "vertical")[i % 4],
+            baseline_fraction=0.3,
+        )
+        for i in range(n)
+    ]
 
 
 def test_two_points_give_the_exact_pose_per_height() -> None:

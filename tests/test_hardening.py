@@ -68,7 +68,9 @@ class FcThread:
 
     def __init__(self, url: str) -> None:
         self.clock = RealClock()
-        self.fc = SimFlightController(url, make_trajectory(HoverSpec()), self.clock, FlightControllerSpec(), FaultSchedule(()))
+        self.fc = SimFlightController(
+            url, make_trajectory(HoverSpec()), self.clock, FlightControllerSpec(), FaultSchedule(())
+        )
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._serve, daemon=True)
         self.thread.start()
@@ -87,7 +89,11 @@ class FcThread:
 def _heartbeat(mav, sys_id: int) -> bytes:
     m = mavutil().mavlink
     mav.srcSystem = sys_id
-    return bytes(m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, m.MAV_STATE_ACTIVE, 3).pack(mav))
+    return bytes(
+        m.MAVLink_heartbeat_message(
+            m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, m.MAV_STATE_ACTIVE, 3
+        ).pack(mav)
+    )
 
 
 # ---------------------------------------------------------------------------------------------- the link
@@ -192,7 +198,12 @@ def test_image_sizes_are_read_from_headers_without_decoding(tmp_path):
     cv2.imwrite(str(tmp_path / "b.jpg"), np.zeros((30, 70, 3), np.uint8))
     cv2.imwrite(str(tmp_path / "c.bmp"), np.zeros((20, 50), np.uint8))
     cv2.imwrite(str(tmp_path / "d.pgm"), np.zeros((11, 13), np.uint8))
-    assert [image_size_px(tmp_path / n) for n in ("a.png", "b.jpg", "c.bmp", "d.pgm")] == [(64, 48), (70, 30), (50, 20), (13, 11)]
+    assert [image_size_px(tmp_path / n) for n in ("a.png", "b.jpg", "c.bmp", "d.pgm")] == [
+        (64, 48),
+        (70, 30),
+        (50, 20),
+        (13, 11),
+    ]
     (tmp_path / "e.txt").write_bytes(b"not an image")
     assert image_size_px(tmp_path / "e.txt") is None
 
@@ -215,7 +226,9 @@ def test_an_oversized_image_is_refused_before_it_is_decoded(tmp_path):
     src = ImageFolderSource(tmp_path, Still(), (640, 480))
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     assert src.read(0.1).image.shape == (48, 64)
-    with pytest.raises(FrameRefused, match=r"1.png is 20000x20000 px, larger than camera.width_px x height_px = 640x480"):
+    with pytest.raises(
+        FrameRefused, match=r"1.png is 20000x20000 px, larger than camera.width_px x height_px = 640x480"
+    ):
         src.read(0.1)
     assert src.read(0.1).image.shape == (48, 64)  # the source goes on after the refused one
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0 < 100_000  # kB: never decoded
@@ -235,7 +248,9 @@ def test_a_camera_that_keeps_failing_ends_run_with_a_failure():
 
     base = ServiceConfig()
     cfg = dataclasses.replace(
-        base, link=dataclasses.replace(base.link, url="udpout:127.0.0.1:9"), service=dataclasses.replace(base.service, state_file=""),
+        base,
+        link=dataclasses.replace(base.link, url="udpout:127.0.0.1:9"),
+        service=dataclasses.replace(base.service, state_file=""),
         camera=dataclasses.replace(base.camera, lost_after_s=0.3, reconnect_max_s=0.1),
     )
     d = Daemon(cfg, source=Broken())
@@ -249,7 +264,11 @@ def test_stuck_threads_are_named_and_a_thread_that_waits_on_purpose_is_not():
     from mavvo.service.daemon import Daemon
 
     base = ServiceConfig()
-    cfg = dataclasses.replace(base, link=dataclasses.replace(base.link, url="udpout:127.0.0.1:9"), service=dataclasses.replace(base.service, state_file=""))
+    cfg = dataclasses.replace(
+        base,
+        link=dataclasses.replace(base.link, url="udpout:127.0.0.1:9"),
+        service=dataclasses.replace(base.service, state_file=""),
+    )
     d = Daemon(cfg, source=InjectedSource())
     assert d.stuck_threads(100.0, 2.0) == []  # first look: nothing to compare with
     assert d.stuck_threads(101.0, 2.0) == []
@@ -259,7 +278,6 @@ def test_stuck_threads_are_named_and_a_thread_that_waits_on_purpose_is_not():
     d.turns["camera"] += 1
     assert d.stuck_threads(104.0, 2.0) == []
     assert d.stuck_threads(106.5, 2.0) == ["link", "camera", "worker"]
-
 
 
 # ---------------------------------------------------------------------------------------------- stopping
@@ -284,7 +302,8 @@ def test_a_second_stop_signal_skips_the_drain():
 
     base = ServiceConfig()
     cfg = dataclasses.replace(
-        base, link=dataclasses.replace(base.link, url="udpout:127.0.0.1:9"),
+        base,
+        link=dataclasses.replace(base.link, url="udpout:127.0.0.1:9"),
         service=dataclasses.replace(base.service, state_file="", shutdown_drain_s=60.0),
     )
     source = InjectedSource()
@@ -311,7 +330,11 @@ def test_the_link_thread_dying_ends_run_with_a_failure():
     from mavvo.service.daemon import Daemon
 
     base = ServiceConfig()
-    cfg = dataclasses.replace(base, link=dataclasses.replace(base.link, url="udpout:127.0.0.1:9"), service=dataclasses.replace(base.service, state_file=""))
+    cfg = dataclasses.replace(
+        base,
+        link=dataclasses.replace(base.link, url="udpout:127.0.0.1:9"),
+        service=dataclasses.replace(base.service, state_file=""),
+    )
     d = Daemon(cfg, source=InjectedSource())
 
     def dies(stop):

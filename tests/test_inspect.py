@@ -31,11 +31,18 @@ def test_a_telemetry_log_with_slow_attitude_and_its_video(tmp_path, capsys):
     assert code == 0, err
     s = _series(r)
     assert r["kind"] == "tlog" and r["replayable"]
-    assert s["attitude"]["source"] == "ATTITUDE" and s["attitude"]["rate_hz"] == pytest.approx(2.0) and s["attitude"]["longest_gap_s"] == pytest.approx(0.5)
+    assert (
+        s["attitude"]["source"] == "ATTITUDE"
+        and s["attitude"]["rate_hz"] == pytest.approx(2.0)
+        and s["attitude"]["longest_gap_s"] == pytest.approx(0.5)
+    )
     assert s["range"]["rate_hz"] == pytest.approx(20.0) and s["height"]["source"] == "GLOBAL_POSITION_INT.relative_alt"
     assert s["frames"]["count"] == len((lf.video / "timestamps.txt").read_text().splitlines())
     assert s["attitude"]["start_s"] == pytest.approx(BOOT_S)
-    assert r["facts"]["attitude_pairing_max_gap_s"] == pytest.approx(0.75) and "slow stream" in r["facts"]["attitude_pairing"]
+    assert (
+        r["facts"]["attitude_pairing_max_gap_s"] == pytest.approx(0.75)
+        and "slow stream" in r["facts"]["attitude_pairing"]
+    )
     # frames from 1.5 s to 5.65 s of the flight; attitude to 5.5 s
     assert r["facts"]["frames_attitude_overlap_s"] == pytest.approx(4.0, abs=0.01)
     assert [m["fix"].split()[0] for m in r["missing"]] == ["--ground-truth"] and not r["missing"][0]["blocking"]
@@ -46,7 +53,9 @@ def test_a_log_alone_names_the_video_and_config_it_needs(tmp_path, capsys):
     code, r, _ = _inspect(capsys, lf.log)
     assert code == 1 and not r["replayable"] and r["kind"] == "dataflash"
     assert {m["fix"].split()[0] for m in r["missing"] if m["blocking"]} == {"--video", "--config"}
-    assert _series(r)["attitude"]["source"] == "ATT" and _series(r)["attitude"]["rate_hz"] == pytest.approx(50.0, rel=0.01)
+    assert _series(r)["attitude"]["source"] == "ATT" and _series(r)["attitude"]["rate_hz"] == pytest.approx(
+        50.0, rel=0.01
+    )
     code = main(["inspect", str(lf.log)])  # the table for people
     out = capsys.readouterr().out
     assert code == 1 and "MISSING: the flight's video; --video FILE_OR_FOLDER" in out and "ATT " in out
@@ -58,7 +67,9 @@ def test_a_px4_log_names_its_topics(tmp_path, capsys):
     s = _series(r)
     assert code == 0 and r["kind"] == "ulog"
     assert s["attitude"]["source"] == "vehicle_attitude" and s["range"]["source"] == "distance_sensor"
-    assert s["height"]["source"] == "vehicle_air_data.baro_alt_meter" and s["height"]["rate_hz"] == pytest.approx(10.0, rel=0.01)
+    assert s["height"]["source"] == "vehicle_air_data.baro_alt_meter" and s["height"]["rate_hz"] == pytest.approx(
+        10.0, rel=0.01
+    )
     assert r["facts"]["time_offset_s"].startswith("estimated by replay")
 
 
@@ -66,7 +77,12 @@ def test_a_dataset_without_ground_truth_is_replayable_with_what_it_lacks(tmp_pat
     root = make_euroc(tmp_path, duration_s=4.0)
     code, r, _ = _inspect(capsys, root)
     s = _series(r)
-    assert code == 0 and r["kind"] == "euroc" and s["imu"]["rate_hz"] == pytest.approx(200.0, rel=0.01) and s["ground_truth"]["count"] > 0
+    assert (
+        code == 0
+        and r["kind"] == "euroc"
+        and s["imu"]["rate_hz"] == pytest.approx(200.0, rel=0.01)
+        and s["ground_truth"]["count"] > 0
+    )
     assert r["missing"] == [] and r["facts"]["frames_imu_overlap_s"] > 3.0
     (root / "mav0" / "state_groundtruth_estimate0" / "data.csv").unlink()
     code, r, _ = _inspect(capsys, root)

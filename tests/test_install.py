@@ -30,7 +30,10 @@ def test_make_setup_rebuilds_a_venv_copied_from_elsewhere(tmp_path):
     assert "rm -rf .venv" in moved and "python3 -m venv .venv" in moved and "pip install" in moved
     (bin_dir / "pip").write_text(f"#!{bin_dir}/python\n")
     (tmp_path / ".venv" / ".installed").touch()
-    assert "Nothing to be done" in subprocess.run(["make", "-n", "setup"], cwd=tmp_path, capture_output=True, text=True, timeout=60).stdout
+    assert (
+        "Nothing to be done"
+        in subprocess.run(["make", "-n", "setup"], cwd=tmp_path, capture_output=True, text=True, timeout=60).stdout
+    )
 
 
 @pytest.mark.slow
@@ -39,15 +42,31 @@ def test_make_install_from_a_copied_checkout_runs(tmp_path):
     """A checkout copied with its .venv (which names another place) installs with a venv made in
     place, a unit pointing at it, and the settings; the installed mavvo runs."""
     src = tmp_path / "checkout"
-    shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(".git", ".venv", "__pycache__", "*.egg-info", "mavvo-sim-out", ".hypothesis"))
+    shutil.copytree(
+        ROOT,
+        src,
+        ignore=shutil.ignore_patterns(".git", ".venv", "__pycache__", "*.egg-info", "mavvo-sim-out", ".hypothesis"),
+    )
     (src / ".venv" / "bin").mkdir(parents=True)
     (src / ".venv" / "bin" / "pip").write_text("#!/somewhere/else/.venv/bin/python\n")
-    prefix, etc, units, cache = tmp_path / "opt" / "mavvo", tmp_path / "etc" / "mavvo", tmp_path / "units", tmp_path / "cache"
-    out = subprocess.run(["make", "install", f"PREFIX={prefix}", f"ETCDIR={etc}", f"UNITDIR={units}", f"CACHEDIR={cache}", "SYSTEM=0"],
-                         cwd=src, capture_output=True, text=True, timeout=1800)
+    prefix, etc, units, cache = (
+        tmp_path / "opt" / "mavvo",
+        tmp_path / "etc" / "mavvo",
+        tmp_path / "units",
+        tmp_path / "cache",
+    )
+    out = subprocess.run(
+        ["make", "install", f"PREFIX={prefix}", f"ETCDIR={etc}", f"UNITDIR={units}", f"CACHEDIR={cache}", "SYSTEM=0"],
+        cwd=src,
+        capture_output=True,
+        text=True,
+        timeout=1800,
+    )
     assert out.returncode == 0, out.stdout + out.stderr
     assert "installed: edit" in out.stdout and ": ok" in out.stdout
-    version = subprocess.run([prefix / ".venv" / "bin" / "mavvo", "--version"], capture_output=True, text=True, timeout=120)
+    version = subprocess.run(
+        [prefix / ".venv" / "bin" / "mavvo", "--version"], capture_output=True, text=True, timeout=120
+    )
     assert version.returncode == 0 and version.stdout.startswith("mavvo ")
     unit = (units / "mavvo.service").read_text()
     assert f"ExecStart={prefix}/.venv/bin/mavvo run --config {etc}/mavvo.yaml" in unit

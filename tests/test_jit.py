@@ -34,7 +34,14 @@ print(json.dumps(out))
 
 
 def _run(env: dict[str, str]) -> list:
-    proc = subprocess.run([sys.executable, "-c", _SCRIPT], cwd=ROOT, env={**os.environ, **env}, capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-c", _SCRIPT],
+        cwd=ROOT,
+        env={**os.environ, **env},
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr
     return json.loads(proc.stdout)
 
@@ -57,7 +64,14 @@ def _warm(cache: Path | None) -> subprocess.CompletedProcess:
     env = dict(os.environ)
     if cache is not None:
         env["NUMBA_CACHE_DIR"] = str(cache)
-    proc = subprocess.run([sys.executable, "-m", "mavvo.estimation.warmup"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
+    proc = subprocess.run(
+        [sys.executable, "-m", "mavvo.estimation.warmup"],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert proc.returncode == 0 and "mavvo kernels ready" in proc.stderr, proc.stderr
     return proc
 
@@ -99,8 +113,14 @@ def _sim(cache: Path, out: Path) -> dict:
     """``mavvo sim`` (the service against the simulator, lockstep) on 3 s of the hover with this kernel cache."""
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
     env.pop("NUMBA_DISABLE_JIT", None)
-    proc = subprocess.run([sys.executable, "-m", "mavvo", "sim", "--scenario", "hover", "--duration", "3", "--json", "--out", str(out)],
-                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
+    proc = subprocess.run(
+        [sys.executable, "-m", "mavvo", "sim", "--scenario", "hover", "--duration", "3", "--json", "--out", str(out)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert proc.returncode == 0, proc.stderr
     return json.loads(proc.stdout)
 
@@ -128,10 +148,19 @@ _MAIN = "import sys\nfrom mavvo.jit import refresh_cache\nimport caller\nif sys.
 
 
 def _twice(folder: Path, refresh: bool) -> int:
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(folder), str(ROOT)]), "NUMBA_CACHE_DIR": str(folder / "cache")}
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(folder), str(ROOT)]),
+        "NUMBA_CACHE_DIR": str(folder / "cache"),
+    }
     env.pop("NUMBA_DISABLE_JIT", None)
     proc = subprocess.run(
-        [sys.executable, str(folder / "main.py"), "refresh" if refresh else "plain"], cwd=folder, env=env, capture_output=True, text=True, timeout=300,
+        [sys.executable, str(folder / "main.py"), "refresh" if refresh else "plain"],
+        cwd=folder,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert proc.returncode == 0, proc.stderr
     return int(proc.stdout)

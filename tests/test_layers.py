@@ -38,7 +38,11 @@ LAYERS = (
 # What the command line loads only inside a command's function (start-up of ``mavvo run``).
 LOADED_ON_DEMAND = ("mavvo.sim", "mavvo.offline", "mavvo.evaluation")
 # Outside libraries with exactly one importer.
-SOLE_IMPORTER = {"pymavlink": "mavvo.service.mavlink", "numba": "mavvo.jit", "filterpy": None}  # None: tests only (a reference)
+SOLE_IMPORTER = {
+    "pymavlink": "mavvo.service.mavlink",
+    "numba": "mavvo.jit",
+    "filterpy": None,
+}  # None: tests only (a reference)
 
 
 @dataclass(frozen=True)
@@ -110,7 +114,9 @@ def violations(edges: list[Edge]) -> list[str]:
             continue
         on_demand = any(e.imported == p or e.imported.startswith(p + ".") for p in LOADED_ON_DEMAND)
         if on_demand and e.importer.startswith(("mavvo.commands", "mavvo.cli")) and not e.in_function:
-            out.append(f"{e.importer}:{e.line} imports {e.imported}: the command line loads it only inside a command's function")
+            out.append(
+                f"{e.importer}:{e.line} imports {e.imported}: the command line loads it only inside a command's function"
+            )
     return out
 
 
@@ -120,7 +126,11 @@ def all_modules() -> dict[str, Path]:
 
 
 def all_edges() -> list[Edge]:
-    return [e for name, p in all_modules().items() for e in imports_of(p.read_text(encoding="utf-8"), name, p.name == "__init__.py")]
+    return [
+        e
+        for name, p in all_modules().items()
+        for e in imports_of(p.read_text(encoding="utf-8"), name, p.name == "__init__.py")
+    ]
 
 
 def test_every_import_points_down() -> None:
@@ -140,7 +150,7 @@ def test_no_import_cycles_among_modules() -> None:
 
     def visit(m: str, stack: list[str]) -> None:
         if m in stack:
-            raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(m):] + [m]))
+            raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(m) :] + [m]))
         if m in done:
             return
         for d in sorted(graph[m]):
@@ -184,8 +194,16 @@ def test_the_checker_finds_each_kind_of_violation(importer: str, source: str, pa
 def test_the_checker_allows_what_the_layering_allows() -> None:
     allowed = [
         ("mavvo.commands.sim", "def main():\n    from mavvo.sim.scenarios.loader import load_scenario\n", False),
-        ("mavvo.offline.driver", "from mavvo.service.daemon import Daemon\nfrom mavvo.sim.world.clock import LockstepClock\n", False),
-        ("mavvo.odometry.pipeline", "from mavvo.geometry.frames import R_lvl_cam\nfrom mavvo.types import PairedFrame\n", False),
+        (
+            "mavvo.offline.driver",
+            "from mavvo.service.daemon import Daemon\nfrom mavvo.sim.world.clock import LockstepClock\n",
+            False,
+        ),
+        (
+            "mavvo.odometry.pipeline",
+            "from mavvo.geometry.frames import R_lvl_cam\nfrom mavvo.types import PairedFrame\n",
+            False,
+        ),
         ("tools.faults.suite", "from mavvo.cli import main\n", False),
     ]
     for importer, source, package in allowed:

@@ -58,12 +58,26 @@ class Running:
 
     def __init__(self, faults=(), **link_options) -> None:
         self.clock = RealClock()
-        self.fc = SimFlightController("udpin:127.0.0.1:0", make_trajectory(HoverSpec()), self.clock, FlightControllerSpec(), FaultSchedule(tuple(faults)))
+        self.fc = SimFlightController(
+            "udpin:127.0.0.1:0",
+            make_trajectory(HoverSpec()),
+            self.clock,
+            FlightControllerSpec(),
+            FaultSchedule(tuple(faults)),
+        )
         host, port = self.fc.address
         self.listener = Recorder()
-        self.link = Link(LinkOptions(url=f"udpout:{host}:{port}", **link_options), MonotonicClock(), self.listener, lambda: SystemStatus.ACTIVE)
+        self.link = Link(
+            LinkOptions(url=f"udpout:{host}:{port}", **link_options),
+            MonotonicClock(),
+            self.listener,
+            lambda: SystemStatus.ACTIVE,
+        )
         self.stop = threading.Event()
-        self.threads = [threading.Thread(target=self._serve, daemon=True), threading.Thread(target=self.link.run, args=(self.stop,), daemon=True)]
+        self.threads = [
+            threading.Thread(target=self._serve, daemon=True),
+            threading.Thread(target=self.link.run, args=(self.stop,), daemon=True),
+        ]
         for t in self.threads:
             t.start()
 
@@ -102,7 +116,15 @@ def running():
 def test_identity_streams_and_clock(running):
     r = running()
     heard = lambda: [m for m in r.fc.received if m.type == "HEARTBEAT"]  # noqa: E731
-    assert r.wait_for(lambda: heard() and len(r.listener.attitude) > 60 and r.listener.ranges and r.listener.heights and r.listener.timesync)
+    assert r.wait_for(
+        lambda: (
+            heard()
+            and len(r.listener.attitude) > 60
+            and r.listener.ranges
+            and r.listener.heights
+            and r.listener.timesync
+        )
+    )
     hb = heard()
     m = hb[-1]
     assert (m.msg.get_srcSystem(), m.msg.get_srcComponent()) == (1, 197)
@@ -126,14 +148,24 @@ def test_reboot_corrupt_bytes_and_silence_are_survived(running):
     # The faults start once the link hears the streams, however long that takes on a loaded machine.
     assert r.wait_for(lambda: len(r.listener.attitude) > 20)
     t0 = r.sim_time() + 0.5
-    r.fc.faults = FaultSchedule((FaultSpec("reboot", t0, 0.5), FaultSpec("corrupt_bytes", t0 + 1.5, 0.5), FaultSpec("link_silence", t0 + 3.0, 2.0)))
+    r.fc.faults = FaultSchedule(
+        (
+            FaultSpec("reboot", t0, 0.5),
+            FaultSpec("corrupt_bytes", t0 + 1.5, 0.5),
+            FaultSpec("link_silence", t0 + 3.0, 2.0),
+        )
+    )
     # Each step waits for its event (generously), then checks what it left.
-    assert r.wait_for(lambda: any(ms < 2000 for _, ms in r.listener.attitude)), "streams were requested again after the reboot"
+    assert r.wait_for(lambda: any(ms < 2000 for _, ms in r.listener.attitude)), (
+        "streams were requested again after the reboot"
+    )
     assert r.listener.reboots == 1 and r.link.counters["reboots"] == 1
     assert r.wait_for(lambda: r.link.counters["bad_data"] > 0), "corrupt bytes were not counted"
     assert r.wait_for(lambda: r.sim_time() >= t0 + 3.0)
     n_at_silence = len(r.listener.attitude)
-    assert r.wait_for(lambda: r.link.counters["reconnects"] >= 1 and len(r.listener.attitude) > n_at_silence + 50), "attitude flows again after the silence"
+    assert r.wait_for(lambda: r.link.counters["reconnects"] >= 1 and len(r.listener.attitude) > n_at_silence + 50), (
+        "attitude flows again after the silence"
+    )
     assert r.listener.reboots == 1
     assert r.link.connected.is_set()
 
@@ -145,7 +177,11 @@ def test_signed_link_signs_what_it_sends(tmp_path):
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         s.settimeout(5)
-        link = Link(LinkOptions(url=f"udpout:127.0.0.1:{s.getsockname()[1]}", signing_key_file=str(key)), MonotonicClock(), Recorder())
+        link = Link(
+            LinkOptions(url=f"udpout:127.0.0.1:{s.getsockname()[1]}", signing_key_file=str(key)),
+            MonotonicClock(),
+            Recorder(),
+        )
         stop = threading.Event()
         t = threading.Thread(target=link.run, args=(stop,), daemon=True)
         t.start()
@@ -188,7 +224,9 @@ def test_serial_port_unplugged_and_back(mavutil):
     master, slave = os.openpty()
     path = os.ttyname(slave)
     listener = Recorder()
-    link = Link(LinkOptions(url=f"{path}:115200", silence_timeout_s=1.0, fc_system_id=1), MonotonicClock(), listener)  # pinned: one HEARTBEAT chooses it
+    link = Link(
+        LinkOptions(url=f"{path}:115200", silence_timeout_s=1.0, fc_system_id=1), MonotonicClock(), listener
+    )  # pinned: one HEARTBEAT chooses it
     stop = threading.Event()
     t = threading.Thread(target=link.run, args=(stop,), daemon=True)
     t.start()

@@ -17,9 +17,16 @@ def estimate(yaw_rad=0.0, v=(1.0, 0.0, 0.0), quality=80, reset=3):
     cov[np.triu_indices(6)] = np.arange(1, 22)  # entry k+1 at the k-th upper-triangle place, row-major
     cov = cov + np.triu(cov, 1).T
     return PoseEstimate(
-        t_exposure_s=12.3456789, seq=7, p_ned_m=np.array([1.0, 2.0, -3.0]), rpy_rad=np.array([0.1, -0.05, yaw_rad]),
-        v_ned_m_s=np.array(v), covariance=cov, v_covariance=np.diag([0.01, 0.02, 0.03]), quality=quality,
-        reset_counter=reset, diagnostics=VoDiagnostics("tracking"),
+        t_exposure_s=12.3456789,
+        seq=7,
+        p_ned_m=np.array([1.0, 2.0, -3.0]),
+        rpy_rad=np.array([0.1, -0.05, yaw_rad]),
+        v_ned_m_s=np.array(v),
+        covariance=cov,
+        v_covariance=np.diag([0.01, 0.02, 0.03]),
+        quality=quality,
+        reset_counter=reset,
+        diagnostics=VoDiagnostics("tracking"),
     )
 
 
@@ -54,7 +61,13 @@ def test_statustext_is_prefixed_and_fits_mavlink():
 
 @pytest.mark.parametrize(
     "state, severity",  # MAV_SEVERITY: 2 CRITICAL, 4 WARNING, 6 INFO
-    [(VisionState.FAILED, 2), (VisionState.DEGRADED, 4), (VisionState.TRACKING, 6), (VisionState.INITIALISING, 6), (VisionState.STANDBY, 6)],
+    [
+        (VisionState.FAILED, 2),
+        (VisionState.DEGRADED, 4),
+        (VisionState.TRACKING, 6),
+        (VisionState.INITIALISING, 6),
+        (VisionState.STANDBY, 6),
+    ],
 )
 def test_statustext_severity_follows_the_state(state, severity):
     assert messages.statustext(state, StateReason.NONE)["severity"] == severity
@@ -82,7 +95,10 @@ def test_held_back_state_changes_never_hide_a_failure():
     t = messages.statustext_merged(failed_then_tracking)
     assert t["text"] == b"mavvo: failed (no_frames) then tracking" and t["severity"] == 2
     # A single change, or one that only got better, is said as it is.
-    assert messages.statustext_merged([(VisionState.DEGRADED, StateReason.FEW_INLIERS)])["text"] == b"mavvo: degraded (few_inliers)"
+    assert (
+        messages.statustext_merged([(VisionState.DEGRADED, StateReason.FEW_INLIERS)])["text"]
+        == b"mavvo: degraded (few_inliers)"
+    )
     got_worse = [(VisionState.DEGRADED, StateReason.FEW_INLIERS), (VisionState.FAILED, StateReason.TRACKING_LOST)]
     assert messages.statustext_merged(got_worse) == messages.statustext(VisionState.FAILED, StateReason.TRACKING_LOST)
 

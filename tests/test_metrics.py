@@ -58,14 +58,20 @@ def test_known_ate_and_drift_per_metre():
     gt = _truth()
     n = len(gt)
     zigzag = np.where(np.arange(n) % 2 == 0, 0.1, -0.1)  # +-10 cm up and down: ATE RMSE 0.1 m
-    est = PoseSeries(gt.timestamps_s, gt.positions_xyz_m + np.column_stack([np.zeros(n), np.zeros(n), zigzag]), gt.orientations_quat_wxyz)
+    est = PoseSeries(
+        gt.timestamps_s,
+        gt.positions_xyz_m + np.column_stack([np.zeros(n), np.zeros(n), zigzag]),
+        gt.orientations_quat_wxyz,
+    )
     ev, _ = evaluate(est, gt)
     assert ev.ate_se3_m["rmse"] == pytest.approx(0.1, rel=0.01)
     assert ev.ate_se3_rmse_percent_of_path == pytest.approx(100 * 0.1 / gt.path_length_m(), rel=0.01)
 
     # 2% drift to the east per metre flown
     along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(gt.positions_xyz_m, axis=0), axis=1))])
-    drift = PoseSeries(gt.timestamps_s, gt.positions_xyz_m + np.outer(0.02 * along, [0.0, 1.0, 0.0]), gt.orientations_quat_wxyz)
+    drift = PoseSeries(
+        gt.timestamps_s, gt.positions_xyz_m + np.outer(0.02 * along, [0.0, 1.0, 0.0]), gt.orientations_quat_wxyz
+    )
     ev, _ = evaluate(drift, gt, rpe_delta_m=10.0)
     assert ev.rpe_translation_per_m["median"] == pytest.approx(0.02, rel=0.02)
     assert ev.rpe_rotation_deg_per_m["max"] < 1e-9
@@ -96,7 +102,9 @@ def test_tum_round_trip_and_errors(tmp_path):
 def test_report_writes_tum_json_and_png(tmp_path):
     gt = _truth(step_s=0.5)
     rng = np.random.default_rng(3)
-    est = PoseSeries(gt.timestamps_s, gt.positions_xyz_m + rng.normal(0, 0.05, gt.positions_xyz_m.shape), gt.orientations_quat_wxyz)
+    est = PoseSeries(
+        gt.timestamps_s, gt.positions_xyz_m + rng.normal(0, 0.05, gt.positions_xyz_m.shape), gt.orientations_quat_wxyz
+    )
     ev = write_report(tmp_path / "out", est, gt, title="test")
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["title"] == "test" and summary["ate_se3_m"]["rmse"] == pytest.approx(ev.ate_se3_m["rmse"])

@@ -44,14 +44,24 @@ def test_triangulation_recovers_depths_in_baseline_units() -> None:
 @pytest.mark.parametrize("source", ["rangefinder", "altitude", "fixed"])
 def test_ground_sources_give_the_metric_baseline(source: str) -> None:
     rng = np.random.default_rng(1)
-    scene = make_scene(rng, 200, motion="sideways", mount="nadir", structure="ground", distance_m=12.0, max_tilt_rad=0.0)
+    scene = make_scene(
+        rng, 200, motion="sideways", mount="nadir", structure="ground", distance_m=12.0, max_tilt_rad=0.0
+    )
     lam1, _, par, valid, c2 = _unit_geometry(scene)
     pts = lam1[valid, None] * scene.f1_lvl[valid]
     height2 = 12.0 - (scene.baseline_m * c2)[2]  # camera 2's height above the ground (z down)
     opt = ScaleOptions(source=source, fixed_height_m=height2)
     s = estimate_scale(
-        opt, points_lvl=pts, parallax_rad=par[valid], c2_lvl1=c2, down_lvl2=np.array([0.0, 0.0, 1.0]),
-        range_m=height2, height_m=height2, carried_depth_m=np.zeros(0), depth_unit=np.zeros(0), first_interval=False,
+        opt,
+        points_lvl=pts,
+        parallax_rad=par[valid],
+        c2_lvl1=c2,
+        down_lvl2=np.array([0.0, 0.0, 1.0]),
+        range_m=height2,
+        height_m=height2,
+        carried_depth_m=np.zeros(0),
+        depth_unit=np.zeros(0),
+        first_interval=False,
     )
     assert s is not None and s.source == source
     assert s.baseline_m == pytest.approx(scene.baseline_m, rel=1e-9)
@@ -63,9 +73,18 @@ def test_carried_scale_and_the_fallback_order() -> None:
     lam1, _, par, valid, c2 = _unit_geometry(scene)
     pts = lam1[valid, None] * scene.f1_lvl[valid]
     metric = lam1[valid] * scene.baseline_m * rng.choice([1.0, 1.0, 1.0, 5.0], valid.sum())  # a quarter wrong
-    common = dict(points_lvl=pts, parallax_rad=par[valid], c2_lvl1=c2, down_lvl2=np.array([0.0, 0.0, 1.0]), height_m=None)
+    common = dict(
+        points_lvl=pts, parallax_rad=par[valid], c2_lvl1=c2, down_lvl2=np.array([0.0, 0.0, 1.0]), height_m=None
+    )
     # No range: the rangefinder source falls back to the carried depths, outliers outvoted.
-    s = estimate_scale(ScaleOptions(source="rangefinder"), range_m=None, carried_depth_m=metric, depth_unit=lam1[valid], first_interval=False, **common)
+    s = estimate_scale(
+        ScaleOptions(source="rangefinder"),
+        range_m=None,
+        carried_depth_m=metric,
+        depth_unit=lam1[valid],
+        first_interval=False,
+        **common,
+    )
     assert s is not None and s.source == "carried" and s.baseline_m == pytest.approx(scene.baseline_m, rel=1e-9)
     # Carried with nothing carried yet: nothing, unless a rangefinder reading is there in the first interval.
     none = dict(carried_depth_m=np.zeros(0), depth_unit=np.zeros(0))
@@ -94,8 +113,14 @@ def test_a_ground_fit_that_is_no_plane_gives_no_scale_and_the_carried_depths_tak
     _, spread = ground_depth(spoiled, par[valid] ** 2, 12)
     assert spread > 0.5
     common = dict(
-        parallax_rad=par[valid], c2_lvl1=c2, down_lvl2=np.array([0.0, 0.0, 1.0]), range_m=3.0, height_m=None,
-        carried_depth_m=lam1[valid] * scene.baseline_m, depth_unit=lam1[valid], first_interval=False,
+        parallax_rad=par[valid],
+        c2_lvl1=c2,
+        down_lvl2=np.array([0.0, 0.0, 1.0]),
+        range_m=3.0,
+        height_m=None,
+        carried_depth_m=lam1[valid] * scene.baseline_m,
+        depth_unit=lam1[valid],
+        first_interval=False,
     )
     good = estimate_scale(ScaleOptions(source="rangefinder"), points_lvl=pts, **common)
     assert good is not None and good.source == "rangefinder"  # a plane: the rangefinder answers
@@ -114,8 +139,14 @@ def test_a_height_sources_noise_over_the_height_is_part_of_the_scales_uncertaint
     lam1, _, par, valid, c2 = _unit_geometry(scene)
     pts = lam1[valid, None] * scene.f1_lvl[valid]
     common = dict(
-        points_lvl=pts, parallax_rad=par[valid], c2_lvl1=c2, down_lvl2=np.array([0.0, 0.0, 1.0]), height_m=None,
-        carried_depth_m=np.zeros(0), depth_unit=np.zeros(0), first_interval=False,
+        points_lvl=pts,
+        parallax_rad=par[valid],
+        c2_lvl1=c2,
+        down_lvl2=np.array([0.0, 0.0, 1.0]),
+        height_m=None,
+        carried_depth_m=np.zeros(0),
+        depth_unit=np.zeros(0),
+        first_interval=False,
     )
     _, fit_spread = ground_depth(pts, par[valid] ** 2, 12)
     for range_m in (0.5, 10.0):
@@ -141,7 +172,9 @@ def test_keyframe_rules_and_pose_composition() -> None:
     assert keyframe_reason(opt, parallax_px=10.0, survival=0.4, inliers=200) == "survival"
     assert keyframe_reason(opt, parallax_px=10.0, survival=0.9, inliers=59) == "inliers"
     assert keyframe_reason(opt, parallax_px=10.0, survival=0.9, inliers=200) == ""
-    kf = Keyframe(0, 0.0, np.arange(3), np.eye(3), np.full(3, np.nan), np.array([1.0, 2.0, -3.0]), math.radians(90.0), 0.0)
+    kf = Keyframe(
+        0, 0.0, np.arange(3), np.eye(3), np.full(3, np.nan), np.array([1.0, 2.0, -3.0]), math.radians(90.0), 0.0
+    )
     p, yaw = kf.pose_of(np.array([1.0, 0.0, 0.5]), math.radians(30.0))
     np.testing.assert_allclose(p, [1.0, 3.0, -2.5], atol=1e-12)  # level x of a heading-east frame is east
     assert yaw == pytest.approx(math.radians(60.0))
@@ -153,11 +186,23 @@ def test_depths_carry_through_a_pure_rotation() -> None:
     f = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.6, 0.8]])
     kf = Keyframe(0, 0.0, np.arange(3), f, np.array([10.0, 5.0, np.nan]), np.zeros(3), 0.0, 0.0)
     R = rot_z(0.3)
-    out = carry_depths(kf, np.arange(3), np.array([2, 0, 1]), 4, R, np.zeros(3), np.full(3, np.nan), np.zeros(3), math.radians(1.0))
+    out = carry_depths(
+        kf, np.arange(3), np.array([2, 0, 1]), 4, R, np.zeros(3), np.full(3, np.nan), np.zeros(3), math.radians(1.0)
+    )
     np.testing.assert_allclose(out[[2, 0]], [10.0, 5.0])
     assert np.isnan(out[1]) and np.isnan(out[3])
     # A new triangulation with enough parallax wins over the moved one.
-    out = carry_depths(kf, np.arange(3), np.arange(3), 3, R, np.zeros(3), np.array([7.0, 6.0, 4.0]), np.radians([2.0, 0.5, 2.0]), math.radians(1.0))
+    out = carry_depths(
+        kf,
+        np.arange(3),
+        np.arange(3),
+        3,
+        R,
+        np.zeros(3),
+        np.array([7.0, 6.0, 4.0]),
+        np.radians([2.0, 0.5, 2.0]),
+        math.radians(1.0),
+    )
     np.testing.assert_allclose(out, [7.0, 5.0, 4.0])
 
 
@@ -170,15 +215,32 @@ def test_filter_follows_constant_velocity_and_rejects_a_jump() -> None:
         t = 0.05 * k
         f.predict(t)
         # the yaw wraps through +-pi on the way
-        assert f.update(v * t + rng.normal(0, 0.02, 3), wrap_angle(3.1 + 0.2 * t), pos_cov_m2=0.02**2 * np.eye(3), yaw_sigma_rad=0.005) == Update.FUSED
+        assert (
+            f.update(
+                v * t + rng.normal(0, 0.02, 3),
+                wrap_angle(3.1 + 0.2 * t),
+                pos_cov_m2=0.02**2 * np.eye(3),
+                yaw_sigma_rad=0.005,
+            )
+            == Update.FUSED
+        )
     np.testing.assert_allclose(f.velocity_ned_m_s, v, atol=0.05)
     assert abs(wrap_angle(f.yaw_rad - (3.1 + 0.2 * 5.0))) < 0.01
     p_before = f.position_ned_m
     f.predict(5.05)
-    assert f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_cov_m2=0.02**2 * np.eye(3), yaw_sigma_rad=0.005) == Update.REJECTED
+    assert (
+        f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_cov_m2=0.02**2 * np.eye(3), yaw_sigma_rad=0.005)
+        == Update.REJECTED
+    )
     assert np.linalg.norm(f.position_ned_m - (p_before + 0.05 * v)) < 0.05  # coasted, not jumped
-    assert f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_cov_m2=0.02**2 * np.eye(3), yaw_sigma_rad=0.005) == Update.REJECTED
-    assert f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_cov_m2=0.02**2 * np.eye(3), yaw_sigma_rad=0.005) == Update.RESTARTED  # third: believed
+    assert (
+        f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_cov_m2=0.02**2 * np.eye(3), yaw_sigma_rad=0.005)
+        == Update.REJECTED
+    )
+    assert (
+        f.update(v * 5.05 + [10.0, 0, 0], 3.1 + 0.2 * 5.05, pos_cov_m2=0.02**2 * np.eye(3), yaw_sigma_rad=0.005)
+        == Update.RESTARTED
+    )  # third: believed
     np.testing.assert_allclose(f.position_ned_m, v * 5.05 + [10.0, 0, 0])
     assert np.all(np.linalg.eigvalsh(f.position_covariance) > 0)
 
@@ -262,7 +324,17 @@ def test_a_new_keyframe_goes_where_the_filter_puts_its_frame_when_that_is_the_be
     scale = ScaleEstimate(4.0, ScaleSource.RANGEFINDER, 40, 0.3)
 
     def measured(p_ned_m: list[float], with_scale: bool = True) -> _Measurement:
-        return _Measurement(np.array(p_ned_m), 0.0, None, scale if with_scale else None, np.zeros(3), 50.0, np.zeros(0), np.zeros(0), (0.0, 0.0))  # type: ignore[arg-type]
+        return _Measurement(
+            np.array(p_ned_m),
+            0.0,
+            None,
+            scale if with_scale else None,
+            np.zeros(3),
+            50.0,
+            np.zeros(0),
+            np.zeros(0),
+            (0.0, 0.0),
+        )  # type: ignore[arg-type]
 
     def filtered_at(p_ned_m: list[float]) -> None:
         vo.filter.reset(1.0, np.array(p_ned_m), 0.0, pos_cov_m2=0.1**2 * np.eye(3), yaw_sigma_rad=0.01)
@@ -299,13 +371,29 @@ def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_
     opt = vo.options
     kf = Keyframe(0, 0.0, np.arange(3), np.eye(3), np.full(3, np.nan), np.array([1.0, 2.0, -10.0]), 0.0, 0.0)
     frame = PairedFrame(np.zeros((4, 4), np.uint8), 1.0, 1, 0.0, 0.0)
-    vo.filter.reset(1.0, np.array([5.0, 2.0, -10.0]), 0.0, v_ned_m_s=np.array([3.0, 0.0, 0.0]), pos_cov_m2=0.01 * np.eye(3), yaw_sigma_rad=0.01)
-    rp = dataclasses.replace(_failure(RelposeFailure.NO_MODEL, 40), success=True, reason=RelposeFailure.NONE, attitude_resolved=True)
+    vo.filter.reset(
+        1.0,
+        np.array([5.0, 2.0, -10.0]),
+        0.0,
+        v_ned_m_s=np.array([3.0, 0.0, 0.0]),
+        pos_cov_m2=0.01 * np.eye(3),
+        yaw_sigma_rad=0.01,
+    )
+    rp = dataclasses.replace(
+        _failure(RelposeFailure.NO_MODEL, 40), success=True, reason=RelposeFailure.NONE, attitude_resolved=True
+    )
 
     def noise(track_noise_px: float, sensor_spread: float) -> np.ndarray:
         m = _Measurement(
-            np.array([5.0, 2.0, -10.0]), 0.0, dataclasses.replace(rp, residual_rms_rad=track_noise_px / vo._focal_px),
-            ScaleEstimate(1.0, ScaleSource.RANGEFINDER, 40, 0.0, sensor_spread), np.array([4.0, 0.0, 0.0]), 50.0, np.zeros(0), np.zeros(0), (0.0, 0.0),
+            np.array([5.0, 2.0, -10.0]),
+            0.0,
+            dataclasses.replace(rp, residual_rms_rad=track_noise_px / vo._focal_px),
+            ScaleEstimate(1.0, ScaleSource.RANGEFINDER, 40, 0.0, sensor_spread),
+            np.array([4.0, 0.0, 0.0]),
+            50.0,
+            np.zeros(0),
+            np.zeros(0),
+            (0.0, 0.0),
         )
         p, cov = vo._position_noise(frame, kf, m)
         assert p is not None

@@ -29,7 +29,9 @@ class FcOnly:
         self.port = free_port()
         self.sim = Simulation(sc, f"udpin:127.0.0.1:{self.port}", realtime=True)
         self.stop = threading.Event()
-        self.thread = threading.Thread(target=self.sim.serve, args=(self.stop,), kwargs={"until_s": float("inf")}, daemon=True)
+        self.thread = threading.Thread(
+            target=self.sim.serve, args=(self.stop,), kwargs={"until_s": float("inf")}, daemon=True
+        )
         self.thread.start()
 
     def close(self) -> None:
@@ -65,7 +67,9 @@ def test_checks_name_what_is_wrong_and_what_to_set():
     ekf = {c.name: c for c in checks("ardupilot", ready, cfg, ekf_flags=0x1 | 0x80)}["EKF status"]
     assert ekf.verdict is Verdict.WARN and "no horizontal position" in ekf.advice
     px4 = {c.name: c for c in checks("px4", {**VISION_READY_PARAMS["px4"], "EKF2_EV_CTRL": 2}, cfg)}
-    assert px4["EKF2_EV_CTRL"].verdict is Verdict.BLOCK and px4["EKF2_EV_CTRL"].set_to == 3  # bit 0 added, the rest kept
+    assert (
+        px4["EKF2_EV_CTRL"].verdict is Verdict.BLOCK and px4["EKF2_EV_CTRL"].set_to == 3
+    )  # bit 0 added, the rest kept
 
 
 def test_preflight_names_each_wrong_parameter_and_fix_makes_it_pass(fc_only, capsys):
@@ -76,12 +80,19 @@ def test_preflight_names_each_wrong_parameter_and_fix_makes_it_pass(fc_only, cap
     assert "flight controller: ardupilot" in out
     assert any(line.startswith("EKF status") and " ok " in line for line in out.splitlines()), out
     for name in ("VISO_TYPE", "EK3_SRC1_POSXY", "VISO_POS_Z"):
-        assert any(line.startswith(name) and ("BLOCK" in line or "WARN" in line) for line in out.splitlines()), (name, out)
+        assert any(line.startswith(name) and ("BLOCK" in line or "WARN" in line) for line in out.splitlines()), (
+            name,
+            out,
+        )
     assert "would set: VISO_TYPE = 1, EK3_SRC1_POSXY = 6, VISO_POS_Z = 0" in out
     assert main(["preflight", "--mavlink", url, "--latency-ms", "30", "--fix"]) == 0
     out = capsys.readouterr().out
     assert "set VISO_TYPE = 1: confirmed" in out and "reboots" in out
-    assert fc.sim.fc.params["VISO_TYPE"] == 1 and fc.sim.fc.params["EK3_SRC1_POSXY"] == 6 and fc.sim.fc.params["VISO_POS_Z"] == 0
+    assert (
+        fc.sim.fc.params["VISO_TYPE"] == 1
+        and fc.sim.fc.params["EK3_SRC1_POSXY"] == 6
+        and fc.sim.fc.params["VISO_POS_Z"] == 0
+    )
     assert main(["preflight", "--mavlink", url, "--latency-ms", "30"]) == 0
 
 
@@ -95,6 +106,12 @@ def test_preflight_never_writes_to_an_armed_vehicle_and_checks_px4(fc_only, caps
 
 
 def test_no_flight_controller_is_a_clear_error():
-    out = subprocess.run([sys.executable, "-m", "mavvo", "preflight", "--mavlink", f"udpout:127.0.0.1:{free_port()}", "--timeout", "1"],
-                         capture_output=True, text=True, timeout=120)
-    assert out.returncode == 1 and "no flight controller HEARTBEAT in 1 s" in out.stderr and "Traceback" not in out.stderr
+    out = subprocess.run(
+        [sys.executable, "-m", "mavvo", "preflight", "--mavlink", f"udpout:127.0.0.1:{free_port()}", "--timeout", "1"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert (
+        out.returncode == 1 and "no flight controller HEARTBEAT in 1 s" in out.stderr and "Traceback" not in out.stderr
+    )

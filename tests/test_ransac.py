@@ -59,12 +59,21 @@ def test_local_optimisation_refines_the_best_and_the_same_seed_gives_the_same_an
     assert a.model[0, 0] == pytest.approx(inl.mean(), abs=1e-12)  # the refined model won
     b = lo_ransac(Location(est.x, 3), opt, 0.05, np.random.default_rng(7))
     assert b.model[0, 0] == a.model[0, 0]
-    assert (b.stats.iterations, b.stats.models, b.stats.models_scored) == (a.stats.iterations, a.stats.models, a.stats.models_scored)
+    assert (b.stats.iterations, b.stats.models, b.stats.models_scored) == (
+        a.stats.iterations,
+        a.stats.models,
+        a.stats.models_scored,
+    )
 
 
 def test_early_rejection_scores_only_the_best_of_a_block_on_all_points():
     est = Location(_data(1000, 0.5, seed=4), 3)
-    res = lo_ransac(est, RansacOptions(preemptive_points=50, full_scores_per_block=2, local_optimization=False), 0.05, np.random.default_rng(1))
+    res = lo_ransac(
+        est,
+        RansacOptions(preemptive_points=50, full_scores_per_block=2, local_optimization=False),
+        0.05,
+        np.random.default_rng(1),
+    )
     # One hypothesis per sample; of each block only 2 are scored on all 1000 points. The blocks: 64 samples,
     # then what the stopping rule still needs (at least min_block = 8): at most 1 + ceil((iterations - 64) / 8).
     blocks = 1 + max(0, -(-(res.stats.iterations - 64) // 8))

@@ -32,8 +32,22 @@ def _successes(pairs: list[TrackedPair], camera, level_deg: float, seed: int) ->
         e = sigma * rng.standard_normal((2, 2))
         R1 = R_lvl_cam(p.rp1[0] + e[0, 0], p.rp1[1] + e[0, 1], p.R_body_cam)
         R2 = R_lvl_cam(p.rp2[0] + e[1, 0], p.rp2[1] + e[1, 1], p.R_body_cam)
-        r = estimate_relpose_known_gravity(p.uv1, p.uv2, camera, R1, R2, max_err_px=1.0, seed=i, attitude_sigma_rad=(sigma, sigma), yaw_prior_rad=p.yaw_2_1)
-        ok += bool(r.success and math.degrees(rotation_angle_rad(r.R_c2_c1, p.R_c2_c1)) < 2.0 and math.degrees(angle_between_rad(r.t_c2_c1, p.t_c2_c1)) < 10.0)
+        r = estimate_relpose_known_gravity(
+            p.uv1,
+            p.uv2,
+            camera,
+            R1,
+            R2,
+            max_err_px=1.0,
+            seed=i,
+            attitude_sigma_rad=(sigma, sigma),
+            yaw_prior_rad=p.yaw_2_1,
+        )
+        ok += bool(
+            r.success
+            and math.degrees(rotation_angle_rad(r.R_c2_c1, p.R_c2_c1)) < 2.0
+            and math.degrees(angle_between_rad(r.t_c2_c1, p.t_c2_c1)) < 10.0
+        )
     return ok
 
 
@@ -103,7 +117,17 @@ def test_the_translation_sign_is_decided_on_the_corrected_bearings(survey_pairs)
             e = sigma * rng.standard_normal((2, 2))
             R1 = R_lvl_cam(p.rp1[0] + e[0, 0], p.rp1[1] + e[0, 1], p.R_body_cam)
             R2 = R_lvl_cam(p.rp2[0] + e[1, 0], p.rp2[1] + e[1, 1], p.R_body_cam)
-            r = estimate_relpose_known_gravity(p.uv1, p.uv2, camera, R1, R2, max_err_px=1.0, seed=i, attitude_sigma_rad=(sigma, sigma), yaw_prior_rad=p.yaw_2_1)
+            r = estimate_relpose_known_gravity(
+                p.uv1,
+                p.uv2,
+                camera,
+                R1,
+                R2,
+                max_err_px=1.0,
+                seed=i,
+                attitude_sigma_rad=(sigma, sigma),
+                yaw_prior_rad=p.yaw_2_1,
+            )
             off_deg = math.degrees(angle_between_rad(r.t_c2_c1, p.t_c2_c1))
             if r.success and off_deg > 170.0:
                 flipped.append((seed, i))
@@ -131,9 +155,25 @@ def test_the_ground_models_pose_is_refined_with_the_corrections(monkeypatch) -> 
                 e = sigma * rng.standard_normal((2, 2))
                 R1 = R_lvl_cam(p.rp1[0] + e[0, 0], p.rp1[1] + e[0, 1], p.R_body_cam)
                 R2 = R_lvl_cam(p.rp2[0] + e[1, 0], p.rp2[1] + e[1, 1], p.R_body_cam)
-                r = estimate_relpose_known_gravity(p.uv1, p.uv2, camera, R1, R2, max_err_px=1.0, seed=i, attitude_sigma_rad=(sigma, sigma), yaw_prior_rad=p.yaw_2_1)
+                r = estimate_relpose_known_gravity(
+                    p.uv1,
+                    p.uv2,
+                    camera,
+                    R1,
+                    R2,
+                    max_err_px=1.0,
+                    seed=i,
+                    attitude_sigma_rad=(sigma, sigma),
+                    yaw_prior_rad=p.yaw_2_1,
+                )
                 if r.upright.model == "ground":
-                    out.append((i + 1000 * seed, math.degrees(rotation_angle_rad(r.R_c2_c1, p.R_c2_c1)), math.degrees(angle_between_rad(r.t_c2_c1, p.t_c2_c1))))
+                    out.append(
+                        (
+                            i + 1000 * seed,
+                            math.degrees(rotation_angle_rad(r.R_c2_c1, p.R_c2_c1)),
+                            math.degrees(angle_between_rad(r.t_c2_c1, p.t_c2_c1)),
+                        )
+                    )
         return out
 
     refined = ground_errors()
@@ -153,7 +193,9 @@ def test_the_ground_start_is_taken_from_five_noise_sigmas_of_parallax(monkeypatc
     and at the pure-rotation rule's ten it was not taken; the first refinement then ended in the
     plane's other pose (a near-vertical translation), which leaves too little parallax about z and is
     reported as a rotation. Over 30 draws of the bias: 30 found when written, 26 with the floor at ten."""
-    pairs, camera = tracked_pairs("survey", 35.0, frontend_options=FrontendOptions(max_features=500, min_distance_px=6.0))
+    pairs, camera = tracked_pairs(
+        "survey", 35.0, frontend_options=FrontendOptions(max_features=500, min_distance_px=6.0)
+    )
     p = pairs[134]
     s = math.radians(0.5)
 
@@ -164,8 +206,22 @@ def test_the_ground_start_is_taken_from_five_noise_sigmas_of_parallax(monkeypatc
             e = s * rng.standard_normal(2)[None, :] + math.radians(0.05) * rng.standard_normal((2, 2))
             R1 = R_lvl_cam(p.rp1[0] + e[0, 0], p.rp1[1] + e[0, 1], p.R_body_cam)
             R2 = R_lvl_cam(p.rp2[0] + e[1, 0], p.rp2[1] + e[1, 1], p.R_body_cam)
-            r = estimate_relpose_known_gravity(p.uv1, p.uv2, camera, R1, R2, max_err_px=1.0, seed=134, attitude_sigma_rad=(s, s), yaw_prior_rad=p.yaw_2_1)
-            ok += bool(r.success and math.degrees(rotation_angle_rad(r.R_c2_c1, p.R_c2_c1)) < 2.0 and math.degrees(angle_between_rad(r.t_c2_c1, p.t_c2_c1)) < 10.0)
+            r = estimate_relpose_known_gravity(
+                p.uv1,
+                p.uv2,
+                camera,
+                R1,
+                R2,
+                max_err_px=1.0,
+                seed=134,
+                attitude_sigma_rad=(s, s),
+                yaw_prior_rad=p.yaw_2_1,
+            )
+            ok += bool(
+                r.success
+                and math.degrees(rotation_angle_rad(r.R_c2_c1, p.R_c2_c1)) < 2.0
+                and math.degrees(angle_between_rad(r.t_c2_c1, p.t_c2_c1)) < 10.0
+            )
         return ok
 
     at_five = found()
@@ -184,7 +240,9 @@ def test_the_widened_rounds_weigh_with_one_noise_sigma(monkeypatch) -> None:
     0.2 deg off per view, 0.2 deg told: when written, 154 of 158 found either way (the first two pairs
     are called rotations both ways), median rotation error 0.0343 against 0.0384 deg with 2.385
     throughout, the lower on 71% of the pairs found and the higher on 29%."""
-    pairs, camera = tracked_pairs("forward", 20.0, frontend_options=FrontendOptions(max_features=500, min_distance_px=6.0), variant=4)
+    pairs, camera = tracked_pairs(
+        "forward", 20.0, frontend_options=FrontendOptions(max_features=500, min_distance_px=6.0), variant=4
+    )
     sigma = math.radians(0.2)
 
     def rotation_errors() -> np.ndarray:
@@ -195,7 +253,17 @@ def test_the_widened_rounds_weigh_with_one_noise_sigma(monkeypatch) -> None:
                 e = math.radians(level) * rng.standard_normal((2, 2))
                 R1 = R_lvl_cam(p.rp1[0] + e[0, 0], p.rp1[1] + e[0, 1], p.R_body_cam)
                 R2 = R_lvl_cam(p.rp2[0] + e[1, 0], p.rp2[1] + e[1, 1], p.R_body_cam)
-                r = estimate_relpose_known_gravity(p.uv1, p.uv2, camera, R1, R2, max_err_px=1.0, seed=i, attitude_sigma_rad=(sigma, sigma), yaw_prior_rad=p.yaw_2_1)
+                r = estimate_relpose_known_gravity(
+                    p.uv1,
+                    p.uv2,
+                    camera,
+                    R1,
+                    R2,
+                    max_err_px=1.0,
+                    seed=i,
+                    attitude_sigma_rad=(sigma, sigma),
+                    yaw_prior_rad=p.yaw_2_1,
+                )
                 out.append(math.degrees(rotation_angle_rad(r.R_c2_c1, p.R_c2_c1)) if r.success else math.inf)
         return np.array(out)
 
@@ -209,7 +277,9 @@ def test_the_widened_rounds_weigh_with_one_noise_sigma(monkeypatch) -> None:
     assert np.median(tight) <= 0.95 * np.median(efficient), (np.median(tight), np.median(efficient))
 
 
-def test_the_tight_loss_is_kept_to_pairs_whose_parallax_resolves_a_tilt(forward_pairs, survey_pairs, monkeypatch) -> None:
+def test_the_tight_loss_is_kept_to_pairs_whose_parallax_resolves_a_tilt(
+    forward_pairs, survey_pairs, monkeypatch
+) -> None:
     """With less parallax than the relative attitude sigma and three thresholds a tilt and a translation
     explain the same flow, and a tight loss in the widened rounds let the fit settle on a subset (in a
     spin on the spot, essential fits on 72-85 points where a rotation explained 218-229): there the
@@ -231,7 +301,17 @@ def test_the_tight_loss_is_kept_to_pairs_whose_parallax_resolves_a_tilt(forward_
             scales.clear()
             R1 = R_lvl_cam(p.rp1[0], p.rp1[1], p.R_body_cam)
             R2 = R_lvl_cam(p.rp2[0], p.rp2[1], p.R_body_cam)
-            estimate_relpose_known_gravity(p.uv1, p.uv2, camera, R1, R2, max_err_px=1.0, seed=i, attitude_sigma_rad=(sigma, sigma), yaw_prior_rad=p.yaw_2_1)
+            estimate_relpose_known_gravity(
+                p.uv1,
+                p.uv2,
+                camera,
+                R1,
+                R2,
+                max_err_px=1.0,
+                seed=i,
+                attitude_sigma_rad=(sigma, sigma),
+                yaw_prior_rad=p.yaw_2_1,
+            )
             out.append(scales[0])  # the refinement from the sampling's hypothesis
         return out
 

@@ -56,7 +56,9 @@ def test_checkerboard_corners_appear_where_projected(camera, rpy, height_m, moun
     assert len(expected) >= 12
 
     found = cv2.goodFeaturesToTrack(img, 2000, 0.05, 5, blockSize=5)[:, 0, :]
-    found = cv2.cornerSubPix(img, found.astype(np.float32), (5, 5), (-1, -1), (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3))
+    found = cv2.cornerSubPix(
+        img, found.astype(np.float32), (5, 5), (-1, -1), (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
+    )
     d = np.linalg.norm(expected[:, None, :] - found[None, :, :], axis=2).min(axis=1)
     assert np.mean(d < 0.5) >= 0.9, f"median miss {np.median(d):.3f} px, worst {d.max():.3f} px"
     assert np.median(d) < 0.25
@@ -74,7 +76,9 @@ def test_box_covers_its_projected_silhouette():
     uv = PINHOLE.bearings_to_pixels((corners - p) @ R)
     hull = np.zeros_like(a)
     cv2.fillConvexPoly(hull, np.round(cv2.convexHull(uv.astype(np.float32))[:, 0, :]).astype(np.int32), 1)
-    changed = cv2.morphologyEx((np.abs(a.astype(int) - b.astype(int)) > 0).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8))
+    changed = cv2.morphologyEx(
+        (np.abs(a.astype(int) - b.astype(int)) > 0).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)
+    )
     inter = np.sum(hull & changed)
     union = np.sum(hull | changed)
     assert hull.sum() > 2000
@@ -132,7 +136,12 @@ def test_effects_gain_noise_and_blur():
 @pytest.mark.parametrize(
     "mount, pitch_rad, height_m, greys",
     [
-        (R_BODY_CAM_FORWARD, -0.25, 2.0, (101, 105)),  # the horizon in view: layers in bands of rows, then the sky's haze
+        (
+            R_BODY_CAM_FORWARD,
+            -0.25,
+            2.0,
+            (101, 105),
+        ),  # the horizon in view: layers in bands of rows, then the sky's haze
         (R_BODY_CAM_FORWARD, -0.6, 1.0, (101, 105)),
         (R_BODY_CAM_NADIR, 0.0, 40.0, (101, 105)),  # every layer spans the whole image: one box
     ],

@@ -42,7 +42,9 @@ def _replay_cli(capsys, *args: str) -> tuple[int, dict, str]:
 def recorded(tmp_path_factory):
     """A 6 s simulated flight flown by the daemon while recording."""
     rec_dir = tmp_path_factory.mktemp("recordings")
-    run = run_daemon_in_sim(load_scenario("figure_eight"), ServiceConfig(record=RecordOptions(dir=str(rec_dir))), duration_s=8.0)
+    run = run_daemon_in_sim(
+        load_scenario("figure_eight"), ServiceConfig(record=RecordOptions(dir=str(rec_dir))), duration_s=8.0
+    )
     return run
 
 
@@ -72,14 +74,19 @@ def test_inspect_tells_what_a_recording_holds(recorded, capsys):
     inp = load_recording(recorded.recording)
     assert code == 0 and r["kind"] == "recording" and r["replayable"]
     assert series["frames"]["count"] == len(inp.frames) and series["frames"]["rate_hz"] == pytest.approx(20.0, rel=0.05)
-    assert series["attitude"]["rate_hz"] == pytest.approx(inp.config.link.attitude_rate_hz, rel=0.1) and series["distance_sensor"]["count"] > 0
+    assert (
+        series["attitude"]["rate_hz"] == pytest.approx(inp.config.link.attitude_rate_hz, rel=0.1)
+        and series["distance_sensor"]["count"] > 0
+    )
     assert r["facts"]["recorded_estimates"] == len(inp.expected_vpe) and r["facts"]["frames_attitude_overlap_s"] > 5.0
 
 
 def test_recording_holds_config_tlog_both_directions_and_exact_frames(recorded):
     rec = recorded.recording
     meta = json.loads((rec / "meta.json").read_text())
-    assert meta["complete"] is True and meta["counters"].get("dropped_frames", 0) == 0 and meta["counters"]["frames"] > 100
+    assert (
+        meta["complete"] is True and meta["counters"].get("dropped_frames", 0) == 0 and meta["counters"]["frames"] > 100
+    )
     cfg = yaml.safe_load((rec / "config.yaml").read_text())
     assert cfg["camera"]["source"] == "sim:figure_eight" and cfg["record"]["dir"]
     comps = {f[6] for _, f in read_tlog(rec / "mavlink-000.tlog")}
@@ -157,8 +164,20 @@ def test_tlog_with_image_folder_offset_estimated_compared_with_local_position(tm
 
 def test_dataflash_with_video_given_offset_against_ground_truth(tmp_path, capsys):
     lf = make_log_flight(tmp_path, kind="bin", video="avi")
-    code, s, err = _replay_cli(capsys, lf.log, "--video", lf.video, "--config", lf.config, "--offset-s", lf.true_offset_s,
-                               "--ground-truth", lf.truth, "--out", tmp_path / "out")
+    code, s, err = _replay_cli(
+        capsys,
+        lf.log,
+        "--video",
+        lf.video,
+        "--config",
+        lf.config,
+        "--offset-s",
+        lf.true_offset_s,
+        "--ground-truth",
+        lf.truth,
+        "--out",
+        tmp_path / "out",
+    )
     assert code == 0, err
     assert s["kind"] == "dataflash" and s["notes"]["time_offset"] == {"estimated": False, "offset_s": lf.true_offset_s}
     assert s["evaluation"]["ate_se3_m"]["rmse"] < 0.15
@@ -167,7 +186,18 @@ def test_dataflash_with_video_given_offset_against_ground_truth(tmp_path, capsys
 def test_px4_ulog_with_video_against_ground_truth(tmp_path, capsys):
     """A PX4 flight: vehicle_attitude, distance_sensor, barometer, written by pyulog; offset estimated."""
     lf = make_log_flight(tmp_path, kind="ulg", video="folder", duration_s=10.0)
-    code, s, err = _replay_cli(capsys, lf.log, "--video", lf.video, "--config", lf.config, "--ground-truth", lf.truth, "--out", tmp_path / "out")
+    code, s, err = _replay_cli(
+        capsys,
+        lf.log,
+        "--video",
+        lf.video,
+        "--config",
+        lf.config,
+        "--ground-truth",
+        lf.truth,
+        "--out",
+        tmp_path / "out",
+    )
     assert code == 0, err
     assert s["kind"] == "ulog" and abs(s["notes"]["time_offset"]["offset_s"] - lf.true_offset_s) < 0.03
     assert s["paired"] == s["frames"] and s["evaluation"]["ate_se3_m"]["rmse"] < 0.15
@@ -176,10 +206,24 @@ def test_px4_ulog_with_video_against_ground_truth(tmp_path, capsys):
 def test_telemetry_log_with_2_hz_attitude_pairs_every_frame_and_reports_it_degraded(tmp_path, capsys):
     """Before: a ground station's 2 Hz ATTITUDE left every frame attitude-stale with the 50 ms limit."""
     lf = make_log_flight(tmp_path, kind="tlog", video="folder", duration_s=10.0, attitude_rate_hz=2.0)
-    code, s, err = _replay_cli(capsys, lf.log, "--video", lf.video, "--config", lf.config, "--offset-s", lf.true_offset_s,
-                               "--ground-truth", lf.truth, "--out", tmp_path / "out")
+    code, s, err = _replay_cli(
+        capsys,
+        lf.log,
+        "--video",
+        lf.video,
+        "--config",
+        lf.config,
+        "--offset-s",
+        lf.true_offset_s,
+        "--ground-truth",
+        lf.truth,
+        "--out",
+        tmp_path / "out",
+    )
     assert code == 0, err
-    assert s["notes"]["attitude_pairing"]["rate_hz"] == pytest.approx(2.0) and s["notes"]["attitude_pairing"]["max_gap_s"] == pytest.approx(0.75)
+    assert s["notes"]["attitude_pairing"]["rate_hz"] == pytest.approx(2.0) and s["notes"]["attitude_pairing"][
+        "max_gap_s"
+    ] == pytest.approx(0.75)
     c = s["counters"]
     assert s["paired"] == s["frames"] and not any(k.startswith("skipped_attitude") for k in c), c
     ap = s["attitude_pairing"]
@@ -188,7 +232,9 @@ def test_telemetry_log_with_2_hz_attitude_pairs_every_frame_and_reports_it_degra
     quality = (tmp_path / "out" / "quality.csv").read_text().splitlines()
     assert "attitude_interpolated" in "".join(quality) and "attitude_sigma_deg" in quality[0]
     # Degraded, not lost: the figure eight is still followed (the truth's own roll/pitch, sampled at 2 Hz).
-    assert s["evaluation"]["ate_se3_m"]["rmse"] < 0.3  # 0.10 m when written; 0.35 m with degraded keyframes placed at the filter's estimate (docs/odometry.md)
+    assert (
+        s["evaluation"]["ate_se3_m"]["rmse"] < 0.3
+    )  # 0.10 m when written; 0.35 m with degraded keyframes placed at the filter's estimate (docs/odometry.md)
 
 
 def test_bad_logs_say_what_is_wrong(tmp_path, capsys):
@@ -207,7 +253,9 @@ def test_truncated_log_and_missing_frames_exit_non_zero_with_the_partial_report(
     lf.log.write_bytes(data[: len(data) * 3 // 4 + 5])  # cut inside a record
     (lf.video / "00150.png").unlink()
     out = tmp_path / "out"
-    code, s, err = _replay_cli(capsys, lf.log, "--video", lf.video, "--config", lf.config, "--offset-s", lf.true_offset_s, "--out", out)
+    code, s, err = _replay_cli(
+        capsys, lf.log, "--video", lf.video, "--config", lf.config, "--offset-s", lf.true_offset_s, "--out", out
+    )
     assert code == 1
     assert "flight.tlog: truncated" in err and "00150.png is missing" in err
     assert s["estimates_received"] > 50 and (out / "estimate.tum").is_file()  # what was processed is written
@@ -236,7 +284,9 @@ def test_euroc_folder_replays_with_truth_or_imu_attitude(tmp_path, capsys):
     from mavvo.offline.sources import open_replay_source
 
     inp = open_replay_source(root)
-    assert np.allclose(inp.config.mounting.rotation(), np.array(load_scenario("figure_eight").camera.R_body_cam()), atol=1e-3)
+    assert np.allclose(
+        inp.config.mounting.rotation(), np.array(load_scenario("figure_eight").camera.R_body_cam()), atol=1e-3
+    )
 
 
 def test_euroc_folder_without_ground_truth_warns_and_takes_its_height_from_the_configuration(tmp_path, capsys):
@@ -246,13 +296,17 @@ def test_euroc_folder_without_ground_truth_warns_and_takes_its_height_from_the_c
     (root / "mav0" / "state_groundtruth_estimate0" / "data.csv").rename(truth)
     code, s, err = _replay_cli(capsys, root, "--out", tmp_path / "a")
     assert code == 0, err
-    assert "warning:" in err and "state_groundtruth_estimate0/data.csv: missing" in err and "fixed height of 10 m" in err
+    assert (
+        "warning:" in err and "state_groundtruth_estimate0/data.csv: missing" in err and "fixed height of 10 m" in err
+    )
     assert s["warnings"] and s["reference"] is None and s["estimates_received"] > 50
     est = np.loadtxt(tmp_path / "a" / "estimate.tum")
     assert np.ptp(est[:, 1:3], axis=0).max() > 1.0  # it moves: a scale, not zeros
     over = tmp_path / "over.yaml"  # the flight's real height, 8 m, and the truth from elsewhere
     over.write_text(yaml.safe_dump({"odometry": {"scale": {"source": "fixed", "fixed_height_m": 8.0}}}))
-    code, s, err = _replay_cli(capsys, root, "--config", over, "--ground-truth", truth, "--attitude", "imu", "--out", tmp_path / "b")
+    code, s, err = _replay_cli(
+        capsys, root, "--config", over, "--ground-truth", truth, "--attitude", "imu", "--out", tmp_path / "b"
+    )
     assert code == 0 and "fixed height of 8 m" in err
     assert s["evaluation"]["ate_se3_m"]["rmse"] < 0.5 and abs(s["evaluation"]["sim3_scale"] - 1.0) < 0.05
 
@@ -261,4 +315,3 @@ def test_not_a_source_is_a_clear_error(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     code, _, err = _replay_cli(capsys, tmp_path / "empty")
     assert code == 2 and "expected a mavvo recording" in err
-

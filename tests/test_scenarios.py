@@ -24,7 +24,9 @@ def test_shipped_scenarios_load_and_render(name):
         assert isinstance(sim.camera, FrameSource)
         # Four moments spread over the flight, outside the faults that blank the image on purpose.
         blank = [f for f in sc.faults if f.kind in ("dark_frames", "textureless_frames")]
-        times = [t for t in np.linspace(0.0, sim.duration_s, 9) if not any(f.start_s <= t < f.end_s for f in blank)][::2][:4]
+        times = [t for t in np.linspace(0.0, sim.duration_s, 9) if not any(f.start_s <= t < f.end_s for f in blank)][
+            ::2
+        ][:4]
         assert len(times) == 4
         for t in times:
             img = sim.camera.render_at(t)
@@ -72,7 +74,9 @@ def test_camera_faults():
         assert got[0].t_exposure_s == pytest.approx(miss.start_s - 0.2)
         times = np.array([f.t_exposure_s for f in got])
         assert not np.any((times >= miss.start_s) & (times < miss.end_s))
-        assert np.diff([f.seq for f in got]).max() == int(round(miss.duration_s * sc.camera.rate_hz)) + 1  # the gap shows in seq
+        assert (
+            np.diff([f.seq for f in got]).max() == int(round(miss.duration_s * sc.camera.rate_hz)) + 1
+        )  # the gap shows in seq
         dark = by_kind["dark_frames"]
         normal = sim.camera.render_at(dark.start_s - 0.5)
         assert sim.camera.render_at(dark.start_s + 0.1).mean() < 0.1 * normal.mean()
@@ -97,13 +101,19 @@ def test_scenario_ends_with_a_camera_error():
 @pytest.mark.parametrize(
     "text, message",
     [
-        ("trajectory: {type: hover, altitude_m: -3}", r"bad.yaml: trajectory.altitude_m: expected a number > 0, got -3"),
+        (
+            "trajectory: {type: hover, altitude_m: -3}",
+            r"bad.yaml: trajectory.altitude_m: expected a number > 0, got -3",
+        ),
         ("trajectory: {type: spiral}", r"bad.yaml: trajectory.type: expected one of 'hover', .*got 'spiral'"),
         ("camera: {fx_px: fast}", r"bad.yaml: camera.fx_px: expected a finite number, got 'fast'"),
         ("camera: {distortion: [0.1, 0.2, 0.3]}", r"bad.yaml: camera: distortion: expected 4 or 5 coefficients"),
         ("world: {boxes: [{height_m: 0}]}", r"bad.yaml: world.boxes\[0\].height_m: expected a number > 0"),
         ("faults: [{kind: meteor, start_s: 1}]", r"bad.yaml: faults\[0\].kind: expected one of 'link_silence'"),
-        ("flight_controller: {attitude_rate: 50}", r"bad.yaml: flight_controller.attitude_rate: unknown key; expected one of"),
+        (
+            "flight_controller: {attitude_rate: 50}",
+            r"bad.yaml: flight_controller.attitude_rate: unknown key; expected one of",
+        ),
         ("seed: 1.5", r"bad.yaml: seed: expected an integer, got 1.5"),
         ("camera: {motion_blur: 1}", r"bad.yaml: camera.motion_blur: expected true or false, got 1"),
         ("name: [a", r"bad.yaml: not valid YAML"),
@@ -131,7 +141,9 @@ def test_docs_list_every_scenario_key():
 
     doc = (Path(__file__).resolve().parents[1] / "docs" / "simulator.md").read_text()
     section = doc.split("<!-- keys:begin -->\n", 1)[1].split("<!-- keys:end -->", 1)[0]
-    assert section == scenario_keys_markdown(), "docs/simulator.md is stale: paste mavvo.sim.scenarios.loader.scenario_keys_markdown()"
+    assert section == scenario_keys_markdown(), (
+        "docs/simulator.md is stale: paste mavvo.sim.scenarios.loader.scenario_keys_markdown()"
+    )
 
 
 def test_a_scenario_run_evaluates_what_the_flight_controller_received(mavutil, tmp_path):
@@ -150,7 +162,9 @@ def test_a_scenario_run_evaluates_what_the_flight_controller_received(mavutil, t
                 break
             s = sim.trajectory.state(frame.t_exposure_s)
             x, y, z = s.p_ned_m + rng.normal(0.0, 0.05, 3)
-            client.mav.vision_position_estimate_send(int(round(frame.t_exposure_s * 1e6)), x, y, z, s.roll_rad, s.pitch_rad, s.yaw_rad)
+            client.mav.vision_position_estimate_send(
+                int(round(frame.t_exposure_s * 1e6)), x, y, z, s.roll_rad, s.pitch_rad, s.yaw_rad
+            )
         sim.advance_to(sim.clock.now_s() + 0.1)
         est = vision_estimates(sim.fc.received, "usec")
         assert len(est) == 401  # 20 s at 20 Hz, both ends
@@ -185,7 +199,9 @@ def test_the_service_flown_twice_in_lockstep_sends_the_same_estimates_bit_for_bi
     sc = load_scenario("faults")
     assert any(f.kind == "link_silence" and f.end_s < 7.0 for f in sc.faults)
     base = ServiceConfig()
-    cfg = dataclasses.replace(base, link=dataclasses.replace(base.link, silence_timeout_s=0.5))  # the 1 s silence reconnects
+    cfg = dataclasses.replace(
+        base, link=dataclasses.replace(base.link, silence_timeout_s=0.5)
+    )  # the 1 s silence reconnects
     runs = [run_daemon_in_sim(sc, cfg, duration_s=8.0)]
     rng = np.random.default_rng(7)
     handle, process = Link._handle, Daemon._process
@@ -205,6 +221,12 @@ def test_the_service_flown_twice_in_lockstep_sends_the_same_estimates_bit_for_bi
     runs.append(run_daemon_in_sim(sc, cfg, duration_s=8.0))
     assert [r.lockstep_waits_expired for r in runs] == [0, 0]
     assert all(r.daemon.counters["link_reconnects"] >= 1 for r in runs)
-    sent = [[(m.usec, m.x, m.y, m.z, m.roll, m.pitch, m.yaw, tuple(m.covariance), m.reset_counter) for m in r.vision_messages] for r in runs]
+    sent = [
+        [
+            (m.usec, m.x, m.y, m.z, m.roll, m.pitch, m.yaw, tuple(m.covariance), m.reset_counter)
+            for m in r.vision_messages
+        ]
+        for r in runs
+    ]
     assert len(sent[0]) > 50 and any(m[0] > 6_500_000 for m in sent[0])  # estimates after the silence
     assert sent[0] == sent[1]

@@ -66,7 +66,9 @@ def test_summary_has_what_mavvo_sim_json_promises(figure_eight):
 
 def test_rate_cap(tmp_path):
     cfg = dataclasses.replace(ServiceConfig(), output=OutputOptions(max_rate_hz=8.0, speed_estimate=False))
-    run = run_daemon_in_sim(load_scenario("hover"), cfg, duration_s=6.0)  # estimates start after ~3.5 s (FC chosen, yaw settled)
+    run = run_daemon_in_sim(
+        load_scenario("hover"), cfg, duration_s=6.0
+    )  # estimates start after ~3.5 s (FC chosen, yaw settled)
     dt = np.diff([m.usec for m in run.vision_messages]) * 1e-6
     assert len(dt) > 10 and np.min(dt) >= 1 / 8.0 - 1e-6 and np.max(dt) <= 0.15 + 1e-6  # every third frame of 20
     assert "VISION_SPEED_ESTIMATE" not in run.received and run.daemon.counters["not_sent_rate"] > 0
@@ -104,7 +106,9 @@ def test_faults_are_survived_and_recovered_from():
     texts = run.statustexts
     assert any(t0 < t < t0 + 4.5 and text == "mavvo: failed (no_attitude)" for t, text in texts), texts
     # (state changes within statustext_min_interval_s are merged: "failed (no_attitude) then tracking")
-    assert any(t > t0 + 4.0 and (text == "mavvo: tracking" or text.endswith(" then tracking")) for t, text in texts), texts
+    assert any(t > t0 + 4.0 and (text == "mavvo: tracking" or text.endswith(" then tracking")) for t, text in texts), (
+        texts
+    )
     # During the silence and the reboot the stream stalled; the operator is not told to raise a rate that is fine.
     assert not any("link.attitude_rate_hz" in text for _, text in texts), texts
     # HEARTBEAT: CRITICAL (5) while vision had failed, ACTIVE (4) again afterwards, never
@@ -118,7 +122,11 @@ def test_faults_are_survived_and_recovered_from():
 def _offline_config() -> ServiceConfig:
     """Settings for a daemon with no flight controller (the link sends into the void) and no state file."""
     base = ServiceConfig()
-    return dataclasses.replace(base, link=dataclasses.replace(base.link, url="udpout:127.0.0.1:9"), service=dataclasses.replace(base.service, state_file=""))
+    return dataclasses.replace(
+        base,
+        link=dataclasses.replace(base.link, url="udpout:127.0.0.1:9"),
+        service=dataclasses.replace(base.service, state_file=""),
+    )
 
 
 class FixedClock:
@@ -261,7 +269,10 @@ def test_sigterm_during_work_stops_cleanly_with_systemd_notifications(tmp_path):
     env = dict(os.environ, NOTIFY_SOCKET=path, WATCHDOG_USEC="400000")
     proc = subprocess.Popen(
         [sys.executable, "-m", "mavvo", "sim", "--scenario", "hover", "--json", "--out", str(tmp_path / "out")],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
     )
     lines: list[str] = []
     try:
@@ -270,7 +281,9 @@ def test_sigterm_during_work_stops_cleanly_with_systemd_notifications(tmp_path):
             states.append(sock.recv(100).decode())
         # Status lines may come first (loading the compiled kernels); READY=1 before any watchdog ping.
         events = [x for x in states if not x.startswith("STATUS=")]
-        assert events[0] == "READY=1" and any(x.startswith("STATUS=") and "kernels" in x for x in states[: states.index("READY=1")])
+        assert events[0] == "READY=1" and any(
+            x.startswith("STATUS=") and "kernels" in x for x in states[: states.index("READY=1")]
+        )
         # Wait (generously) until the daemon is at work, tracking and sending: its log says so.
         reader = threading.Thread(target=lambda: lines.extend(iter(proc.stderr.readline, "")), daemon=True)
         reader.start()
@@ -309,8 +322,15 @@ def test_mavvo_run_reads_an_image_folder_and_stops_on_sigterm(tmp_path):
         lines.append(f"{i * 1.0:.3f} {i:04d}.png")
     (folder / "timestamps.txt").write_text("\n".join(lines) + "\n")
     cfg = tmp_path / "mavvo.yaml"
-    cfg.write_text(f"camera: {{source: '{folder}'}}\nlink: {{url: 'udpout:127.0.0.1:9'}}\nservice: {{health_log_interval_s: 0.5, state_file: ''}}\n")
-    proc = subprocess.Popen([sys.executable, "-m", "mavvo", "run", "--config", str(cfg)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    cfg.write_text(
+        f"camera: {{source: '{folder}'}}\nlink: {{url: 'udpout:127.0.0.1:9'}}\nservice: {{health_log_interval_s: 0.5, state_file: ''}}\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mavvo", "run", "--config", str(cfg)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     lines: list[str] = []
     try:
         # Wait (generously) for the event, not for a time: the health line that counts the third
@@ -318,7 +338,11 @@ def test_mavvo_run_reads_an_image_folder_and_stops_on_sigterm(tmp_path):
         reader = threading.Thread(target=lambda: lines.extend(iter(proc.stderr.readline, "")), daemon=True)
         reader.start()
         deadline = time.monotonic() + 60.0
-        while not any("skipped_attitude_missing 3" in line for line in lines) and proc.poll() is None and time.monotonic() < deadline:
+        while (
+            not any("skipped_attitude_missing 3" in line for line in lines)
+            and proc.poll() is None
+            and time.monotonic() < deadline
+        ):
             time.sleep(0.05)
         assert proc.poll() is None, "the service stopped by itself: " + "".join(lines)
         proc.send_signal(signal.SIGTERM)
@@ -348,6 +372,7 @@ class StoppedWallClock:
 def test_latency_advice_follows_the_cameras_latency():
     """In lockstep the capture-to-send latency is the simulated camera's readout latency plus the
     processing time (injected here as zero), not the frame period: 40 ms more readout, 40 ms more advice."""
+
     def advice(readout_ms: float):
         sc = load_scenario("hover")
         sc = dataclasses.replace(sc, camera=dataclasses.replace(sc.camera, readout_latency_ms=readout_ms))
@@ -412,7 +437,9 @@ def test_a_bug_inside_the_odometry_restarts_tracking_not_the_service():
     source.end()
     clock = FixedClock()
     cfg = _offline_config()
-    cfg = dataclasses.replace(cfg, service=dataclasses.replace(cfg.service, heading_wait_max_s=0.0))  # no yaw to wait for here
+    cfg = dataclasses.replace(
+        cfg, service=dataclasses.replace(cfg.service, heading_wait_max_s=0.0)
+    )  # no yaw to wait for here
     d = Daemon(cfg, source=source, clock=clock)
     d.odometry = flaky = Flaky()
     for t_ms in range(0, 250, 10):  # attitude around every exposure, boot clock = host clock

@@ -24,7 +24,9 @@ def write(tmp_path: Path, text: str) -> Path:
 
 
 def test_default_yaml_lists_every_key_and_is_current():
-    assert (ROOT / "config" / "default.yaml").read_text(encoding="utf-8") == default_yaml(), "run: python -c 'from mavvo.service.settings import default_yaml; open(\"config/default.yaml\",\"w\").write(default_yaml())'"
+    assert (ROOT / "config" / "default.yaml").read_text(encoding="utf-8") == default_yaml(), (
+        'run: python -c \'from mavvo.service.settings import default_yaml; open("config/default.yaml","w").write(default_yaml())\''
+    )
     assert load_config(ROOT / "config" / "default.yaml") == ServiceConfig()
     text = default_yaml()
     for section in ("camera", "mounting", "link", "timing", "output", "service", "odometry"):
@@ -46,15 +48,24 @@ def test_sim_yaml_loads():
         ("output: {max_rate_hz: 80}", "output.max_rate_hz: expected a number <= 50, got 80"),
         ("output: {odometry: yes please}", "output.odometry: expected true or false, got 'yes please'"),
         ("odometry: {scale: {source: lidar}}", "odometry.scale.source: expected one of 'rangefinder'"),
-        ("mounting: {R_body_cam: [[1, 0, 0], [0, 1, 0], [0, 0, 2]]}", "mounting: R_body_cam: expected a rotation matrix"),
+        (
+            "mounting: {R_body_cam: [[1, 0, 0], [0, 1, 0], [0, 0, 2]]}",
+            "mounting: R_body_cam: expected a rotation matrix",
+        ),
         ("mounting: {R_body_cam: [[1, 0, 0], [0, 1, 0]]}", "mounting.R_body_cam: expected a list of 3 values"),
         ("link: {url: COM3}", "link.url: expected /dev/DEVICE:BAUD, udpin:HOST:PORT"),
         ("link: {url: 'udpout:127.0.0.1:99999'}", "link.url: expected udpout:HOST:PORT with a port 1-65535"),
         ("camera: {model: fisheye, distortion: [0.1]}", "camera:"),
         ("- just a list", "expected a mapping of keys at the top level, got list"),
         # Mistakes across keys, with what to set.
-        ("link: {attitude_rate_hz: 10}\ncamera: {rate_hz: 20}", "link.attitude_rate_hz (10) is below camera.rate_hz (20)"),
-        ("link: {attitude_rate_hz: 20}\ntiming: {max_attitude_gap_s: 0.04}", "timing.max_attitude_gap_s (0.04) is shorter than the ATTITUDE period (0.05 s"),
+        (
+            "link: {attitude_rate_hz: 10}\ncamera: {rate_hz: 20}",
+            "link.attitude_rate_hz (10) is below camera.rate_hz (20)",
+        ),
+        (
+            "link: {attitude_rate_hz: 20}\ntiming: {max_attitude_gap_s: 0.04}",
+            "timing.max_attitude_gap_s (0.04) is shorter than the ATTITUDE period (0.05 s",
+        ),
         ("camera: {cx_px: 900}", "camera: cx_px, cy_px: expected the principal point inside the 640x480 image"),
         ("camera: {fx_px: 20}", "camera.fx_px (20) gives a 172.8 deg horizontal field of view on a 640 px wide image"),
         ("camera: {source: [", "not valid YAML"),
@@ -90,7 +101,9 @@ def test_run_exit_codes(tmp_path, capsys):
     key = tmp_path / "key"
     key.write_text("0" * 64)
     os.chmod(key, 0o644)
-    cfg = write(tmp_path, f"camera: {{source: 'sim:hover'}}\nlink: {{url: 'udpout:127.0.0.1:9', signing_key_file: '{key}'}}\n")
+    cfg = write(
+        tmp_path, f"camera: {{source: 'sim:hover'}}\nlink: {{url: 'udpout:127.0.0.1:9', signing_key_file: '{key}'}}\n"
+    )
     assert main(["run", "--config", str(cfg)]) == 2
     assert "expected mode 0600 or stricter" in capsys.readouterr().err
     # check-config refuses what run refuses (it passed a world-readable or missing key before)
@@ -104,7 +117,14 @@ def test_run_exit_codes(tmp_path, capsys):
 def test_version_and_help_exit_zero():
     out = subprocess.run([sys.executable, "-m", "mavvo", "--version"], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and out.stdout.startswith("mavvo ")
-    for cmd in (["--help"], ["run", "--help"], ["sim", "--help"], ["check-config", "--help"], ["calibrate", "--help"], ["monitor", "--help"]):
+    for cmd in (
+        ["--help"],
+        ["run", "--help"],
+        ["sim", "--help"],
+        ["check-config", "--help"],
+        ["calibrate", "--help"],
+        ["monitor", "--help"],
+    ):
         with pytest.raises(SystemExit) as e:
             main(cmd)
         assert e.value.code == 0

@@ -38,9 +38,16 @@ def _moved(s: TwoViewScene, t: np.ndarray) -> TwoViewScene:
 def _sweep_cases(rng: np.random.Generator, n: int) -> dict[str, list[TwoViewScene]]:
     cases: dict[str, list[TwoViewScene]] = {
         "general": [make_scene(rng, 3, motion=MOTIONS[i % 3], mount=MOUNTS[(i // 3) % 2]) for i in range(n)],
-        "along gravity": [make_scene(rng, 3, motion="vertical", mount=MOUNTS[i % 2], structure=("volume", "ground")[(i // 2) % 2]) for i in range(n)],
-        "flat ground, nadir": [make_scene(rng, 3, motion=MOTIONS[i % 3], mount="nadir", structure="ground") for i in range(n)],
-        "general plane": [make_scene(rng, 3, motion=MOTIONS[i % 3], mount="oblique", structure="plane") for i in range(n)],
+        "along gravity": [
+            make_scene(rng, 3, motion="vertical", mount=MOUNTS[i % 2], structure=("volume", "ground")[(i // 2) % 2])
+            for i in range(n)
+        ],
+        "flat ground, nadir": [
+            make_scene(rng, 3, motion=MOTIONS[i % 3], mount="nadir", structure="ground") for i in range(n)
+        ],
+        "general plane": [
+            make_scene(rng, 3, motion=MOTIONS[i % 3], mount="oblique", structure="plane") for i in range(n)
+        ],
     }
     tilts = (3e-2, 1e-3, 1e-5, 1e-7, 1e-9, 1e-12)
     near = []
@@ -105,7 +112,13 @@ def test_long_flight_with_recurring_faults(tmp_path: Path) -> None:
     """Eight laps of the figure-eight (about five minutes of flight) with a burst of faults every
     40 s: the service keeps tracking, recovers after every burst, and its memory does not grow."""
     base = load_scenario("figure_eight")
-    burst = (("link_silence", 0.0, 1.0), ("nan_attitude", 4.0, 0.5), ("corrupt_bytes", 8.0, 1.0), ("frames_missing", 12.0, 0.5), ("dark_frames", 16.0, 1.0))
+    burst = (
+        ("link_silence", 0.0, 1.0),
+        ("nan_attitude", 4.0, 0.5),
+        ("corrupt_bytes", 8.0, 1.0),
+        ("frames_missing", 12.0, 0.5),
+        ("dark_frames", 16.0, 1.0),
+    )
     faults = tuple(FaultSpec(kind, 20.0 + 40.0 * k + start, length) for k in range(7) for kind, start, length in burst)
     scenario = dataclasses.replace(base, trajectory=dataclasses.replace(base.trajectory, laps=8), faults=faults)
     samples: list[float] = []
@@ -137,5 +150,7 @@ def test_long_flight_with_recurring_faults(tmp_path: Path) -> None:
     third = len(samples) // 3
     growth = np.median(samples[2 * third :]) - np.median(samples[third : 2 * third])
     # The figure docs/benchmarks.md quotes ("make soak" shows it: pytest -rP).
-    print(f"resident memory: {np.median(samples[third : 2 * third]):.0f} MiB in the second third, {growth:+.1f} MiB in the last; peak {max(samples):.0f} MiB")
+    print(
+        f"resident memory: {np.median(samples[third : 2 * third]):.0f} MiB in the second third, {growth:+.1f} MiB in the last; peak {max(samples):.0f} MiB"
+    )
     assert growth < 50.0, f"resident memory grew by {growth:.0f} MiB"

@@ -157,7 +157,10 @@ def test_plane_in_general_position_is_solved_by_all_three() -> None:
 
 def test_three_collinear_points_are_solved_unless_parallel_to_the_baseline() -> None:
     rng = np.random.default_rng(41)
-    ok = [recovers(solve_upright_3pt(s.f1_lvl, s.f2_lvl), s) for s in (make_scene(rng, 3, structure="line", motion=MOTIONS[i % 3]) for i in range(300))]
+    ok = [
+        recovers(solve_upright_3pt(s.f1_lvl, s.f2_lvl), s)
+        for s in (make_scene(rng, 3, structure="line", motion=MOTIONS[i % 3]) for i in range(300))
+    ]
     assert np.mean(ok) >= 0.99
 
 
@@ -187,7 +190,9 @@ def test_line_parallel_to_the_baseline_gives_no_wrong_solution() -> None:
     assert returned <= 20, "degenerate samples should mostly give no solution"
     # Control: a line across the baseline is no degeneracy for the 3-point; a solver that returns
     # nothing fails here.
-    control = [make_scene(rng, 3, structure="line", line_along_baseline=False, motion=MOTIONS[i % 3]) for i in range(60)]
+    control = [
+        make_scene(rng, 3, structure="line", line_along_baseline=False, motion=MOTIONS[i % 3]) for i in range(60)
+    ]
     assert all(recovers(solve_upright_3pt(s.f1_lvl, s.f2_lvl), s) for s in control)
 
 
@@ -210,7 +215,10 @@ def test_zero_baseline_gives_no_wrong_solution() -> None:
 
 def test_drone_case_motion_along_gravity() -> None:
     rng = np.random.default_rng(61)
-    data = [make_scene(rng, 3, motion="vertical", mount=MOUNTS[i % 2], structure=("volume", "ground")[(i // 2) % 2]) for i in range(1000)]
+    data = [
+        make_scene(rng, 3, motion="vertical", mount=MOUNTS[i % 2], structure=("volume", "ground")[(i // 2) % 2])
+        for i in range(1000)
+    ]
     solutions = [solve_upright_3pt(s.f1_lvl, s.f2_lvl) for s in data]
     ok = [recovers(Es, s) for Es, s in zip(solutions, data)]
     assert np.mean(ok) >= 0.99, np.mean(ok)

@@ -65,7 +65,9 @@ def test_systemd_analyze_verifies_the_unit_and_rates_it_ok(tmp_path):
     verify = subprocess.run(["systemd-analyze", "verify", str(unit)], capture_output=True, text=True, timeout=120)
     assert verify.returncode == 0, verify.stderr
     assert "mavvo.service" not in verify.stderr, verify.stderr  # no complaint about the unit itself
-    security = subprocess.run(["systemd-analyze", "security", "--offline=true", str(unit)], capture_output=True, text=True, timeout=120)
+    security = subprocess.run(
+        ["systemd-analyze", "security", "--offline=true", str(unit)], capture_output=True, text=True, timeout=120
+    )
     m = re.search(r"Overall exposure level for mavvo.service: ([0-9.]+) (\w+)", security.stdout)
     assert m is not None, security.stdout + security.stderr
     assert float(m.group(1)) <= 3.0 and m.group(2) == "OK", security.stdout

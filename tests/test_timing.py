@@ -25,7 +25,14 @@ class FakeClock:
         return self.t
 
 
-def feed(state: FlightControllerState, clock: FakeClock, times_host_s, roll=lambda t: 0.1 * t, latency_s=0.004, yaw=lambda t: 0.0):
+def feed(
+    state: FlightControllerState,
+    clock: FakeClock,
+    times_host_s,
+    roll=lambda t: 0.1 * t,
+    latency_s=0.004,
+    yaw=lambda t: 0.0,
+):
     """ATTITUDE measured at each host time, arriving ``latency_s`` later."""
     for t in times_host_s:
         clock.t = t + latency_s
@@ -104,12 +111,15 @@ def test_a_slow_stream_is_interpolated_on_the_rotation_and_its_uncertainty_grows
 def test_yaw_is_interpolated_the_short_way_across_pi():
     clock = FakeClock()
     state = FlightControllerState(clock)
+
     def yaw(t: float) -> float:  # crosses +pi at t = 0.05
         return math.remainder(math.pi - 0.02 + 0.4 * t, math.tau)
 
     feed(state, clock, np.arange(0.0, 0.2, 0.01), latency_s=0.0, yaw=yaw)
     p = state.pair(0.055)
-    assert p.status == "paired" and abs(math.remainder(p.yaw_rad - yaw(0.055), math.tau)) < 1e-5  # not pi - 0.02 + ... - 2 pi
+    assert (
+        p.status == "paired" and abs(math.remainder(p.yaw_rad - yaw(0.055), math.tau)) < 1e-5
+    )  # not pi - 0.02 + ... - 2 pi
 
 
 def test_a_frame_waits_for_the_attitude_after_its_exposure_and_refuses_a_gap():
@@ -228,7 +238,9 @@ def test_one_forged_attitude_stamped_ahead_is_refused_and_genuine_ones_go_on_pai
     feed(state, clock, np.arange(2.01, 3.0, 0.01))
     assert state.counters["attitude_implausible"] == 1 and state.counters["attitude_rejected"] == 0
     p = state.pair(2.505)
-    assert p.status == "paired" and p.roll_rad == pytest.approx(0.1 * (2.505 - 0.004), abs=1e-6)  # the 4 ms path, as before the forgery
+    assert p.status == "paired" and p.roll_rad == pytest.approx(
+        0.1 * (2.505 - 0.004), abs=1e-6
+    )  # the 4 ms path, as before the forgery
 
 
 def test_a_real_step_of_the_clock_is_followed_once_two_messages_agree():
@@ -238,7 +250,9 @@ def test_a_real_step_of_the_clock_is_followed_once_two_messages_agree():
     feed(state, clock, np.arange(0.0, 2.0, 0.01), latency_s=0.030)
     feed(state, clock, np.arange(2.0, 3.0, 0.01), latency_s=0.002)  # 28 ms faster from now on
     assert state.counters["attitude_implausible"] == 1  # only the first message after the step waited
-    assert state.pair(2.5).status == "paired" and state.pair(2.5).roll_rad == pytest.approx(0.1 * (2.5 - 0.002), abs=1e-6)  # the bound: the 2 ms path
+    assert state.pair(2.5).status == "paired" and state.pair(2.5).roll_rad == pytest.approx(
+        0.1 * (2.5 - 0.002), abs=1e-6
+    )  # the bound: the 2 ms path
 
 
 def test_a_forged_timesync_answer_does_not_move_the_offset():
@@ -269,7 +283,9 @@ def test_a_frame_paired_late_takes_the_rangefinder_and_height_nearest_its_exposu
     """A frame paired after a slow ATTITUDE stream's next sample: newer readings have arrived meanwhile;
     the ones nearest the exposure are used, and none when none is close enough."""
     clock = FakeClock()
-    state = FlightControllerState(clock, TimingOptions(max_attitude_gap_s=0.5, range_max_age_s=0.2, height_max_age_s=0.2))
+    state = FlightControllerState(
+        clock, TimingOptions(max_attitude_gap_s=0.5, range_max_age_s=0.2, height_max_age_s=0.2)
+    )
     feed(state, clock, [0.0, 0.5], latency_s=0.0)
     for t, r in ((0.1, 3.1), (0.2, 3.2), (0.3, 3.3), (0.45, 3.45)):
         state.on_range(int(round((t + OFFSET_S) * 1000)), r)

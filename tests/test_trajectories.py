@@ -45,7 +45,9 @@ def test_nose_along_the_path(name):
     states = [traj.state(t) for t in np.linspace(0.0, traj.duration_s, 157)]
     moving = [s for s in states if np.hypot(*s.v_ned_m_s[:2]) > 0.5]
     assert len(moving) >= 20, "the trajectory hardly moves: nothing to check"
-    errors = [abs((s.yaw_rad - np.arctan2(s.v_ned_m_s[1], s.v_ned_m_s[0]) + np.pi) % (2 * np.pi) - np.pi) for s in moving]
+    errors = [
+        abs((s.yaw_rad - np.arctan2(s.v_ned_m_s[1], s.v_ned_m_s[0]) + np.pi) % (2 * np.pi) - np.pi) for s in moving
+    ]
     assert max(errors) < 1e-6
 
 

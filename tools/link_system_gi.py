@@ -17,8 +17,11 @@ import sys
 import sysconfig
 from pathlib import Path
 
-SEARCH = ("/usr/lib/python3/dist-packages", f"/usr/lib/python{sys.version_info.major}.{sys.version_info.minor}/dist-packages",
-          f"/usr/local/lib/python{sys.version_info.major}.{sys.version_info.minor}/dist-packages")
+SEARCH = (
+    "/usr/lib/python3/dist-packages",
+    f"/usr/lib/python{sys.version_info.major}.{sys.version_info.minor}/dist-packages",
+    f"/usr/local/lib/python{sys.version_info.major}.{sys.version_info.minor}/dist-packages",
+)
 LINK_DIR = "_mavvo_system_gi"
 APT = "apt-get install python3-gi python3-gst-1.0 gir1.2-gst-plugins-base-1.0 gstreamer1.0-plugins-base gstreamer1.0-plugins-good"
 

@@ -36,7 +36,9 @@ class BoardSpec:
 
     def __post_init__(self) -> None:
         if self.cols < 2 or self.rows < 2 or (self.charuco and (self.cols < 3 or self.rows < 3)):
-            raise ConfigError(f"--board: expected at least {'3x3 squares' if self.charuco else '2x2 inner corners'}, got {self.cols}x{self.rows}")
+            raise ConfigError(
+                f"--board: expected at least {'3x3 squares' if self.charuco else '2x2 inner corners'}, got {self.cols}x{self.rows}"
+            )
         if not self.square_m > 0:
             raise ConfigError(f"--square-m: expected a positive length in metres, got {self.square_m}")
 
@@ -49,7 +51,9 @@ class BoardSpec:
     def charuco_board(self) -> cv2.aruco.CharucoBoard:
         """The OpenCV ChArUco board (``charuco`` only)."""
         marker = self.marker_m if self.marker_m is not None else 0.75 * self.square_m
-        return cv2.aruco.CharucoBoard((self.cols, self.rows), self.square_m, marker, cv2.aruco.getPredefinedDictionary(_CHARUCO_DICTIONARY))
+        return cv2.aruco.CharucoBoard(
+            (self.cols, self.rows), self.square_m, marker, cv2.aruco.getPredefinedDictionary(_CHARUCO_DICTIONARY)
+        )
 
 
 @dataclass(frozen=True)
@@ -77,7 +81,9 @@ def detect(image: np.ndarray, board: BoardSpec) -> Detection | None:
         if ids is None or len(ids) < 6:
             return None
         return Detection(corners.reshape(-1, 2).astype(np.float64), board.corners_m()[ids.ravel()])
-    found, corners = cv2.findChessboardCornersSB(grey, (board.cols, board.rows), flags=cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY)
+    found, corners = cv2.findChessboardCornersSB(
+        grey, (board.cols, board.rows), flags=cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY
+    )
     if not found:
         return None
     return Detection(corners.reshape(-1, 2).astype(np.float64), board.corners_m())

@@ -21,7 +21,14 @@ from mavvo.geometry.camera_model import CameraIntrinsics
 
 __all__ = ["read_intrinsics", "camera_section_yaml"]
 
-_MODELS = {"plumb_bob": "pinhole", "radtan": "pinhole", "rational_polynomial": None, "equidistant": "fisheye", "fisheye": "fisheye", "pinhole": "pinhole"}
+_MODELS = {
+    "plumb_bob": "pinhole",
+    "radtan": "pinhole",
+    "rational_polynomial": None,
+    "equidistant": "fisheye",
+    "fisheye": "fisheye",
+    "pinhole": "pinhole",
+}
 
 
 def _intrinsics(path: Path, size: Any, K: Any, model: str, dist: Any) -> CameraIntrinsics:
@@ -57,19 +64,32 @@ def read_intrinsics(path: str | Path) -> CameraIntrinsics:
         finally:
             fs.release()
         if K is None or D is None or not w or not h:
-            raise ConfigError(f"{p}: expected camera_matrix, distortion_coefficients, image_width and image_height (OpenCV calibration file)")
+            raise ConfigError(
+                f"{p}: expected camera_matrix, distortion_coefficients, image_width and image_height (OpenCV calibration file)"
+            )
         return _intrinsics(p, (w, h), K, "radtan", D)
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as e:
         raise ConfigError(f"{p}: not valid YAML: {' '.join(str(e).split())}") from e
     if isinstance(data, dict) and "camera_matrix" in data:  # ROS camera_info
-        return _intrinsics(p, (data.get("image_width"), data.get("image_height")), data["camera_matrix"].get("data"),
-                           data.get("distortion_model", "plumb_bob"), (data.get("distortion_coefficients") or {}).get("data", []))
+        return _intrinsics(
+            p,
+            (data.get("image_width"), data.get("image_height")),
+            data["camera_matrix"].get("data"),
+            data.get("distortion_model", "plumb_bob"),
+            (data.get("distortion_coefficients") or {}).get("data", []),
+        )
     if isinstance(data, dict) and isinstance(data.get("cam0"), dict):  # Kalibr camchain
         c = data["cam0"]
         fu, fv, pu, pv = c.get("intrinsics", (None,) * 4)
-        return _intrinsics(p, c.get("resolution"), [[fu, 0, pu], [0, fv, pv], [0, 0, 1]], c.get("distortion_model", "radtan"), c.get("distortion_coeffs", []))
+        return _intrinsics(
+            p,
+            c.get("resolution"),
+            [[fu, 0, pu], [0, fv, pv], [0, 0, 1]],
+            c.get("distortion_model", "radtan"),
+            c.get("distortion_coeffs", []),
+        )
     raise ConfigError(f"{p}: expected an OpenCV calibration file, a ROS camera_info YAML or a Kalibr camchain")
 
 

@@ -102,15 +102,20 @@ def select_views(detections: Sequence[Detection], size: tuple[int, int], max_vie
 
 
 def calibrate(
-    detections: Sequence[Detection], size: tuple[int, int], model: Literal["pinhole", "fisheye"] = "pinhole", max_views: int = 40,
+    detections: Sequence[Detection],
+    size: tuple[int, int],
+    model: Literal["pinhole", "fisheye"] = "pinhole",
+    max_views: int = 40,
     k3: bool = False,
 ) -> CalibrationResult:
     """Intrinsics from the boards found in images of ``size`` (width, height) pixels; ``k3``: also the
     third radial coefficient (pinhole; for wide-angle lenses)."""
     used = select_views(detections, size, max_views)
     if len(used) < MIN_VIEWS:
-        raise CalibrationError(f"the board was found in {len(detections)} images of which {len(used)} add coverage; expected at least {MIN_VIEWS}: "
-                               "move the board over the whole image, nearer and farther, tilted")
+        raise CalibrationError(
+            f"the board was found in {len(detections)} images of which {len(used)} add coverage; expected at least {MIN_VIEWS}: "
+            "move the board over the whole image, nearer and farther, tilted"
+        )
     obj = [detections[i].board_m.astype(np.float32).reshape(-1, 1, 3) for i in used]
     img = [detections[i].image_px.astype(np.float32).reshape(-1, 1, 2) for i in used]
     w, h = size
@@ -138,10 +143,21 @@ def calibrate(
         view_rms.append(float(np.sqrt(np.mean(np.sum(res**2, axis=1)))))
     all_res = np.vstack(residuals)
     intrinsics = CameraIntrinsics(
-        width_px=int(w), height_px=int(h), fx_px=float(K[0, 0]), fy_px=float(K[1, 1]), cx_px=float(K[0, 2]), cy_px=float(K[1, 2]),
-        model=model, distortion=dist,
+        width_px=int(w),
+        height_px=int(h),
+        fx_px=float(K[0, 0]),
+        fy_px=float(K[1, 1]),
+        cx_px=float(K[0, 2]),
+        cy_px=float(K[1, 2]),
+        model=model,
+        distortion=dist,
     )
     return CalibrationResult(
-        intrinsics, float(np.sqrt(np.mean(np.sum(all_res**2, axis=1)))), tuple(view_rms),
-        coverage([detections[i] for i in used], size), tuple(used), all_res, np.vstack(corners),
+        intrinsics,
+        float(np.sqrt(np.mean(np.sum(all_res**2, axis=1)))),
+        tuple(view_rms),
+        coverage([detections[i] for i in used], size),
+        tuple(used),
+        all_res,
+        np.vstack(corners),
     )

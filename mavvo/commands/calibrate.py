@@ -27,22 +27,57 @@ _GOOD_COVERAGE = 0.5
 
 def add_parser(sub: Any) -> None:
     c = sub.add_parser(
-        "calibrate", help="calibrate the camera from views of a checkerboard or ChArUco board",
+        "calibrate",
+        help="calibrate the camera from views of a checkerboard or ChArUco board",
         description="Find a calibration board in a video, an image folder or a live V4L2 camera, solve for the intrinsics and "
         "distortion, and write the camera: section of mavvo's settings. Move the board over the whole image, near and far, "
         "tilted up to about 45 deg. With --import, convert an OpenCV, ROS camera_info or Kalibr camchain file instead.",
     )
     c.add_argument("source", nargs="?", help="a video file, a folder of images, or /dev/videoN")
-    c.add_argument("--board", metavar="COLSxROWS", help="checkerboard: its inner corners (9x6); --charuco: its squares (e.g. 8x6)")
+    c.add_argument(
+        "--board", metavar="COLSxROWS", help="checkerboard: its inner corners (9x6); --charuco: its squares (e.g. 8x6)"
+    )
     c.add_argument("--square-m", type=float, metavar="S", help="side of one square in metres")
-    c.add_argument("--charuco", action="store_true", help="a ChArUco board (OpenCV's 5x5 dictionary) instead of a checkerboard")
-    c.add_argument("--marker-m", type=float, default=None, metavar="M", help="--charuco: side of a marker in metres (default 0.75 of a square)")
-    c.add_argument("--model", choices=("pinhole", "fisheye"), default="pinhole", help="pinhole (radtan k1 k2 p1 p2 k3, default) or fisheye (equidistant)")
-    c.add_argument("--k3", action="store_true", help="pinhole: also solve for k3 (wide-angle lenses; on narrow ones it soaks up noise)")
-    c.add_argument("--max-frames", type=int, default=600, metavar="N", help="read at most N frames (a live camera: N frames, default 600)")
+    c.add_argument(
+        "--charuco", action="store_true", help="a ChArUco board (OpenCV's 5x5 dictionary) instead of a checkerboard"
+    )
+    c.add_argument(
+        "--marker-m",
+        type=float,
+        default=None,
+        metavar="M",
+        help="--charuco: side of a marker in metres (default 0.75 of a square)",
+    )
+    c.add_argument(
+        "--model",
+        choices=("pinhole", "fisheye"),
+        default="pinhole",
+        help="pinhole (radtan k1 k2 p1 p2 k3, default) or fisheye (equidistant)",
+    )
+    c.add_argument(
+        "--k3",
+        action="store_true",
+        help="pinhole: also solve for k3 (wide-angle lenses; on narrow ones it soaks up noise)",
+    )
+    c.add_argument(
+        "--max-frames",
+        type=int,
+        default=600,
+        metavar="N",
+        help="read at most N frames (a live camera: N frames, default 600)",
+    )
     c.add_argument("--every", type=int, default=1, metavar="K", help="use every K-th frame of a video (default 1)")
-    c.add_argument("--import", dest="import_file", type=Path, default=None, metavar="FILE", help="convert this OpenCV / ROS / Kalibr calibration instead")
-    c.add_argument("--out", type=Path, default=None, metavar="FILE", help="write the camera: section here (default: print it)")
+    c.add_argument(
+        "--import",
+        dest="import_file",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="convert this OpenCV / ROS / Kalibr calibration instead",
+    )
+    c.add_argument(
+        "--out", type=Path, default=None, metavar="FILE", help="write the camera: section here (default: print it)"
+    )
     c.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     c.add_argument("--plot", type=Path, default=None, metavar="PNG", help="write the coverage and residual plot here")
     c.set_defaults(handler=main)
@@ -93,11 +128,29 @@ def _plot(result: CalibrationResult, path: Path) -> None:
         a.axvline(x, color="0.85", lw=0.5)
     for y in np.linspace(0, h, GRID[1] + 1):
         a.axhline(y, color="0.85", lw=0.5)
-    a.set(xlim=(0, w), ylim=(h, 0), aspect="equal", title=f"corners of the {len(result.views_used)} views used: {100 * result.coverage:.0f}% of the cells")
+    a.set(
+        xlim=(0, w),
+        ylim=(h, 0),
+        aspect="equal",
+        title=f"corners of the {len(result.views_used)} views used: {100 * result.coverage:.0f}% of the cells",
+    )
     scale = 0.25 * w / max(float(np.max(np.abs(result.residuals_px))), 1e-6)
-    b.quiver(result.corners_px[:, 0], result.corners_px[:, 1], result.residuals_px[:, 0] * scale, -result.residuals_px[:, 1] * scale,
-             angles="xy", scale_units="xy", scale=1, width=0.002)
-    b.set(xlim=(0, w), ylim=(h, 0), aspect="equal", title=f"reprojection residuals (RMS {result.rms_px:.2f} px, arrows x{scale:.0f})")
+    b.quiver(
+        result.corners_px[:, 0],
+        result.corners_px[:, 1],
+        result.residuals_px[:, 0] * scale,
+        -result.residuals_px[:, 1] * scale,
+        angles="xy",
+        scale_units="xy",
+        scale=1,
+        width=0.002,
+    )
+    b.set(
+        xlim=(0, w),
+        ylim=(h, 0),
+        aspect="equal",
+        title=f"reprojection residuals (RMS {result.rms_px:.2f} px, arrows x{scale:.0f})",
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -108,7 +161,9 @@ def _write(text: str, out: Path | None, force: bool) -> None:
         sys.stdout.write(text)
         return
     if out.exists() and not force:
-        raise ConfigError(f"--out {out}: exists; expected a new file (or --force to overwrite; merge the camera: section into your settings by hand)")
+        raise ConfigError(
+            f"--out {out}: exists; expected a new file (or --force to overwrite; merge the camera: section into your settings by hand)"
+        )
     out.write_text(text, encoding="utf-8")
     print(f"camera: section written to {out}", file=sys.stderr)
 
@@ -132,12 +187,16 @@ def main(args: argparse.Namespace) -> int:
         if size is None:
             size = shape
         elif shape != size:
-            raise CameraError(f"{args.source}: frame {n} is {shape[0]}x{shape[1]}, the first was {size[0]}x{size[1]}; expected one size")
+            raise CameraError(
+                f"{args.source}: frame {n} is {shape[0]}x{shape[1]}, the first was {size[0]}x{size[1]}; expected one size"
+            )
         d = detect(img, board)
         if d is not None:
             detections.append(d)
         if n % _PROGRESS_EVERY == 0:
-            print(f"\rcalibrate: {n} frames read, board found in {len(detections)}", end="", file=sys.stderr, flush=True)
+            print(
+                f"\rcalibrate: {n} frames read, board found in {len(detections)}", end="", file=sys.stderr, flush=True
+            )
     print(f"\rcalibrate: {n} frames read, board found in {len(detections)}", file=sys.stderr)
     if size is None:
         raise CameraError(f"{args.source}: no frames")
@@ -150,11 +209,23 @@ def main(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     if result.rms_px > _GOOD_RMS_PX:
-        print(f"calibrate: warning: RMS {result.rms_px:.2f} px is high (expected under {_GOOD_RMS_PX} px): blurred or bent board?", file=sys.stderr)
+        print(
+            f"calibrate: warning: RMS {result.rms_px:.2f} px is high (expected under {_GOOD_RMS_PX} px): blurred or bent board?",
+            file=sys.stderr,
+        )
     if result.coverage < _GOOD_COVERAGE:
-        print(f"calibrate: warning: the corners cover {100 * result.coverage:.0f}% of the image: distortion near the edges is a guess; "
-              "show the board in the corners too", file=sys.stderr)
+        print(
+            f"calibrate: warning: the corners cover {100 * result.coverage:.0f}% of the image: distortion near the edges is a guess; "
+            "show the board in the corners too",
+            file=sys.stderr,
+        )
     if args.plot is not None:
         _plot(result, args.plot)
-    _write(camera_section_yaml(i, f"mavvo calibrate {args.source}: RMS {result.rms_px:.3f} px, coverage {100 * result.coverage:.0f}%"), args.out, args.force)
+    _write(
+        camera_section_yaml(
+            i, f"mavvo calibrate {args.source}: RMS {result.rms_px:.3f} px, coverage {100 * result.coverage:.0f}%"
+        ),
+        args.out,
+        args.force,
+    )
     return 0

@@ -18,13 +18,23 @@ from mavvo.service.timing import MonotonicClock
 
 def add_parser(sub: Any) -> None:
     c = sub.add_parser(
-        "camera", help="list cameras, or measure one (rate, lost frames, stamps, exposure)",
+        "camera",
+        help="list cameras, or measure one (rate, lost frames, stamps, exposure)",
         description="Without --source or --config: list the V4L2 devices, libcamera cameras and GStreamer support mavvo can use. "
-                    "With them: read the camera for --seconds and report its real frame rate, frames lost, how far the stamps lie before "
-                    "delivery (and how steadily), the brightness as it moves, and advice. Exit 0: measured or listed; 1: no frame; 2: bad input.",
+        "With them: read the camera for --seconds and report its real frame rate, frames lost, how far the stamps lie before "
+        "delivery (and how steadily), the brightness as it moves, and advice. Exit 0: measured or listed; 1: no frame; 2: bad input.",
     )
-    c.add_argument("--config", type=Path, metavar="FILE", help="settings file whose camera: section to measure (default: the defaults)")
-    c.add_argument("--source", metavar="SOURCE", help="camera.source to measure instead of the config's, e.g. /dev/video0, picamera2:0, 'gst:videotestsrc is-live=true'")
+    c.add_argument(
+        "--config",
+        type=Path,
+        metavar="FILE",
+        help="settings file whose camera: section to measure (default: the defaults)",
+    )
+    c.add_argument(
+        "--source",
+        metavar="SOURCE",
+        help="camera.source to measure instead of the config's, e.g. /dev/video0, picamera2:0, 'gst:videotestsrc is-live=true'",
+    )
     c.add_argument("--seconds", type=float, default=5.0, help="how long to measure (default 5)")
     c.add_argument("--json", action="store_true", help="print JSON instead of a table")
     c.set_defaults(handler=main)
@@ -43,8 +53,11 @@ def _table(rows: list[tuple[str, str]]) -> str:
 
 def _print_measurement(m: CameraMeasurement, tips: list[str]) -> None:
     rows = [
-        ("source", m.source), ("frames", f"{m.frames} in {m.seconds:g} s"), ("size", f"{m.width_px}x{m.height_px} px"),
-        ("frame rate", f"{_fmt(m.rate_hz)} Hz"), ("frames lost", str(m.dropped)),
+        ("source", m.source),
+        ("frames", f"{m.frames} in {m.seconds:g} s"),
+        ("size", f"{m.width_px}x{m.height_px} px"),
+        ("frame rate", f"{_fmt(m.rate_hz)} Hz"),
+        ("frames lost", str(m.dropped)),
         ("stamp age", f"{_fmt(m.age_median_ms)} ms median, {_fmt(m.age_spread_ms)} ms spread (5-95%)"),
         ("brightness", f"{_fmt(m.brightness_min)}-{_fmt(m.brightness_max)} of 255"),
     ]

@@ -12,8 +12,12 @@ from mavvo.service.settings import load_config
 
 
 def add_parser(sub: Any) -> None:
-    c = sub.add_parser("check-config", help="check a settings file and exit", description="Load a settings file strictly and report the first problem, with its key path "
-                         "(also the signing key file, as mavvo run reads it). Exit 0: ok; 2: a problem.")
+    c = sub.add_parser(
+        "check-config",
+        help="check a settings file and exit",
+        description="Load a settings file strictly and report the first problem, with its key path "
+        "(also the signing key file, as mavvo run reads it). Exit 0: ok; 2: a problem.",
+    )
     c.add_argument("file", type=Path, metavar="FILE")
 
     c.set_defaults(handler=main)
@@ -26,5 +30,7 @@ def main(args: argparse.Namespace) -> int:
             read_signing_key(cfg.link.signing_key_file)
         except ConfigError as e:
             raise ConfigError(f"{args.file}: {e}") from e
-    print(f"{args.file}: ok (link {cfg.link.url}, camera {cfg.camera.source} {cfg.camera.width_px}x{cfg.camera.height_px}, scale from {cfg.odometry.scale.source})")
+    print(
+        f"{args.file}: ok (link {cfg.link.url}, camera {cfg.camera.source} {cfg.camera.width_px}x{cfg.camera.height_px}, scale from {cfg.odometry.scale.source})"
+    )
     return 0

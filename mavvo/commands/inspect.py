@@ -23,10 +23,28 @@ def add_parser(sub: Any) -> None:
         ),
     )
     p.add_argument("path", type=Path, metavar="PATH")
-    p.add_argument("--video", type=Path, default=None, metavar="PATH", help="log: the flight's video file or image folder, to count its frames and check the overlap")
+    p.add_argument(
+        "--video",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="log: the flight's video file or image folder, to count its frames and check the overlap",
+    )
     p.add_argument("--fps", type=float, default=None, help="an image folder without timestamps.txt: its frame rate")
-    p.add_argument("--offset-s", type=float, default=None, metavar="S", help="log: the log's time at the video's time zero, for the overlap")
-    p.add_argument("--config", type=Path, default=None, metavar="FILE", help="log: the camera settings replay will be given (only checked for presence)")
+    p.add_argument(
+        "--offset-s",
+        type=float,
+        default=None,
+        metavar="S",
+        help="log: the log's time at the video's time zero, for the overlap",
+    )
+    p.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="log: the camera settings replay will be given (only checked for presence)",
+    )
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
     p.set_defaults(handler=main)
 
@@ -45,8 +63,10 @@ def main(args: argparse.Namespace) -> int:
     print(f"{ins.path}: {ins.kind}")
     print(f"  {'series':<16} {'source':<36} {'count':>7} {'rate':>10} {'from':>14} {'to':>14} {'longest gap':>12}")
     for s in ins.series:
-        print(f"  {s.name:<16} {s.source:<36} {s.count:>7} {_fmt(s.rate_hz, ' Hz', 1):>10} {_fmt(s.start_s, ' s'):>14} {_fmt(s.end_s, ' s'):>14} "
-              f"{_fmt(s.longest_gap_s, ' s'):>12}")
+        print(
+            f"  {s.name:<16} {s.source:<36} {s.count:>7} {_fmt(s.rate_hz, ' Hz', 1):>10} {_fmt(s.start_s, ' s'):>14} {_fmt(s.end_s, ' s'):>14} "
+            f"{_fmt(s.longest_gap_s, ' s'):>12}"
+        )
     for key, value in ins.facts.items():
         print(f"  {key}: {value}")
     for problem in ins.problems:

@@ -20,14 +20,28 @@ _REFRESH_S = 1.0
 
 def add_parser(sub: Any) -> None:
     m = sub.add_parser(
-        "monitor", help="watch the service's state, quality, latency and messages live",
+        "monitor",
+        help="watch the service's state, quality, latency and messages live",
         description="Listen where the service's MAVLink messages arrive (a ground station's port of mavlink-router, the flight "
         "controller's forwarding, or mavvo sim --forward) and show, about once a second, the state, quality, inliers, "
         "latency, drift, resets and the last STATUSTEXT lines. Ctrl-C ends it. Exit 1 if nothing was heard from mavvo.",
     )
-    m.add_argument("--mavlink", default="udpin:0.0.0.0:14550", metavar="URL", help="where to listen or connect (default udpin:0.0.0.0:14550, a ground station's port)")
-    m.add_argument("--duration", type=float, default=None, metavar="S", help="end after S seconds (default: until Ctrl-C)")
-    m.add_argument("--plot", type=Path, default=None, metavar="PNG", help="write a timeline of quality, inliers, latency, drift and state here at the end")
+    m.add_argument(
+        "--mavlink",
+        default="udpin:0.0.0.0:14550",
+        metavar="URL",
+        help="where to listen or connect (default udpin:0.0.0.0:14550, a ground station's port)",
+    )
+    m.add_argument(
+        "--duration", type=float, default=None, metavar="S", help="end after S seconds (default: until Ctrl-C)"
+    )
+    m.add_argument(
+        "--plot",
+        type=Path,
+        default=None,
+        metavar="PNG",
+        help="write a timeline of quality, inliers, latency, drift and state here at the end",
+    )
     m.set_defaults(handler=main)
 
 
@@ -40,11 +54,16 @@ def _plot(monitor: Monitor, path: Path) -> None:
     tl = monitor.timeline
     t = [p.t_s for p in tl]
     fig, axes = plt.subplots(5, 1, figsize=(10, 9), sharex=True)
-    for ax, (label, values) in zip(axes, (
-        ("state (-1 standby, 0 init, 1 tracking, 2 degraded, 3 failed)", [p.state_code for p in tl]),
-        ("quality", [p.quality for p in tl]), ("inliers", [p.inliers for p in tl]),
-        ("latency ms", [p.latency_ms for p in tl]), ("drift m", [p.drift_m for p in tl]),
-    )):
+    for ax, (label, values) in zip(
+        axes,
+        (
+            ("state (-1 standby, 0 init, 1 tracking, 2 degraded, 3 failed)", [p.state_code for p in tl]),
+            ("quality", [p.quality for p in tl]),
+            ("inliers", [p.inliers for p in tl]),
+            ("latency ms", [p.latency_ms for p in tl]),
+            ("drift m", [p.drift_m for p in tl]),
+        ),
+    ):
         ax.plot(t, values, drawstyle="steps-post" if label.startswith("state") else "default")
         ax.set_ylabel(label, fontsize=8)
         ax.grid(alpha=0.3)
@@ -82,7 +101,12 @@ def main(args: argparse.Namespace) -> int:
                 if tty:
                     sys.stdout.write("\x1b[H\x1b[2J" + text)  # one screen, redrawn
                 else:
-                    sys.stdout.write(text.splitlines()[0] + " | " + " | ".join(line.strip() for line in text.splitlines()[1:5]) + "\n")
+                    sys.stdout.write(
+                        text.splitlines()[0]
+                        + " | "
+                        + " | ".join(line.strip() for line in text.splitlines()[1:5])
+                        + "\n"
+                    )
                 sys.stdout.flush()
     finally:
         for s, h in previous.items():

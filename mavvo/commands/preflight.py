@@ -22,16 +22,40 @@ _AUTOPILOTS = {3: "ardupilot", 12: "px4"}
 
 def add_parser(sub: Any) -> None:
     p = sub.add_parser(
-        "preflight", help="check the flight controller's parameters for vision (and fix the safe ones)",
+        "preflight",
+        help="check the flight controller's parameters for vision (and fix the safe ones)",
         description="Connect to the flight controller like the service does, identify ArduPilot or PX4, read the parameters "
         "that decide whether it uses vision (and the EKF origin, and mavvo's measured latency if the service's messages are "
         "heard), and print what to set. Exit 0 only when nothing blocks flight. --fix writes the safe ones, confirmed by "
         "reading them back, never while the vehicle is armed.",
     )
-    p.add_argument("--config", type=Path, default=None, metavar="FILE", help="the service's settings (link.url, mounting.lever_arm_m); default: built-in")
-    p.add_argument("--mavlink", default=None, metavar="URL", help="connect here instead of link.url (a ground station's port works too)")
-    p.add_argument("--latency-ms", type=float, default=None, metavar="MS", help="the delay mavvo's health log advises, when its messages are not heard here")
-    p.add_argument("--timeout", type=float, default=10.0, metavar="S", help="wait this long for the flight controller's HEARTBEAT (default 10)")
+    p.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="the service's settings (link.url, mounting.lever_arm_m); default: built-in",
+    )
+    p.add_argument(
+        "--mavlink",
+        default=None,
+        metavar="URL",
+        help="connect here instead of link.url (a ground station's port works too)",
+    )
+    p.add_argument(
+        "--latency-ms",
+        type=float,
+        default=None,
+        metavar="MS",
+        help="the delay mavvo's health log advises, when its messages are not heard here",
+    )
+    p.add_argument(
+        "--timeout",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="wait this long for the flight controller's HEARTBEAT (default 10)",
+    )
     p.add_argument("--fix", action="store_true", help="write the parameters marked 'set', then check again")
     p.set_defaults(handler=main)
 
@@ -55,15 +79,23 @@ class _Session:
         next_beat = 0.0
         while True:
             if time.monotonic() >= next_beat:  # so that a flight controller listening on UDP learns where we are
-                self.conn.mav.heartbeat_send(self.mav.MAV_TYPE_ONBOARD_CONTROLLER, self.mav.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+                self.conn.mav.heartbeat_send(
+                    self.mav.MAV_TYPE_ONBOARD_CONTROLLER, self.mav.MAV_AUTOPILOT_INVALID, 0, 0, 0
+                )
                 next_beat = time.monotonic() + 1.0
             msg = self._recv(0.2)
-            if msg is not None and msg.get_type() == "HEARTBEAT" and msg.autopilot != self.mav.MAV_AUTOPILOT_INVALID \
-                    and fc_system_id in (0, msg.get_srcSystem()):
+            if (
+                msg is not None
+                and msg.get_type() == "HEARTBEAT"
+                and msg.autopilot != self.mav.MAV_AUTOPILOT_INVALID
+                and fc_system_id in (0, msg.get_srcSystem())
+            ):
                 break
             if time.monotonic() > deadline:
                 self.conn.close()
-                raise LinkError(f"{url}: no flight controller HEARTBEAT in {timeout_s:g} s (check the URL, the baud rate, SERIALn_PROTOCOL)")
+                raise LinkError(
+                    f"{url}: no flight controller HEARTBEAT in {timeout_s:g} s (check the URL, the baud rate, SERIALn_PROTOCOL)"
+                )
         self.target = (msg.get_srcSystem(), msg.get_srcComponent())
         self.autopilot = _AUTOPILOTS.get(msg.autopilot)
         if self.autopilot is None:
@@ -99,7 +131,9 @@ class _Session:
         """Whether the EKF has an origin: GPS_GLOBAL_ORIGIN answers MAV_CMD_REQUEST_MESSAGE."""
         m = self.mav
         for _ in range(_TRIES):
-            self.conn.mav.command_long_send(*self.target, m.MAV_CMD_REQUEST_MESSAGE, 0, m.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, 0, 0, 0, 0, 0, 0)
+            self.conn.mav.command_long_send(
+                *self.target, m.MAV_CMD_REQUEST_MESSAGE, 0, m.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, 0, 0, 0, 0, 0, 0
+            )
             deadline = time.monotonic() + 1.0
             while time.monotonic() < deadline:
                 msg = self._recv(0.1)
@@ -110,7 +144,9 @@ class _Session:
     def ekf_flags(self) -> int | None:
         """ArduPilot's EKF_STATUS_REPORT flags, asked for with MAV_CMD_REQUEST_MESSAGE; None if none came."""
         m = self.mav
-        self.conn.mav.command_long_send(*self.target, m.MAV_CMD_REQUEST_MESSAGE, 0, m.MAVLINK_MSG_ID_EKF_STATUS_REPORT, 0, 0, 0, 0, 0, 0)
+        self.conn.mav.command_long_send(
+            *self.target, m.MAV_CMD_REQUEST_MESSAGE, 0, m.MAVLINK_MSG_ID_EKF_STATUS_REPORT, 0, 0, 0, 0, 0, 0
+        )
         deadline = time.monotonic() + 1.5
         while time.monotonic() < deadline:
             msg = self._recv(0.1)
@@ -137,7 +173,9 @@ def main(args: argparse.Namespace) -> int:
         raise ConfigError(f"--timeout: expected a positive number of seconds, got {args.timeout}")
     s = _Session(url, args.timeout, config.link.fc_system_id)
     try:
-        print(f"flight controller: {s.autopilot}, system {s.target[0]} component {s.target[1]}, {'ARMED' if s.armed else 'disarmed'} ({url})")
+        print(
+            f"flight controller: {s.autopilot}, system {s.target[0]} component {s.target[1]}, {'ARMED' if s.armed else 'disarmed'} ({url})"
+        )
         params = s.read_params(params_to_read(s.autopilot))
         origin = s.has_origin() if s.autopilot == "ardupilot" else None
         ekf = s.ekf_flags() if s.autopilot == "ardupilot" else None
@@ -147,7 +185,9 @@ def main(args: argparse.Namespace) -> int:
         fixes = [c for c in results if c.set_to is not None]
         if args.fix and fixes:
             if s.armed:
-                raise MavvoError("the vehicle is armed: preflight --fix writes no parameter while armed; disarm and run it again")
+                raise MavvoError(
+                    "the vehicle is armed: preflight --fix writes no parameter while armed; disarm and run it again"
+                )
             for c in fixes:
                 assert c.set_to is not None
                 ok = s.set_param(c.name, c.set_to)
@@ -163,5 +203,8 @@ def main(args: argparse.Namespace) -> int:
     finally:
         s.close()
     blocked = blocks_flight(results)
-    print("preflight: " + ("BLOCKED: vision would not be used as it should" if blocked else "ok: nothing blocks flight"), file=sys.stderr)
+    print(
+        "preflight: " + ("BLOCKED: vision would not be used as it should" if blocked else "ok: nothing blocks flight"),
+        file=sys.stderr,
+    )
     return 1 if blocked else 0

@@ -27,14 +27,53 @@ def add_parser(sub: Any) -> None:
         ),
     )
     rp.add_argument("source", type=Path, metavar="SOURCE")
-    rp.add_argument("--config", type=Path, default=None, metavar="FILE", help="settings: for a recording or dataset, the keys given replace the recorded ones (tuning); for a log, the camera and mounting (required)")
-    rp.add_argument("--video", type=Path, default=None, metavar="PATH", help="log: the flight's video file or image folder (timestamps.txt 'T_S FILENAME', else the folder's frame rate from --fps)")
-    rp.add_argument("--fps", type=float, default=None, help="log with an image folder without timestamps.txt: its frame rate")
-    rp.add_argument("--offset-s", type=float, default=None, metavar="S", help="log: the log's time (s since boot) at the video's time zero; default: estimated from the rotation the camera sees")
-    rp.add_argument("--ground-truth", type=Path, default=None, metavar="FILE", help="reference trajectory: TUM file, or EuRoC state_groundtruth_estimate0/data.csv (default: ground_truth.tum in a recording, the dataset's own)")
-    rp.add_argument("--attitude", choices=("imu", "truth"), default="imu", help="EuRoC: roll/pitch from the IMU through an attitude filter (default) or from the ground truth plus --attitude-noise-deg")
-    rp.add_argument("--attitude-noise-deg", type=float, default=0.1, metavar="D", help="EuRoC --attitude truth: roll/pitch noise, 1 sigma (default 0.1)")
-    rp.add_argument("--out", type=Path, default=None, metavar="DIR", help="where the report goes (default mavvo-replay-out/NAME)")
+    rp.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="settings: for a recording or dataset, the keys given replace the recorded ones (tuning); for a log, the camera and mounting (required)",
+    )
+    rp.add_argument(
+        "--video",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="log: the flight's video file or image folder (timestamps.txt 'T_S FILENAME', else the folder's frame rate from --fps)",
+    )
+    rp.add_argument(
+        "--fps", type=float, default=None, help="log with an image folder without timestamps.txt: its frame rate"
+    )
+    rp.add_argument(
+        "--offset-s",
+        type=float,
+        default=None,
+        metavar="S",
+        help="log: the log's time (s since boot) at the video's time zero; default: estimated from the rotation the camera sees",
+    )
+    rp.add_argument(
+        "--ground-truth",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="reference trajectory: TUM file, or EuRoC state_groundtruth_estimate0/data.csv (default: ground_truth.tum in a recording, the dataset's own)",
+    )
+    rp.add_argument(
+        "--attitude",
+        choices=("imu", "truth"),
+        default="imu",
+        help="EuRoC: roll/pitch from the IMU through an attitude filter (default) or from the ground truth plus --attitude-noise-deg",
+    )
+    rp.add_argument(
+        "--attitude-noise-deg",
+        type=float,
+        default=0.1,
+        metavar="D",
+        help="EuRoC --attitude truth: roll/pitch noise, 1 sigma (default 0.1)",
+    )
+    rp.add_argument(
+        "--out", type=Path, default=None, metavar="DIR", help="where the report goes (default mavvo-replay-out/NAME)"
+    )
     rp.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout")
 
     rp.set_defaults(handler=main)
@@ -46,8 +85,14 @@ def main(args: argparse.Namespace) -> int:
     from mavvo.offline.sources import open_replay_source
 
     inp = open_replay_source(
-        args.source, config=args.config, video=args.video, fps=args.fps, offset_s=args.offset_s, ground_truth=args.ground_truth,
-        attitude=args.attitude, attitude_noise_deg=args.attitude_noise_deg,
+        args.source,
+        config=args.config,
+        video=args.video,
+        fps=args.fps,
+        offset_s=args.offset_s,
+        ground_truth=args.ground_truth,
+        attitude=args.attitude,
+        attitude_noise_deg=args.attitude_noise_deg,
     )
     out = args.out if args.out is not None else Path("mavvo-replay-out") / (args.source.resolve().name or "replay")
     for note, value in inp.notes.items():
@@ -88,5 +133,8 @@ def main(args: argparse.Namespace) -> int:
     for problem in inp.problems:
         print(f"mavvo: {problem}", file=sys.stderr)
     if res.stopped and inp.frames:  # Ctrl-C: a clean stop, like the service's
-        print(f"mavvo: replay interrupted after {res.frames_replayed} of {len(inp.frames)} frames; the report covers those", file=sys.stderr)
+        print(
+            f"mavvo: replay interrupted after {res.frames_replayed} of {len(inp.frames)} frames; the report covers those",
+            file=sys.stderr,
+        )
     return 1 if inp.problems else 0

@@ -14,13 +14,26 @@ from mavvo.service.settings import ServiceConfig, load_config
 
 def add_parser(sub: Any) -> None:
     r = sub.add_parser(
-        "run", help="run the service (what systemd starts)",
+        "run",
+        help="run the service (what systemd starts)",
         description="Run the visual-odometry service: read ATTITUDE from the flight controller, frames from the camera, "
         "send VISION_POSITION_ESTIMATE back. Stops cleanly on SIGTERM or Ctrl-C (a second one skips the drain); SIGHUP "
         "reopens the recording's files. Exits 1 when it cannot go on (a thread died, the camera is lost), for systemd to restart it.",
     )
-    r.add_argument("--config", required=True, type=Path, metavar="FILE", help="the YAML settings (see config/default.yaml for every key)")
-    r.add_argument("--record", type=Path, default=None, metavar="DIR", help="record the flight for mavvo replay into a new folder under DIR (sets record.dir)")
+    r.add_argument(
+        "--config",
+        required=True,
+        type=Path,
+        metavar="FILE",
+        help="the YAML settings (see config/default.yaml for every key)",
+    )
+    r.add_argument(
+        "--record",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="record the flight for mavvo replay into a new folder under DIR (sets record.dir)",
+    )
 
     r.set_defaults(handler=main)
 
@@ -35,7 +48,11 @@ def sim_camera(argument: str, options: Any, clock: Any, fc: Any = None) -> Any:
 
 def with_record(config: ServiceConfig, record: Path | None) -> ServiceConfig:
     """``config`` recording into ``record`` when given."""
-    return config if record is None else dataclasses.replace(config, record=dataclasses.replace(config.record, dir=str(record)))
+    return (
+        config
+        if record is None
+        else dataclasses.replace(config, record=dataclasses.replace(config.record, dir=str(record)))
+    )
 
 
 def main(args: argparse.Namespace) -> int:

@@ -37,30 +37,66 @@ def add_parser(sub: Any) -> None:
             "for any MAVLink client (a ground station, a script, or mavvo run with camera.source sim:SCENARIO)."
         ),
     )
-    s.add_argument("--scenario", default=_DEFAULT_SCENARIO, help=f"a shipped scenario name or a .yaml path (see --list); default {_DEFAULT_SCENARIO}")
-    s.add_argument("--list", action="store_true", help="list the shipped scenarios and exit")
-    s.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds of flight (default: the scenario's length; --fc-only: until stopped)")
     s.add_argument(
-        "--seed", type=int, default=None, metavar="N",
+        "--scenario",
+        default=_DEFAULT_SCENARIO,
+        help=f"a shipped scenario name or a .yaml path (see --list); default {_DEFAULT_SCENARIO}",
+    )
+    s.add_argument("--list", action="store_true", help="list the shipped scenarios and exit")
+    s.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        metavar="S",
+        help="stop after S seconds of flight (default: the scenario's length; --fc-only: until stopped)",
+    )
+    s.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        metavar="N",
         help="draw the scenario's noise (the camera's pixels, the flight controller's attitude and sensors) with this seed instead of its own; the world's "
         "textures stay. Figures such as the share inside the 99%% ellipse move by a few points from one draw to another: compare several",
     )
     s.add_argument("--realtime", action="store_true", help="run at wall-clock speed instead of lockstep")
-    s.add_argument("--config", type=Path, default=None, metavar="FILE", help="service settings to use (the scenario sets camera, mounting and link); default: the built-in defaults")
+    s.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="service settings to use (the scenario sets camera, mounting and link); default: the built-in defaults",
+    )
     s.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout")
-    s.add_argument("--out", type=Path, default=None, metavar="DIR", help="where the report goes (default mavvo-sim-out/SCENARIO; with --fc-only: none)")
-    s.add_argument("--record", type=Path, default=None, metavar="DIR", help="record the flight (as mavvo run --record does) with its ground truth, for mavvo replay")
+    s.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="where the report goes (default mavvo-sim-out/SCENARIO; with --fc-only: none)",
+    )
+    s.add_argument(
+        "--record",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="record the flight (as mavvo run --record does) with its ground truth, for mavvo replay",
+    )
     s.add_argument("--fc-only", action="store_true", help="run only the simulated flight controller")
     s.add_argument(
-        "--forward", default=None, metavar="udpout:HOST:PORT",
+        "--forward",
+        default=None,
+        metavar="udpout:HOST:PORT",
         help="the flight controller forwards what the service sends it to this ground-station port (watch it with mavvo monitor)",
     )
     s.add_argument(
-        "--mavlink", default="udpin:127.0.0.1:14550",
+        "--mavlink",
+        default="udpin:127.0.0.1:14550",
         help="--fc-only: where the flight controller listens: udpin:HOST:PORT or tcpin:HOST:PORT (udpout:/tcp: connect out); default udpin:127.0.0.1:14550",
     )
     s.add_argument(
-        "--time-source", choices=("auto", "timesync", "arrival", "usec"), default="auto",
+        "--time-source",
+        choices=("auto", "timesync", "arrival", "usec"),
+        default="auto",
         help="--fc-only: evaluate estimates at their usec stamp mapped through the client's TIMESYNC requests (timesync), at their "
         "arrival (clients that do not send TIMESYNC; the error includes their latency), or at usec read as simulation time; "
         "auto (default): timesync when the client sent TIMESYNC requests, else arrival",
@@ -92,7 +128,9 @@ def _sim_service(scenario: Any, args: argparse.Namespace) -> int:
 
     base = with_record(load_config(args.config) if args.config is not None else ServiceConfig(), args.record)
     out = args.out if args.out is not None else Path("mavvo-sim-out") / scenario.name
-    run = run_daemon_in_sim(scenario, base, realtime=args.realtime, duration_s=args.duration, out_dir=out, forward_url=args.forward)
+    run = run_daemon_in_sim(
+        scenario, base, realtime=args.realtime, duration_s=args.duration, out_dir=out, forward_url=args.forward
+    )
     summary = run.summary()
     summary["report_dir"] = str(out) if run.evaluation is not None else None
     summary["plot"] = str(out / "evaluation.png") if run.evaluation is not None else None
@@ -113,7 +151,9 @@ def _sim_service(scenario: Any, args: argparse.Namespace) -> int:
     )
     v = run.safety
     if v.fc_end_error_m is not None and v.path_length_m > 0:
-        step = "no reset" if v.largest_reset_step_m is None else f"largest step at a reset {v.largest_reset_step_m:.2f} m"
+        step = (
+            "no reset" if v.largest_reset_step_m is None else f"largest step at a reset {v.largest_reset_step_m:.2f} m"
+        )
         print(
             f"what the vehicle felt (no alignment): its EKF {v.fc_end_error_m:.2f} m off at the end "
             f"({100 * v.fc_end_error_m / v.path_length_m:.2f}% of the path), {step}, heading {v.heading_end_error_deg:.2f} deg off"
@@ -140,13 +180,23 @@ def _fc_only(scenario: Any, args: argparse.Namespace) -> int:
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     until = args.duration if args.duration is not None else math.inf
-    log.info("simulated flight controller on %s, scenario %s (%.0f s of trajectory); Ctrl-C stops", args.mavlink, scenario.name, sim.trajectory.duration_s)
+    log.info(
+        "simulated flight controller on %s, scenario %s (%.0f s of trajectory); Ctrl-C stops",
+        args.mavlink,
+        scenario.name,
+        sim.trajectory.duration_s,
+    )
     try:
         next_report = _PROGRESS_EVERY_S
         while not stop.is_set() and sim.clock.now_s() < until:
             sim.serve(stop, until_s=min(until, next_report))
             if sim.clock.now_s() >= next_report:
-                log.info("t=%.0f s sent %s received %s", sim.clock.now_s(), _counts(sim.fc.sent_counts), _counts(_received(sim)))
+                log.info(
+                    "t=%.0f s sent %s received %s",
+                    sim.clock.now_s(),
+                    _counts(sim.fc.sent_counts),
+                    _counts(_received(sim)),
+                )
                 next_report += _PROGRESS_EVERY_S
     finally:
         for s, h in previous.items():
@@ -162,8 +212,14 @@ def _fc_only(scenario: Any, args: argparse.Namespace) -> int:
         # A request's transit only adds: the smallest (arrival - ts1) is the client's clock offset, to the fastest transit.
         offset = min(sim.fc.client_clock_s) if source == "timesync" and sim.fc.client_clock_s else 0.0
         est = vision_estimates(sim.fc.received, "arrival" if source == "arrival" else "usec", usec_offset_s=offset)
-        log.info("estimates evaluated at %s", {"timesync": f"their usec plus the client's clock offset {offset:+.3f} s (TIMESYNC)",
-                                               "arrival": "their arrival", "usec": "their usec as simulation time"}[source])
+        log.info(
+            "estimates evaluated at %s",
+            {
+                "timesync": f"their usec plus the client's clock offset {offset:+.3f} s (TIMESYNC)",
+                "arrival": "their arrival",
+                "usec": "their usec as simulation time",
+            }[source],
+        )
         if len(est) >= 3:
             ev = write_report(args.out, est, sim.truth_at(est.timestamps_s), title=scenario.name)
             print(

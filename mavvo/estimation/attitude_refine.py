@@ -109,8 +109,16 @@ def yaw_parallax_rad(yaw: float, f1: np.ndarray, f2: np.ndarray, rows: np.ndarra
 
 
 def refine_essential(
-    f1: np.ndarray, f2: np.ndarray, run: RansacResult, max_err_rad: float, attitude_sigma_rad: tuple[float, float] | None, sample_thr: float,
-    yaw_prior_rad: float | None, *, steps: int, yaw_tolerance_rad: float,
+    f1: np.ndarray,
+    f2: np.ndarray,
+    run: RansacResult,
+    max_err_rad: float,
+    attitude_sigma_rad: tuple[float, float] | None,
+    sample_thr: float,
+    yaw_prior_rad: float | None,
+    *,
+    steps: int,
+    yaw_tolerance_rad: float,
 ) -> tuple[Pose, Correction]:
     """The sampling's essential model refined, and how roll/pitch went into it.
 
@@ -157,7 +165,19 @@ def refine_essential(
     general = relative_sigma >= max_err_rad and parallax >= _TILT_MIN_PARALLAX_THRESHOLDS * max_err_rad
     if ground or general:
         corrected = _second_start(
-            f1, f2, run.inliers, corrected, attitude_sigma_rad, sample_thr, max_err_rad, steps, yaw_prior_rad, yaw_tolerance_rad, ground, general, wide_c
+            f1,
+            f2,
+            run.inliers,
+            corrected,
+            attitude_sigma_rad,
+            sample_thr,
+            max_err_rad,
+            steps,
+            yaw_prior_rad,
+            yaw_tolerance_rad,
+            ground,
+            general,
+            wide_c,
         )
     if resolved:
         return corrected, Correction.RESOLVED
@@ -168,7 +188,9 @@ def refine_essential(
     return as_given, Correction.AS_GIVEN
 
 
-def _refine_uncorrected(f1: np.ndarray, f2: np.ndarray, yaw: float, t: np.ndarray, max_err_rad: float, steps: int) -> Pose:
+def _refine_uncorrected(
+    f1: np.ndarray, f2: np.ndarray, yaw: float, t: np.ndarray, max_err_rad: float, steps: int
+) -> Pose:
     """Yaw and translation refined on the inliers (Cauchy loss at ``_CAUCHY_NOISE_SIGMAS`` noise
     sigmas), which are then re-selected for a second round; roll/pitch as given (zero corrections)."""
     zero = np.zeros(2)
@@ -188,8 +210,19 @@ def pose_err_sq(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float) 
 
 
 def _second_start(
-    f1: np.ndarray, f2: np.ndarray, candidates: np.ndarray, pose: Pose, attitude_sigma_rad: tuple[float, float], sample_thr: float, max_err_rad: float,
-    steps: int, yaw_prior_rad: float | None, yaw_tolerance_rad: float, ground: bool, general: bool, wide_c_sigmas: float,
+    f1: np.ndarray,
+    f2: np.ndarray,
+    candidates: np.ndarray,
+    pose: Pose,
+    attitude_sigma_rad: tuple[float, float],
+    sample_thr: float,
+    max_err_rad: float,
+    steps: int,
+    yaw_prior_rad: float | None,
+    yaw_tolerance_rad: float,
+    ground: bool,
+    general: bool,
+    wide_c_sigmas: float,
 ) -> Pose:
     """``pose`` (refined under the attitude prior from the sampling's hypothesis), or the pose refined
     from a start that roll/pitch cannot have misled, when that is a better one (over the ground, only
@@ -249,7 +282,9 @@ def _second_start(
     if same_answer(start_t):
         return pose  # not worth a second refinement
     start_yaw, start_t, _, _ = _in_front((start_yaw, start_t, np.zeros(2), start_tilt2), f1, f2, max_err_rad)
-    alt = _refine_with_attitude(f1, f2, start_yaw, start_t, attitude_sigma_rad, sample_thr, max_err_rad, steps, wide_c_sigmas, tilt2=start_tilt2)
+    alt = _refine_with_attitude(
+        f1, f2, start_yaw, start_t, attitude_sigma_rad, sample_thr, max_err_rad, steps, wide_c_sigmas, tilt2=start_tilt2
+    )
     if same_answer(alt[1]):
         return pose
     if yaw_prior_rad is not None and abs(math.remainder(alt[0] - yaw_prior_rad, math.tau)) > yaw_tolerance_rad:
@@ -258,7 +293,9 @@ def _second_start(
     return alt if cost_alt < cost else pose
 
 
-def _min_parallax_rad(err_sq_inliers: np.ndarray, max_err_rad: float, noise_sigmas: float = _PARALLAX_NOISE_SIGMAS) -> float:
+def _min_parallax_rad(
+    err_sq_inliers: np.ndarray, max_err_rad: float, noise_sigmas: float = _PARALLAX_NOISE_SIGMAS
+) -> float:
     """The parallax under which one point's translation is noise: the threshold, or ``noise_sigmas``
     noise sigmas (from a fit's inlier errors) where the tracks are finer."""
     return min(max_err_rad, noise_sigmas * robust_sigma(err_sq_inliers, max_err_rad))
@@ -273,7 +310,9 @@ def _in_front(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float) ->
     return pose if decided is None else (decided[0], decided[1], tilt1, tilt2)
 
 
-def _fitted_bearings(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _fitted_bearings(
+    pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The bearings (n, 3) of the points the pose fits (Sampson error under ``max_err_rad``), with its
     roll/pitch corrections applied, and their squared errors (n,)."""
     yaw, t, tilt1, tilt2 = pose
@@ -283,7 +322,9 @@ def _fitted_bearings(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: fl
     return g1[inl], g2[inl], err[inl]
 
 
-def _posterior_costs(f1: np.ndarray, f2: np.ndarray, poses: tuple[Pose, ...], attitude_sigma_rad: tuple[float, float], max_err_rad: float) -> list[float]:
+def _posterior_costs(
+    f1: np.ndarray, f2: np.ndarray, poses: tuple[Pose, ...], attitude_sigma_rad: tuple[float, float], max_err_rad: float
+) -> list[float]:
     """The negative log posterior of each pose, up to a shared constant: its Sampson errors (capped at
     the threshold, MSAC) over a noise sigma shared by all (the smallest of their robust estimates, so
     that a worse fit does not shrink its own cost), plus ``sum (d / sigma_view)^2`` of its tilt
@@ -292,7 +333,10 @@ def _posterior_costs(f1: np.ndarray, f2: np.ndarray, poses: tuple[Pose, ...], at
     errs = [pose_err_sq(pose, f1, f2, max_err_rad) for pose in poses]
     noise_sq = min(robust_sigma(e[e < thr_sq], max_err_rad) for e in errs) ** 2
     s1_sq, s2_sq = attitude_sigma_rad[0] ** 2, attitude_sigma_rad[1] ** 2
-    return [float(np.minimum(e, thr_sq).sum() / noise_sq + d1 @ d1 / s1_sq + d2 @ d2 / s2_sq) for e, (_, _, d1, d2) in zip(errs, poses)]
+    return [
+        float(np.minimum(e, thr_sq).sum() / noise_sq + d1 @ d1 / s1_sq + d2 @ d2 / s2_sq)
+        for e, (_, _, d1, d2) in zip(errs, poses)
+    ]
 
 
 def upright_from_general(R_2_1: np.ndarray, t_2_1: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -309,8 +353,17 @@ def upright_from_general(R_2_1: np.ndarray, t_2_1: np.ndarray) -> tuple[float, n
 
 
 def _refine_with_attitude(
-    f1: np.ndarray, f2: np.ndarray, yaw: float, t: np.ndarray, attitude_sigma_rad: tuple[float, float], sample_thr: float, max_err_rad: float, steps: int,
-    wide_c_sigmas: float, tilt1: np.ndarray | None = None, tilt2: np.ndarray | None = None,
+    f1: np.ndarray,
+    f2: np.ndarray,
+    yaw: float,
+    t: np.ndarray,
+    attitude_sigma_rad: tuple[float, float],
+    sample_thr: float,
+    max_err_rad: float,
+    steps: int,
+    wide_c_sigmas: float,
+    tilt1: np.ndarray | None = None,
+    tilt2: np.ndarray | None = None,
 ) -> Pose:
     """Yaw, translation direction and the roll/pitch corrections of both views under the attitude
     prior, from the sampling's wide inlier set down to the tight one: each round refines on the current
@@ -319,13 +372,24 @@ def _refine_with_attitude(
     them with the corrected bearings and halves the threshold, until it is ``max_err_rad`` and the
     inliers stop changing. Re-selecting with the refined model is what removes the bias a first,
     outlier-tainted inlier set leaves; the translation's sign is then judged by cheirality. Compiled."""
-    rounds = _attitude_rounds_from(f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, steps, tilt1, tilt2, wide_c_sigmas)
+    rounds = _attitude_rounds_from(
+        f1, f2, yaw, t, attitude_sigma_rad, sample_thr, max_err_rad, steps, tilt1, tilt2, wide_c_sigmas
+    )
     return _sign_by_cheirality(rounds, f1, f2, max_err_rad)
 
 
 def _attitude_rounds_from(
-    f1: np.ndarray, f2: np.ndarray, yaw: float, t: np.ndarray, attitude_sigma_rad: tuple[float, float], sample_thr: float, max_err_rad: float, steps: int,
-    tilt1: np.ndarray | None, tilt2: np.ndarray | None, wide_c_sigmas: float,
+    f1: np.ndarray,
+    f2: np.ndarray,
+    yaw: float,
+    t: np.ndarray,
+    attitude_sigma_rad: tuple[float, float],
+    sample_thr: float,
+    max_err_rad: float,
+    steps: int,
+    tilt1: np.ndarray | None,
+    tilt2: np.ndarray | None,
+    wide_c_sigmas: float,
 ) -> Pose:
     """:func:`_attitude_rounds` from a pose (yaw and t, and the views' roll/pitch corrections, zero
     for None), as a pose; the sign of t is not judged again. The rounds start at ``sample_thr`` (the
@@ -343,13 +407,20 @@ def _attitude_rounds_from(
 
 
 def refine_at_threshold(
-    f1: np.ndarray, f2: np.ndarray, pose: Pose, attitude_sigma_rad: tuple[float, float], max_err_rad: float, steps: int,
+    f1: np.ndarray,
+    f2: np.ndarray,
+    pose: Pose,
+    attitude_sigma_rad: tuple[float, float],
+    max_err_rad: float,
+    steps: int,
 ) -> Pose:
     """``pose`` (from another model: the ground homography's) refined with the roll/pitch corrections
     under the attitude prior by the same rounds, at the inlier threshold throughout (so with the
     efficient Cauchy scale); the sign of t is not judged again."""
     yaw, t, tilt1, tilt2 = pose
-    return _attitude_rounds_from(f1, f2, yaw, t, attitude_sigma_rad, max_err_rad, max_err_rad, steps, tilt1, tilt2, _CAUCHY_NOISE_SIGMAS)
+    return _attitude_rounds_from(
+        f1, f2, yaw, t, attitude_sigma_rad, max_err_rad, max_err_rad, steps, tilt1, tilt2, _CAUCHY_NOISE_SIGMAS
+    )
 
 
 def _sign_by_cheirality(pose: Pose, f1: np.ndarray, f2: np.ndarray, max_err_rad: float) -> Pose:
@@ -416,7 +487,15 @@ def _corrected_err_sq(x: np.ndarray, f1: np.ndarray, f2: np.ndarray, max_err_rad
 
 @kernel
 def _attitude_rounds(
-    x: np.ndarray, f1: np.ndarray, f2: np.ndarray, sigmas: np.ndarray, sample_thr: float, max_err_rad: float, steps: int, rounds: int, wide_c_sigmas: float
+    x: np.ndarray,
+    f1: np.ndarray,
+    f2: np.ndarray,
+    sigmas: np.ndarray,
+    sample_thr: float,
+    max_err_rad: float,
+    steps: int,
+    rounds: int,
+    wide_c_sigmas: float,
 ) -> None:
     """The rounds of :func:`_refine_with_attitude` on x = (yaw, unit t, d1, d2), updated in place; x
     is put back to its start when the corrections lost most of the start's tight inliers. The Cauchy

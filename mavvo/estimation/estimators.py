@@ -53,7 +53,9 @@ def decompose_upright(e: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> tuple[fl
     n = float(np.linalg.norm(e))
     if len(f1) == 0 or not n > 0:
         return None
-    yaw, t = upright_pose_kernel(np.ascontiguousarray(e, dtype=np.float64) / n, np.ascontiguousarray(f1), np.ascontiguousarray(f2))
+    yaw, t = upright_pose_kernel(
+        np.ascontiguousarray(e, dtype=np.float64) / n, np.ascontiguousarray(f1), np.ascontiguousarray(f2)
+    )
     return float(yaw), t
 
 
@@ -104,8 +106,15 @@ class UprightEssential:
     """
 
     def __init__(
-        self, f1: np.ndarray, f2: np.ndarray, *, solver: MinimalSolver = "3pt", nonminimal: NonminimalSolver = "none", lo_steps: int = 3,
-        yaw_prior_rad: float | None = None, yaw_tolerance_rad: float = math.pi,
+        self,
+        f1: np.ndarray,
+        f2: np.ndarray,
+        *,
+        solver: MinimalSolver = "3pt",
+        nonminimal: NonminimalSolver = "none",
+        lo_steps: int = 3,
+        yaw_prior_rad: float | None = None,
+        yaw_tolerance_rad: float = math.pi,
     ) -> None:
         self.f1, self.f2 = f1, f2
         self.num_data = len(f1)
@@ -113,7 +122,9 @@ class UprightEssential:
         self.solver, self.nonminimal, self.lo_steps = solver, nonminimal, lo_steps
         self.yaw_prior_rad, self.yaw_tolerance_rad = yaw_prior_rad, yaw_tolerance_rad
         self._xyz = (np.ascontiguousarray(f1.T), np.ascontiguousarray(f2.T))  # (3, N) each: the scoring kernel's layout
-        self._sub: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (rows, f1, f2 of them as (3, n)): the loop's fixed subset
+        self._sub: tuple[np.ndarray, np.ndarray, np.ndarray] | None = (
+            None  # (rows, f1, f2 of them as (3, n)): the loop's fixed subset
+        )
 
     def generate(self, samples: np.ndarray) -> np.ndarray:
         f1, f2 = self.f1, self.f2
@@ -172,7 +183,9 @@ class GroundHomography:
     def __init__(self, f1: np.ndarray, f2: np.ndarray) -> None:
         self.f1, self.f2 = np.ascontiguousarray(f1), np.ascontiguousarray(f2)
         self.num_data = len(f1)
-        self._sub: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (rows, f1, f2 of them): the loop's fixed subset
+        self._sub: tuple[np.ndarray, np.ndarray, np.ndarray] | None = (
+            None  # (rows, f1, f2 of them): the loop's fixed subset
+        )
 
     def generate(self, samples: np.ndarray) -> np.ndarray:
         H, valid = solve_ground_2pt_samples(self.f1[samples], self.f2[samples])

@@ -22,7 +22,14 @@ import numpy as np
 from mavvo.geometry.frames import cross
 from mavvo.jit import kernel
 
-__all__ = ["decompose_homography", "estimate_general_relpose", "estimate_general_start", "estimate_ground_plane_relpose", "sampson_sq_general", "sees_ground"]
+__all__ = [
+    "decompose_homography",
+    "estimate_general_relpose",
+    "estimate_general_start",
+    "estimate_ground_plane_relpose",
+    "sampson_sq_general",
+    "sees_ground",
+]
 
 _MIN_Z = 0.1  # bearings this close to a virtual image's horizon are left out of the estimate
 _GROUND_MIN_Z = 0.3  # ground points: at least 17 deg below the horizon in both views (level z is down)
@@ -63,7 +70,9 @@ def _virtual_images(f1: np.ndarray, f2: np.ndarray) -> tuple[np.ndarray, np.ndar
     return V1, V2, p1, p2
 
 
-def estimate_general_start(f1: np.ndarray, f2: np.ndarray, max_err_rad: float, R_near: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+def estimate_general_start(
+    f1: np.ndarray, f2: np.ndarray, max_err_rad: float, R_near: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
     """``(R_2_1, unit t_2_1)`` between the level frames from the general 5-point (no use of
     roll/pitch), as a start for a refinement: of the essential matrix's two rotations the one nearer
     ``R_near`` (3, 3), and the translation's sign left to the caller's cheirality test. Cheaper than
@@ -74,7 +83,9 @@ def estimate_general_start(f1: np.ndarray, f2: np.ndarray, max_err_rad: float, R
     V1, V2, p1, p2 = virtual
     # USAC_FAST: the same starts as RANSAC on the benchmark's pairs at a third of the time (0.15 ms
     # against 0.48 for 120 points); its generator is seeded by its own state, the same on every call.
-    E_v, _ = cv2.findEssentialMat(p1, p2, focal=1.0, pp=(0.0, 0.0), method=cv2.USAC_FAST, prob=0.99, threshold=max_err_rad)
+    E_v, _ = cv2.findEssentialMat(
+        p1, p2, focal=1.0, pp=(0.0, 0.0), method=cv2.USAC_FAST, prob=0.99, threshold=max_err_rad
+    )
     if E_v is None or E_v.shape != (3, 3):
         return None
     Ra, Rb, t_v = cv2.decomposeEssentialMat(E_v)
@@ -85,7 +96,12 @@ def estimate_general_start(f1: np.ndarray, f2: np.ndarray, max_err_rad: float, R
 
 
 def estimate_general_relpose(
-    f1: np.ndarray, f2: np.ndarray, max_err_rad: float, *, seed: int = 0, confidence: float = 0.99,
+    f1: np.ndarray,
+    f2: np.ndarray,
+    max_err_rad: float,
+    *,
+    seed: int = 0,
+    confidence: float = 0.99,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """``(R_2_1, unit t_2_1, E)`` between the level frames of two views from bearings (N, 3), or None
     when OpenCV finds nothing (fewer than 5 usable points)."""
@@ -94,7 +110,9 @@ def estimate_general_relpose(
         return None
     V1, V2, p1, p2 = virtual
     cv2.setRNGSeed(seed)
-    E_v, mask = cv2.findEssentialMat(p1, p2, focal=1.0, pp=(0.0, 0.0), method=cv2.RANSAC, prob=confidence, threshold=max_err_rad)
+    E_v, mask = cv2.findEssentialMat(
+        p1, p2, focal=1.0, pp=(0.0, 0.0), method=cv2.RANSAC, prob=confidence, threshold=max_err_rad
+    )
     if E_v is None or E_v.shape != (3, 3):
         return None
     _, R_v, t_v, _ = cv2.recoverPose(E_v, p1, p2, focal=1.0, pp=(0.0, 0.0), mask=mask)
@@ -118,7 +136,9 @@ def sees_ground(f1: np.ndarray, f2: np.ndarray) -> bool:
     return _mostly(_below_horizon(f1, f2))
 
 
-def estimate_ground_plane_relpose(f1: np.ndarray, f2: np.ndarray, max_err_rad: float, *, seed: int = 0) -> tuple[np.ndarray, np.ndarray] | None:
+def estimate_ground_plane_relpose(
+    f1: np.ndarray, f2: np.ndarray, max_err_rad: float, *, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray] | None:
     """``(R_2_1, t_2_1 / d)`` between the level frames of two views whose bearings (N, 3) see mostly
     the ground, d the ground's distance from view 1 (so that ``|t_2_1 / d|`` is about the parallax the
     translation makes, in radians, looking down), from a general homography (8 degrees of freedom:
@@ -144,20 +164,27 @@ def estimate_ground_plane_relpose(f1: np.ndarray, f2: np.ndarray, max_err_rad: f
     return R, t_per_d
 
 
-def decompose_homography(H: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def decompose_homography(
+    H: np.ndarray, p1: np.ndarray, p2: np.ndarray
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The poses ``(R, t / d, n)`` of a calibrated homography H (3, 3) with ``x2 ~ (R + t n^T / d) x1``
     (Ma, Soatto, Kosecka and Sastry, An Invitation to 3-D Vision, 2004, section 5.3.3): four, two
     pairs that differ in sign; none where H is degenerate. H is scaled so its middle singular value is
     1 and signed so the image points p1, p2 (M, 2) lie in front (``x2^T H x1 > 0``). Unlike OpenCV's
     ``decomposeHomographyMat``, which calls a homography within 1e-3 of a rotation one (no plane, no
     translation), this keeps the translation of a pixel's parallax."""
-    Rs, ts, ns = _decompose_homography_kernel(np.ascontiguousarray(H, dtype=np.float64), np.ascontiguousarray(p1, dtype=np.float64),
-                                              np.ascontiguousarray(p2, dtype=np.float64))
+    Rs, ts, ns = _decompose_homography_kernel(
+        np.ascontiguousarray(H, dtype=np.float64),
+        np.ascontiguousarray(p1, dtype=np.float64),
+        np.ascontiguousarray(p2, dtype=np.float64),
+    )
     return [(Rs[k], ts[k], ns[k]) for k in range(len(Rs))]
 
 
 @kernel
-def _decompose_homography_kernel(H: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _decompose_homography_kernel(
+    H: np.ndarray, p1: np.ndarray, p2: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`decompose_homography`, compiled: (k, 3, 3) rotations, (k, 3) translations, (k, 3) normals, k = 4 or 0."""
     _, sv, Vt = np.linalg.svd(H)
     if not sv[1] > 0:

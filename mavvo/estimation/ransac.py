@@ -33,7 +33,15 @@ from mavvo.jit import kernel
 from mavvo.options import bounded
 
 __all__ = [
-    "Estimator", "CostsFromResiduals", "RansacOptions", "RansacStats", "RansacResult", "lo_ransac", "required_iterations", "draw_samples", "msac_cost",
+    "Estimator",
+    "CostsFromResiduals",
+    "RansacOptions",
+    "RansacStats",
+    "RansacResult",
+    "lo_ransac",
+    "required_iterations",
+    "draw_samples",
+    "msac_cost",
 ]
 
 
@@ -68,22 +76,41 @@ class RansacOptions:
 
     confidence: float = bounded(0.99, "probability that an all-inlier sample was drawn when sampling stops", gt=0, lt=1)
     max_iterations: int = bounded(200, "most samples per estimate", ge=1, le=100000)
-    min_iterations: int = bounded(0, "fewest samples per estimate (0: the stopping rule alone decides)", ge=0, le=100000)
-    first_block: int = bounded(64, "samples in the first batch; later batches are sized to what the stopping rule still needs", ge=1, le=100000)
+    min_iterations: int = bounded(
+        0, "fewest samples per estimate (0: the stopping rule alone decides)", ge=0, le=100000
+    )
+    first_block: int = bounded(
+        64, "samples in the first batch; later batches are sized to what the stopping rule still needs", ge=1, le=100000
+    )
     min_block: int = bounded(8, "the smallest later batch", ge=1, le=100000)
-    preemptive_points: int = bounded(96, "models are first scored on a fixed random subset of this many points", ge=1, le=100000)
-    full_scores_per_block: int = bounded(3, "models of a batch, best on the subset, that are scored on all points", ge=1, le=100000)
+    preemptive_points: int = bounded(
+        96, "models are first scored on a fixed random subset of this many points", ge=1, le=100000
+    )
+    full_scores_per_block: int = bounded(
+        3, "models of a batch, best on the subset, that are scored on all points", ge=1, le=100000
+    )
     local_optimization: bool = bounded(True, "refine each new best model on its inliers while sampling")
-    lo_rounds: int = bounded(1, "refine / re-select rounds of one local optimisation, while the score improves", ge=1, le=100)
+    lo_rounds: int = bounded(
+        1, "refine / re-select rounds of one local optimisation, while the score improves", ge=1, le=100
+    )
 
     def __post_init__(self) -> None:
         if not 0 < self.confidence < 1:
             raise ValueError(f"confidence: expected a probability in (0, 1), got {self.confidence}")
-        for name in ("max_iterations", "first_block", "min_block", "preemptive_points", "full_scores_per_block", "lo_rounds"):
+        for name in (
+            "max_iterations",
+            "first_block",
+            "min_block",
+            "preemptive_points",
+            "full_scores_per_block",
+            "lo_rounds",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)}")
         if self.min_iterations < 0 or self.min_iterations > self.max_iterations:
-            raise ValueError(f"min_iterations: expected 0..max_iterations ({self.max_iterations}), got {self.min_iterations}")
+            raise ValueError(
+                f"min_iterations: expected 0..max_iterations ({self.max_iterations}), got {self.min_iterations}"
+            )
 
 
 @dataclass(frozen=True)
@@ -231,7 +258,14 @@ def lo_ransac(est: Estimator, options: RansacOptions, threshold: float, rng: np.
         needed = required_iterations(best.inliers / n, s, opt.confidence)
         block = max(opt.min_block, min(opt.first_block, needed - drawn))
     stats = RansacStats(
-        iterations=drawn, models=models, models_scored=scored, local_optimizations=lo_runs, inlier_ratio=best.inliers / n,
-        required_iterations=min(needed, opt.max_iterations), time_generate_s=t_gen, time_score_s=t_score, time_lo_s=t_lo,
+        iterations=drawn,
+        models=models,
+        models_scored=scored,
+        local_optimizations=lo_runs,
+        inlier_ratio=best.inliers / n,
+        required_iterations=min(needed, opt.max_iterations),
+        time_generate_s=t_gen,
+        time_score_s=t_score,
+        time_lo_s=t_lo,
     )
     return RansacResult(best.model, best.cost, best.err_sq, best.err_sq < thr_sq, stats)

@@ -88,6 +88,7 @@ class RelposeFailure(StrEnum):
     NO_MODEL = "no_model"
     PURE_ROTATION = "pure_rotation"  #: ``R_2_1`` holds the yaw, ``t_2_1`` is zero
 
+
 # Bearings this close to the horizon (z of a unit level bearing) count as not on the ground below.
 _MIN_GROUND_Z = 0.02
 # GRIC constants for 2-view data (r = 4 dimensions per correspondence), Torr 1998.
@@ -120,20 +121,52 @@ class RelposeOptions(RansacOptions):
     ``odometry.ransac`` section of the service's configuration; the defaults suit the service.
     """
 
-    max_err_px: float = bounded(1.5, "inlier threshold on the Sampson error, pixels (as an angle: divided by the mean focal length)", gt=0, le=100)
-    minimal_solver: MinimalSolver = bounded("3pt", "hypothesis generator: 3pt (batched, fast), 4pt or linear5pt (one sample per call)")
+    max_err_px: float = bounded(
+        1.5,
+        "inlier threshold on the Sampson error, pixels (as an angle: divided by the mean focal length)",
+        gt=0,
+        le=100,
+    )
+    minimal_solver: MinimalSolver = bounded(
+        "3pt", "hypothesis generator: 3pt (batched, fast), 4pt or linear5pt (one sample per call)"
+    )
     lo_steps: int = bounded(3, "Gauss-Newton steps per local optimisation", ge=0, le=100)
     refine_steps: int = bounded(8, "Gauss-Newton steps of the final refinement (0: none)", ge=0, le=100)
-    nonminimal_solver: NonminimalSolver = bounded("none", "re-fit each new best model on its inliers with the 4pt or linear5pt least squares (kept when it scores better)")
-    model: ModelChoice = bounded("auto", "auto: essential matrix or ground homography by GRIC; essential or ground forces one (pure rotation is always checked)")
-    tilt_sigma_deg: float = bounded(0.0, "let vision correct roll/pitch of both views within this sigma, degrees (0: off; the corrections are reported)", ge=0, le=30)
-    ground_samples: int = bounded(16, "most 2-point samples for the ground model among the essential inliers (the stopping rule mostly needs a few)", ge=1, le=10000)
-    min_parallax_ratio: float = bounded(1.0, "median inlier parallax below this many thresholds (or, when less, this many times 1.5 x what noise alone leaves a pure rotation: 3 noise sigmas at 400 inliers, 10 at 15): a pure rotation (translation not observable; 0: GRIC alone decides)", ge=0, le=100)
+    nonminimal_solver: NonminimalSolver = bounded(
+        "none",
+        "re-fit each new best model on its inliers with the 4pt or linear5pt least squares (kept when it scores better)",
+    )
+    model: ModelChoice = bounded(
+        "auto",
+        "auto: essential matrix or ground homography by GRIC; essential or ground forces one (pure rotation is always checked)",
+    )
+    tilt_sigma_deg: float = bounded(
+        0.0,
+        "let vision correct roll/pitch of both views within this sigma, degrees (0: off; the corrections are reported)",
+        ge=0,
+        le=30,
+    )
+    ground_samples: int = bounded(
+        16,
+        "most 2-point samples for the ground model among the essential inliers (the stopping rule mostly needs a few)",
+        ge=1,
+        le=10000,
+    )
+    min_parallax_ratio: float = bounded(
+        1.0,
+        "median inlier parallax below this many thresholds (or, when less, this many times 1.5 x what noise alone leaves a pure rotation: 3 noise sigmas at 400 inliers, 10 at 15): a pure rotation (translation not observable; 0: GRIC alone decides)",
+        ge=0,
+        le=100,
+    )
     yaw_prior_tolerance_deg: float = bounded(
-        30.0, "with a yaw prior, hypotheses further from it are dropped (a nadir camera over flat ground sees a twin at yaw + 180 deg)", gt=0, le=180
+        30.0,
+        "with a yaw prior, hypotheses further from it are dropped (a nadir camera over flat ground sees a twin at yaw + 180 deg)",
+        gt=0,
+        le=180,
     )
     attitude_correction: bool = bounded(
-        True, "the odometry corrects roll/pitch of both views under odometry.attitude_sigma_deg (docs/relpose.md: roll/pitch that are not exact)"
+        True,
+        "the odometry corrects roll/pitch of both views under odometry.attitude_sigma_deg (docs/relpose.md: roll/pitch that are not exact)",
     )
 
     def __post_init__(self) -> None:
@@ -141,11 +174,15 @@ class RelposeOptions(RansacOptions):
         if self.minimal_solver not in SAMPLE_SIZE:
             raise ValueError(f"minimal_solver: expected one of {sorted(SAMPLE_SIZE)}, got {self.minimal_solver!r}")
         if self.nonminimal_solver not in ("none", "4pt", "linear5pt"):
-            raise ValueError(f"nonminimal_solver: expected 'none', '4pt' or 'linear5pt', got {self.nonminimal_solver!r}")
+            raise ValueError(
+                f"nonminimal_solver: expected 'none', '4pt' or 'linear5pt', got {self.nonminimal_solver!r}"
+            )
         if self.model not in ("auto", "essential", "ground"):
             raise ValueError(f"model: expected 'auto', 'essential' or 'ground', got {self.model!r}")
         if not 0 < self.yaw_prior_tolerance_deg <= 180:
-            raise ValueError(f"yaw_prior_tolerance_deg: expected an angle in (0, 180], got {self.yaw_prior_tolerance_deg}")
+            raise ValueError(
+                f"yaw_prior_tolerance_deg: expected an angle in (0, 180], got {self.yaw_prior_tolerance_deg}"
+            )
         if not self.min_parallax_ratio >= 0:
             raise ValueError(f"min_parallax_ratio: expected a number >= 0, got {self.min_parallax_ratio}")
         if not self.tilt_sigma_deg >= 0:
@@ -312,7 +349,14 @@ def _rotation_model_kernel(f1: np.ndarray, f2: np.ndarray, rows: np.ndarray, thr
     return R
 
 
-def _ground_model(f1: np.ndarray, f2: np.ndarray, candidates: np.ndarray, opt: RelposeOptions, threshold_rad: float, rng: np.random.Generator) -> np.ndarray | None:
+def _ground_model(
+    f1: np.ndarray,
+    f2: np.ndarray,
+    candidates: np.ndarray,
+    opt: RelposeOptions,
+    threshold_rad: float,
+    rng: np.random.Generator,
+) -> np.ndarray | None:
     """Ground homography (3, 3) among the candidate indices by the LO-RANSAC loop (2-point samples,
     refitted twice on re-selected inliers); None when the candidates are not all below the horizon."""
     below = candidates[(f1[candidates, 2] > _MIN_GROUND_Z) & (f2[candidates, 2] > _MIN_GROUND_Z)]
@@ -320,7 +364,15 @@ def _ground_model(f1: np.ndarray, f2: np.ndarray, candidates: np.ndarray, opt: R
         return None  # a scene that is all ground lies below the horizon in both views
     # Among the essential inliers a ground scene is nearly all inliers: a few samples decide.
     block = min(8, opt.ground_samples)
-    sampling = dataclasses.replace(opt, min_iterations=0, max_iterations=opt.ground_samples, first_block=block, min_block=1, lo_rounds=2, local_optimization=True)
+    sampling = dataclasses.replace(
+        opt,
+        min_iterations=0,
+        max_iterations=opt.ground_samples,
+        first_block=block,
+        min_block=1,
+        lo_rounds=2,
+        local_optimization=True,
+    )
     run = lo_ransac(GroundHomography(f1[below], f2[below]), sampling, threshold_rad, rng)
     return None if run.model is None else run.model[0]
 
@@ -399,7 +451,11 @@ def estimate_upright_relpose(
     """
     opt = options or RelposeOptions()
     if confidence is not None:
-        warnings.warn("estimate_upright_relpose(confidence=...) is deprecated: pass options=RelposeOptions(confidence=...)", DeprecationWarning, stacklevel=2)
+        warnings.warn(
+            "estimate_upright_relpose(confidence=...) is deprecated: pass options=RelposeOptions(confidence=...)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
         if not 0 < confidence < 1:
             raise ValueError(f"confidence: expected a probability in (0, 1), got {confidence}")
         opt = dataclasses.replace(opt, confidence=confidence)
@@ -420,46 +476,77 @@ def estimate_upright_relpose(
     if attitude_sigma_rad is not None and max(attitude_sigma_rad) <= 0:
         attitude_sigma_rad = None
     # A hypothesis from roll/pitch off by d1 and d2 misplaces every bearing by up to their relative error.
-    sample_thr = max_err_rad if attitude_sigma_rad is None else math.hypot(max_err_rad, _TILT_SIGMAS * math.hypot(*attitude_sigma_rad))
+    sample_thr = (
+        max_err_rad
+        if attitude_sigma_rad is None
+        else math.hypot(max_err_rad, _TILT_SIGMAS * math.hypot(*attitude_sigma_rad))
+    )
 
     rng = np.random.default_rng(seed)
     thr_sq = float(max_err_rad) ** 2
     essential = UprightEssential(
-        f1, f2, solver=opt.minimal_solver, nonminimal=opt.nonminimal_solver, lo_steps=opt.lo_steps,
-        yaw_prior_rad=yaw_prior_rad, yaw_tolerance_rad=math.radians(opt.yaw_prior_tolerance_deg),
+        f1,
+        f2,
+        solver=opt.minimal_solver,
+        nonminimal=opt.nonminimal_solver,
+        lo_steps=opt.lo_steps,
+        yaw_prior_rad=yaw_prior_rad,
+        yaw_tolerance_rad=math.radians(opt.yaw_prior_tolerance_deg),
     )
     run = lo_ransac(essential, opt, sample_thr, rng)
     t_refine = time.thread_time()
     rs = run.stats
     sigma, gric = math.nan, dict[str, float]()
     if run.model is None:
-        rot = lo_ransac(PureRotation(f1, f2), dataclasses.replace(opt, lo_rounds=2, local_optimization=True), sample_thr, rng)
+        rot = lo_ransac(
+            PureRotation(f1, f2), dataclasses.replace(opt, lo_rounds=2, local_optimization=True), sample_thr, rng
+        )
         if rot.model is None or np.count_nonzero(rot.inliers) < s:
             return _failure(RelposeFailure.NO_MODEL, n, rs.iterations, RelposeStats(rs))
         fit = _rotation_fit(rot.model[0], rotation_sq(rot.model[0], f1, f2))
     else:
-        fit, essential, sigma, gric = _select(f1, f2, run, opt, max_err_rad, rng, attitude_sigma_rad, sample_thr, yaw_prior_rad)
+        fit, essential, sigma, gric = _select(
+            f1, f2, run, opt, max_err_rad, rng, attitude_sigma_rad, sample_thr, yaw_prior_rad
+        )
         if attitude_sigma_rad is not None and fit.model != "rotation":
-            fit = _general_if_attitude_is_worse(f1, f2, fit, essential, attitude_sigma_rad, max_err_rad, seed, run.inliers)
+            fit = _general_if_attitude_is_worse(
+                f1, f2, fit, essential, attitude_sigma_rad, max_err_rad, seed, run.inliers
+            )
     final = RelposeStats(rs, sigma, gric, time.thread_time() - t_refine)
     return _result(fit, thr_sq, rs.iterations, final)
 
 
 def _select(
-    f1: np.ndarray, f2: np.ndarray, run: RansacResult, opt: RelposeOptions, max_err_rad: float, rng: np.random.Generator,
-    attitude_sigma_rad: tuple[float, float] | None, sample_thr: float, yaw_prior_rad: float | None,
+    f1: np.ndarray,
+    f2: np.ndarray,
+    run: RansacResult,
+    opt: RelposeOptions,
+    max_err_rad: float,
+    rng: np.random.Generator,
+    attitude_sigma_rad: tuple[float, float] | None,
+    sample_thr: float,
+    yaw_prior_rad: float | None,
 ) -> tuple[_Fit, _Fit, float, dict[str, float]]:
     """Refine the essential model found, then choose between it, the ground homography and a pure
     rotation (GRIC) on the bearings with the roll/pitch corrections the refinement found: the chosen
     fit, the refined essential fit (what the attitude is judged by), the noise sigma and the GRIC scores."""
     thr_sq = max_err_rad**2
     pose, correction = refine_essential(
-        f1, f2, run, max_err_rad, attitude_sigma_rad, sample_thr, yaw_prior_rad,
-        steps=opt.refine_steps, yaw_tolerance_rad=math.radians(opt.yaw_prior_tolerance_deg),
+        f1,
+        f2,
+        run,
+        max_err_rad,
+        attitude_sigma_rad,
+        sample_thr,
+        yaw_prior_rad,
+        steps=opt.refine_steps,
+        yaw_tolerance_rad=math.radians(opt.yaw_prior_tolerance_deg),
     )
     yaw, t, tilt1, tilt2 = pose
     err_e = pose_err_sq(pose, f1, f2, max_err_rad)
-    f1c, f2c = (f1, f2) if correction == Correction.AS_GIVEN else (f1 @ tilt_rotation(tilt1).T, f2 @ tilt_rotation(tilt2).T)
+    f1c, f2c = (
+        (f1, f2) if correction == Correction.AS_GIVEN else (f1 @ tilt_rotation(tilt1).T, f2 @ tilt_rotation(tilt2).T)
+    )
     sigma = robust_sigma(err_e[err_e < thr_sq], max_err_rad)
     essential = _Fit("essential", yaw, t, err_e, None, tilt1, tilt2, correction)
 
@@ -469,7 +556,11 @@ def _select(
     inl_idx = np.nonzero(err_e < thr_sq)[0]
     gric = {"essential": _gric(err_e, inl_idx, sigma_sq, "essential")}
     R_rot = _rotation_model(f1c, f2c, inl_idx, thr_sq)
-    rotation = None if R_rot is None else _Fit("rotation", yaw_of(R_rot), np.zeros(3), rotation_sq(R_rot, f1c, f2c), None, tilt1, tilt2, correction)
+    rotation = (
+        None
+        if R_rot is None
+        else _Fit("rotation", yaw_of(R_rot), np.zeros(3), rotation_sq(R_rot, f1c, f2c), None, tilt1, tilt2, correction)
+    )
     if rotation is not None:
         gric["rotation"] = _gric(rotation.err_sq, inl_idx, sigma_sq, "rotation")
         # Measured about z only: roll and pitch are known, and a free tilt would pass off a nadir
@@ -494,13 +585,25 @@ def _select(
     else:  # essential asked for, or the ground model is not applicable
         allowed = ("essential", "rotation")
     choice = min((m for m in gric if m in allowed), key=gric.__getitem__, default="essential")
-    if choice == "ground" and ground is not None and attitude_sigma_rad is not None and correction != Correction.AS_GIVEN:
+    if (
+        choice == "ground"
+        and ground is not None
+        and attitude_sigma_rad is not None
+        and correction != Correction.AS_GIVEN
+    ):
         ground = _ground_refined(f1, f2, ground, attitude_sigma_rad, max_err_rad, opt.refine_steps)
     fits = {"essential": essential, "rotation": rotation, "ground": ground}
     return fits[choice] or essential, essential, sigma, gric
 
 
-def _ground_refined(f1: np.ndarray, f2: np.ndarray, ground: _Fit, attitude_sigma_rad: tuple[float, float], max_err_rad: float, steps: int) -> _Fit:
+def _ground_refined(
+    f1: np.ndarray,
+    f2: np.ndarray,
+    ground: _Fit,
+    attitude_sigma_rad: tuple[float, float],
+    max_err_rad: float,
+    steps: int,
+) -> _Fit:
     """The ground model's pose, found with the essential fit's roll/pitch corrections held, refined
     with the corrections under the attitude prior on the epipolar (Sampson) error, from that pose and
     at the inlier threshold: the homography decides the model and the basin, the joint refinement the
@@ -512,13 +615,19 @@ def _ground_refined(f1: np.ndarray, f2: np.ndarray, ground: _Fit, attitude_sigma
     (0.0034 deg), the refined the lower on 20%; taken as exact (no corrections), 0.0005 deg against
     0.0008 refined, and there it is kept. The sign of the translation and its size per height stay the
     homography's."""
-    yaw, t, tilt1, tilt2 = refine_at_threshold(f1, f2, (ground.yaw, ground.t, ground.tilt1, ground.tilt2), attitude_sigma_rad, max_err_rad, steps)
+    yaw, t, tilt1, tilt2 = refine_at_threshold(
+        f1, f2, (ground.yaw, ground.t, ground.tilt1, ground.tilt2), attitude_sigma_rad, max_err_rad, steps
+    )
     t = t if np.dot(t, ground.t) >= 0 else -t  # a refinement from the homography's pose keeps its side
     assert ground.t_per_height is not None  # a ground fit has its translation per height
-    return _Fit("ground", yaw, t, ground.err_sq, float(np.linalg.norm(ground.t_per_height)) * t, tilt1, tilt2, ground.correction)
+    return _Fit(
+        "ground", yaw, t, ground.err_sq, float(np.linalg.norm(ground.t_per_height)) * t, tilt1, tilt2, ground.correction
+    )
 
 
-def _translation_unresolved(parallax_rad: float, n_inliers: int, sigma_rad: float, max_err_rad: float, ratio: float) -> bool:
+def _translation_unresolved(
+    parallax_rad: float, n_inliers: int, sigma_rad: float, max_err_rad: float, ratio: float
+) -> bool:
     """The pure-rotation rule: True where ``n_inliers`` points with this median parallax (after the
     best rotation about z) leave a translation to noise, and a near-vertical one leaves the yaw open
     by pi (``E = [t]x Rz(yaw)`` is the same for yaw + pi when t is along z): under ``ratio`` times the
@@ -529,7 +638,13 @@ def _translation_unresolved(parallax_rad: float, n_inliers: int, sigma_rad: floa
 
 
 def _general_if_attitude_is_worse(
-    f1: np.ndarray, f2: np.ndarray, fit: _Fit, essential: _Fit, attitude_sigma_rad: tuple[float, float], max_err_rad: float, seed: int,
+    f1: np.ndarray,
+    f2: np.ndarray,
+    fit: _Fit,
+    essential: _Fit,
+    attitude_sigma_rad: tuple[float, float],
+    max_err_rad: float,
+    seed: int,
     candidates: np.ndarray,
 ) -> _Fit:
     """The general 5-point pose instead of ``fit`` (the model chosen) when the attitude looks worse than
@@ -544,7 +659,10 @@ def _general_if_attitude_is_worse(
     tilt correction of view 2."""
     thr_sq = max_err_rad**2
     upright = int(np.count_nonzero(essential.err_sq < thr_sq))
-    beyond = np.linalg.norm(essential.tilt1) > 3 * attitude_sigma_rad[0] or np.linalg.norm(essential.tilt2) > 3 * attitude_sigma_rad[1]
+    beyond = (
+        np.linalg.norm(essential.tilt1) > 3 * attitude_sigma_rad[0]
+        or np.linalg.norm(essential.tilt2) > 3 * attitude_sigma_rad[1]
+    )
     if not beyond and upright >= _FALLBACK_BELOW_RATIO * np.count_nonzero(candidates):
         return fit
     general = estimate_general_relpose(f1[candidates], f2[candidates], max_err_rad, seed=seed)
@@ -641,7 +759,15 @@ def estimate_relpose_known_gravity(
     f1 = camera.pixels_to_bearings(uv1_px) @ R1.T
     f2 = camera.pixels_to_bearings(uv2_px) @ R2.T
     max_err_rad = max_err_px / (0.5 * (camera.fx_px + camera.fy_px))
-    up = estimate_upright_relpose(f1, f2, max_err_rad=max_err_rad, seed=seed, options=opt, attitude_sigma_rad=attitude_sigma_rad, yaw_prior_rad=yaw_prior_rad)
+    up = estimate_upright_relpose(
+        f1,
+        f2,
+        max_err_rad=max_err_rad,
+        seed=seed,
+        options=opt,
+        attitude_sigma_rad=attitude_sigma_rad,
+        yaw_prior_rad=yaw_prior_rad,
+    )
     R1c = tilt_rotation(up.tilt1_rad) @ R1
     R2c = tilt_rotation(up.tilt2_rad) @ R2
     return CameraRelpose(

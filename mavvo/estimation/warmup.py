@@ -51,7 +51,9 @@ def warm_kernels() -> float:
         estimate_upright_relpose(f1, f1, max_err_rad=0.002, options=RelposeOptions())  # no baseline
     solve_upright_3pt(f1[:3], f2[:3])
     # The ground start's decomposition, which the scenes above (parallax to spare) never need.
-    decompose_homography(np.eye(3) + np.outer([0.01, 0.0, 0.0], [0.0, 0.0, 1.0]), f1[:, :2] / f1[:, 2:], f2[:, :2] / f2[:, 2:])
+    decompose_homography(
+        np.eye(3) + np.outer([0.01, 0.0, 0.0], [0.0, 0.0, 1.0]), f1[:, :2] / f1[:, 2:], f2[:, :2] / f2[:, 2:]
+    )
     # The pixel entry (bearings of an undistorted pinhole, the rotation checks), as the frontend and
     # the odometry use them, the medians and the triangulation of the odometry and the scale.
     camera = CameraModel(640, 480, 500.0, 500.0, 320.0, 240.0)

@@ -42,7 +42,9 @@ class FlightSafety:
     fc_max_error_m: float | None
     largest_reset_step_m: float | None  # how far a reset moved the flight controller's estimate
     reset_steps_m: list[float]
-    reset_step_excess_m: float | None  # the largest step minus what it may be: 0.3 m + 10% of the motion since the previous estimate
+    reset_step_excess_m: (
+        float | None
+    )  # the largest step minus what it may be: 0.3 m + 10% of the motion since the previous estimate
     heading_end_error_deg: float | None  # the sent yaw against the truth's
     heading_median_error_deg: float | None
     nees_median: float | None  # 1 s windows without a reset: motion error against the difference's covariance
@@ -58,7 +60,9 @@ def _wrap(a: np.ndarray) -> np.ndarray:
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
-def motion_consistency(samples: list[VisionSample], truth_p: Callable[[np.ndarray], np.ndarray], window_s: float = 1.0) -> tuple[float | None, float | None]:
+def motion_consistency(
+    samples: list[VisionSample], truth_p: Callable[[np.ndarray], np.ndarray], window_s: float = 1.0
+) -> tuple[float | None, float | None]:
     """(median NEES, fraction inside the 99% ellipse) of the motion over ``window_s`` windows.
 
     For each sample i and the first j at least ``window_s`` later with the same ``reset_counter`` (no
@@ -148,6 +152,17 @@ def flight_safety(
             ok.append(e <= 3.0 * drift)
         within = float(np.mean(ok)) if ok else None
     return FlightSafety(
-        sent_end, sent_max, fc_end, fc_max, max((m for _, m in reset_steps), default=None), [m for _, m in reset_steps], excess,
-        hd_end, hd_med, nees_med, inside, within, path,
+        sent_end,
+        sent_max,
+        fc_end,
+        fc_max,
+        max((m for _, m in reset_steps), default=None),
+        [m for _, m in reset_steps],
+        excess,
+        hd_end,
+        hd_med,
+        nees_med,
+        inside,
+        within,
+        path,
     )

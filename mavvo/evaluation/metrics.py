@@ -42,8 +42,14 @@ class PoseSeries:
         object.__setattr__(self, "orientations_quat_wxyz", q)
 
     @classmethod
-    def from_rotations(cls, timestamps_s: np.ndarray, positions_xyz_m: np.ndarray, R_world_body: np.ndarray) -> "PoseSeries":
-        return cls(np.asarray(timestamps_s, dtype=float), positions_xyz_m, quat_wxyz_from_R(np.asarray(R_world_body, dtype=float)))
+    def from_rotations(
+        cls, timestamps_s: np.ndarray, positions_xyz_m: np.ndarray, R_world_body: np.ndarray
+    ) -> "PoseSeries":
+        return cls(
+            np.asarray(timestamps_s, dtype=float),
+            positions_xyz_m,
+            quat_wxyz_from_R(np.asarray(R_world_body, dtype=float)),
+        )
 
     def __len__(self) -> int:
         return len(self.timestamps_s)
@@ -95,7 +101,12 @@ def associate(est: PoseSeries, gt: PoseSeries, max_dt_s: float = 0.01) -> tuple[
 def _stats(x: np.ndarray) -> dict[str, float]:
     if len(x) == 0:
         return {"rmse": float("nan"), "mean": float("nan"), "median": float("nan"), "max": float("nan")}
-    return {"rmse": float(np.sqrt(np.mean(x * x))), "mean": float(np.mean(x)), "median": float(np.median(x)), "max": float(np.max(x))}
+    return {
+        "rmse": float(np.sqrt(np.mean(x * x))),
+        "mean": float(np.mean(x)),
+        "median": float(np.median(x)),
+        "max": float(np.max(x)),
+    }
 
 
 def position_errors_m(est: PoseSeries, gt: PoseSeries) -> np.ndarray:
@@ -154,7 +165,9 @@ class Evaluation:
         return asdict(self)
 
 
-def evaluate(est: PoseSeries, gt: PoseSeries, *, rpe_delta_m: float = 10.0, rpe_delta_s: float = 1.0) -> tuple[Evaluation, PoseSeries]:
+def evaluate(
+    est: PoseSeries, gt: PoseSeries, *, rpe_delta_m: float = 10.0, rpe_delta_s: float = 1.0
+) -> tuple[Evaluation, PoseSeries]:
     """Errors of ``est`` against ``gt`` (matched, equal length, N >= 3), and ``est`` after SE(3)
     alignment onto ``gt`` (for plots)."""
     if len(est) != len(gt):

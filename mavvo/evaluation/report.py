@@ -56,7 +56,9 @@ def read_tum(path: str | Path) -> PoseSeries:
     return PoseSeries(a[:, 0], a[:, 1:4], np.column_stack([a[:, 7], a[:, 4:7]]))
 
 
-def vision_estimates(received: Iterable[Any], time_source: Literal["usec", "arrival"] = "usec", usec_offset_s: float = 0.0) -> PoseSeries:
+def vision_estimates(
+    received: Iterable[Any], time_source: Literal["usec", "arrival"] = "usec", usec_offset_s: float = 0.0
+) -> PoseSeries:
     """The VISION_POSITION_ESTIMATEs among ``received`` (mavvo.sim.flight_controller.autopilot.Received) as a series.
 
     ``usec``: the message's own timestamp plus ``usec_offset_s``, read as simulation time (offset 0:
@@ -94,7 +96,9 @@ def write_report(out_dir: str | Path, est: PoseSeries, gt: PoseSeries, *, title:
     return ev
 
 
-def plot_evaluation(path: str | Path, aligned: PoseSeries, gt: PoseSeries, ev: Evaluation, *, title: str = "mavvo") -> Path:
+def plot_evaluation(
+    path: str | Path, aligned: PoseSeries, gt: PoseSeries, ev: Evaluation, *, title: str = "mavvo"
+) -> Path:
     """PNG: top view of both paths (north up, east right) and the position error over time."""
     import matplotlib
 
@@ -104,7 +108,14 @@ def plot_evaluation(path: str | Path, aligned: PoseSeries, gt: PoseSeries, ev: E
     err = np.linalg.norm(aligned.positions_xyz_m - gt.positions_xyz_m, axis=1)
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.6), gridspec_kw={"width_ratios": [1.1, 1]})
     ax1.plot(gt.positions_xyz_m[:, 1], gt.positions_xyz_m[:, 0], "k-", lw=1.5, label="truth")
-    ax1.plot(aligned.positions_xyz_m[:, 1], aligned.positions_xyz_m[:, 0], "-", color="tab:orange", lw=1.2, label="estimate (SE(3)-aligned)")
+    ax1.plot(
+        aligned.positions_xyz_m[:, 1],
+        aligned.positions_xyz_m[:, 0],
+        "-",
+        color="tab:orange",
+        lw=1.2,
+        label="estimate (SE(3)-aligned)",
+    )
     ax1.plot(gt.positions_xyz_m[0, 1], gt.positions_xyz_m[0, 0], "go", label="start")
     ax1.set_xlabel("east [m]")
     ax1.set_ylabel("north [m]")

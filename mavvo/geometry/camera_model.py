@@ -32,14 +32,18 @@ class CameraIntrinsics:
     """Image size, focal lengths, principal point and distortion: the ``camera:`` keys that the
     service's camera (:class:`mavvo.service.camera.CameraOptions`) and the simulator's share."""
 
-    width_px: int = bounded(640, "image width (a device is asked for it; frames of another size are rejected)", gt=0, le=16384)
+    width_px: int = bounded(
+        640, "image width (a device is asked for it; frames of another size are rejected)", gt=0, le=16384
+    )
     height_px: int = bounded(480, "image height", gt=0, le=16384)
     fx_px: float = bounded(500.0, "focal length, x", gt=0, le=1e5)
     fy_px: float = bounded(500.0, "focal length, y", gt=0, le=1e5)
     cx_px: float = bounded(319.5, "principal point, x (inside the image)", ge=0, le=16384)
     cy_px: float = bounded(239.5, "principal point, y (inside the image)", ge=0, le=16384)
     model: ModelName = bounded("pinhole", "pinhole (OpenCV radtan distortion) or fisheye (equidistant)")
-    distortion: tuple[float, ...] = bounded((), "pinhole: k1 k2 p1 p2 [k3]; fisheye: k1 k2 k3 k4; empty for none", ge=-100, le=100)
+    distortion: tuple[float, ...] = bounded(
+        (), "pinhole: k1 k2 p1 p2 [k3]; fisheye: k1 k2 k3 k4; empty for none", ge=-100, le=100
+    )
 
     def __post_init__(self) -> None:
         for name in ("width_px", "height_px"):
@@ -57,7 +61,9 @@ class CameraIntrinsics:
         allowed = (4, 5) if self.model == "pinhole" else (4,)
         d = tuple(float(x) for x in self.distortion)
         if d and len(d) not in allowed:
-            raise ValueError(f"distortion: expected {' or '.join(map(str, allowed))} coefficients for {self.model}, got {len(d)}")
+            raise ValueError(
+                f"distortion: expected {' or '.join(map(str, allowed))} coefficients for {self.model}, got {len(d)}"
+            )
         if not all(np.isfinite(d)):
             raise ValueError(f"distortion: expected finite coefficients, got {d}")
         object.__setattr__(self, "distortion", d)
@@ -85,7 +91,12 @@ class CameraModel(CameraIntrinsics):
 
     @classmethod
     def from_matrix(
-        cls, K: np.ndarray, width_px: int, height_px: int, distortion: tuple[float, ...] = (), model: ModelName = "pinhole"
+        cls,
+        K: np.ndarray,
+        width_px: int,
+        height_px: int,
+        distortion: tuple[float, ...] = (),
+        model: ModelName = "pinhole",
     ) -> "CameraModel":
         """Build from a 3x3 intrinsic matrix as OpenCV calibrations give it."""
         K = np.asarray(K, dtype=float)
@@ -130,7 +141,10 @@ class CameraModel(CameraIntrinsics):
         r2 = a * a + b * b
         radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
         drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
-        xd = np.stack([a * radial + 2 * p1 * a * b + p2 * (r2 + 2 * a * a), b * radial + p1 * (r2 + 2 * b * b) + 2 * p2 * a * b], axis=1)
+        xd = np.stack(
+            [a * radial + 2 * p1 * a * b + p2 * (r2 + 2 * a * a), b * radial + p1 * (r2 + 2 * b * b) + 2 * p2 * a * b],
+            axis=1,
+        )
         J = np.empty((len(x), 2, 2))
         J[:, 0, 0] = radial + a * drad * 2 * a + 2 * p1 * b + p2 * 6 * a
         J[:, 0, 1] = a * drad * 2 * b + 2 * p1 * a + p2 * 2 * b

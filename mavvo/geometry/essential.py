@@ -93,7 +93,9 @@ def as_bearing_pair(
     a = as_bearings(names[0], f1, min_rows, exact_rows)
     b = as_bearings(names[1], f2, min_rows, exact_rows)
     if a.shape != b.shape:
-        raise ValueError(f"{names[0]} and {names[1]}: expected the same number of bearings, got {a.shape[0]} and {b.shape[0]}")
+        raise ValueError(
+            f"{names[0]} and {names[1]}: expected the same number of bearings, got {a.shape[0]} and {b.shape[0]}"
+        )
     return a, b
 
 
@@ -165,7 +167,11 @@ def alpha_beta_gamma(e: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 
 def constraint_values(al: np.ndarray, be: np.ndarray, ga: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Q (real), D (real) and T (complex) of the module docstring, elementwise."""
-    return (be * np.conj(be)).real - (ga * np.conj(ga)).real, (al * ga * np.conj(be)).real, be * be * np.conj(al) + al * ga * ga
+    return (
+        (be * np.conj(be)).real - (ga * np.conj(ga)).real,
+        (al * ga * np.conj(be)).real,
+        be * be * np.conj(al) + al * ga * ga,
+    )
 
 
 def constraint_violation(e: np.ndarray) -> np.ndarray:

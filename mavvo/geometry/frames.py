@@ -141,7 +141,11 @@ def _rotation_defect(R: np.ndarray) -> float:
                 return np.inf
             dot = R[i, 0] * R[j, 0] + R[i, 1] * R[j, 1] + R[i, 2] * R[j, 2]
             worst = max(worst, abs(dot - (1.0 if i == j else 0.0)))
-    det = R[0, 0] * (R[1, 1] * R[2, 2] - R[1, 2] * R[2, 1]) - R[0, 1] * (R[1, 0] * R[2, 2] - R[1, 2] * R[2, 0]) + R[0, 2] * (R[1, 0] * R[2, 1] - R[1, 1] * R[2, 0])
+    det = (
+        R[0, 0] * (R[1, 1] * R[2, 2] - R[1, 2] * R[2, 1])
+        - R[0, 1] * (R[1, 0] * R[2, 2] - R[1, 2] * R[2, 0])
+        + R[0, 2] * (R[1, 0] * R[2, 1] - R[1, 1] * R[2, 0])
+    )
     return max(worst, 2.0) if det < 0.0 else worst
 
 
@@ -156,7 +160,15 @@ def quat_wxyz_from_R(R: np.ndarray) -> np.ndarray:
     m = Rs
     tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
     # the four candidate magnitudes; take the largest per rotation for stability
-    cand = np.stack([1 + tr, 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2], 1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2], 1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], axis=1)
+    cand = np.stack(
+        [
+            1 + tr,
+            1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
+            1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2],
+            1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2],
+        ],
+        axis=1,
+    )
     k = np.argmax(cand, axis=1)
     q = np.empty((len(m), 4))
     s = 2.0 * np.sqrt(np.maximum(cand[np.arange(len(m)), k], 1e-300))
@@ -185,15 +197,20 @@ def R_from_quat_wxyz(q: np.ndarray) -> np.ndarray:
         raise ValueError(f"q: expected (4,) or (N,4), got shape {q.shape}")
     qs = qs / np.linalg.norm(qs, axis=1, keepdims=True)
     w, x, y, z = qs.T
-    R = np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1),
-    ], axis=1)
+    R = np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1),
+        ],
+        axis=1,
+    )
     return R[0] if single else R
 
 
-def interpolate_euler321(rpy0_rad: tuple[float, float, float], rpy1_rad: tuple[float, float, float], w: float) -> tuple[float, float, float]:
+def interpolate_euler321(
+    rpy0_rad: tuple[float, float, float], rpy1_rad: tuple[float, float, float], w: float
+) -> tuple[float, float, float]:
     """Euler 3-2-1 angles (roll, pitch, yaw; radians) of the rotation a fraction ``w`` (0..1) of the way
     from ``rpy0_rad`` to ``rpy1_rad`` along the shortest arc (slerp): the attitude between two samples
     turning at a constant rate, which interpolating each angle on its own is not once the vehicle tilts

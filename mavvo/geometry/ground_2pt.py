@@ -96,7 +96,13 @@ def solve_ground_2pt_samples(F1: np.ndarray, F2: np.ndarray) -> tuple[np.ndarray
             continue
         m = (u[2] - u[3]) / du1
         tau = u[2] - m * u[0]
-        if abs(m) > 1e-12 and math.isfinite(m.real) and math.isfinite(m.imag) and math.isfinite(tau.real) and math.isfinite(tau.imag):
+        if (
+            abs(m) > 1e-12
+            and math.isfinite(m.real)
+            and math.isfinite(m.imag)
+            and math.isfinite(tau.real)
+            and math.isfinite(tau.imag)
+        ):
             homography_from_similarity(m, tau, H[k])
             valid[k] = True
     return H, valid

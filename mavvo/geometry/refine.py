@@ -24,6 +24,7 @@ from mavvo.jit import kernel
 
 __all__ = ["UprightFit", "tilt_rotation", "refine_upright", "ground_similarity", "fit_rotation"]
 
+
 @dataclass(frozen=True)
 class UprightFit:
     """Result of :func:`refine_upright`.
@@ -94,10 +95,18 @@ def refine_upright(
         prior_w[:] = (1.0 / s1, 1.0 / s1, 1.0 / s2, 1.0 / s2)  # type: ignore[operator]
     x = np.array([float(yaw_rad), *t, *d])  # (yaw, t, d1, d2): the kernel's state, updated in place
     steps = gauss_newton_upright(
-        x, np.ascontiguousarray(f1, dtype=np.float64), np.ascontiguousarray(f2, dtype=np.float64), int(iterations), with_tilt, prior_w,
-        1.0 / noise_sigma_rad if with_tilt else 1.0, robust_scale_rad or 0.0,  # type: ignore[operator]
+        x,
+        np.ascontiguousarray(f1, dtype=np.float64),
+        np.ascontiguousarray(f2, dtype=np.float64),
+        int(iterations),
+        with_tilt,
+        prior_w,
+        1.0 / noise_sigma_rad if with_tilt else 1.0,
+        robust_scale_rad or 0.0,  # type: ignore[operator]
     )
-    return UprightFit(float(np.arctan2(np.sin(x[0]), np.cos(x[0]))), x[1:4].copy(), x[4:6].copy(), x[6:8].copy(), int(steps))
+    return UprightFit(
+        float(np.arctan2(np.sin(x[0]), np.cos(x[0]))), x[1:4].copy(), x[4:6].copy(), x[6:8].copy(), int(steps)
+    )
 
 
 @kernel
@@ -117,7 +126,11 @@ def upright_tuple(yaw: float, t0: float, t1: float, t2: float) -> tuple[float, f
 def rotate_row(R: np.ndarray, f: np.ndarray, i: int) -> tuple[float, float, float]:
     """``R @ f[i]`` for R (3, 3) and f (N, 3), as scalars."""
     x, y, z = f[i, 0], f[i, 1], f[i, 2]
-    return R[0, 0] * x + R[0, 1] * y + R[0, 2] * z, R[1, 0] * x + R[1, 1] * y + R[1, 2] * z, R[2, 0] * x + R[2, 1] * y + R[2, 2] * z
+    return (
+        R[0, 0] * x + R[0, 1] * y + R[0, 2] * z,
+        R[1, 0] * x + R[1, 1] * y + R[1, 2] * z,
+        R[2, 0] * x + R[2, 1] * y + R[2, 2] * z,
+    )
 
 
 @kernel
@@ -175,7 +188,9 @@ def _tangent_basis(t0: float, t1: float, t2: float) -> tuple[float, float, float
 # Reassociation and contraction only (no assumption on NaN or inf): the per-point loop then runs on
 # several points at once; the rounding differs from the plain loop by a few ulp.
 @kernel(fastmath={"reassoc", "contract", "nsz"})
-def _upright_rows(x: np.ndarray, T1: np.ndarray, T2: np.ndarray, f1: np.ndarray, f2: np.ndarray, noise_w: float, robust_c: float) -> tuple[np.ndarray, np.ndarray]:
+def _upright_rows(
+    x: np.ndarray, T1: np.ndarray, T2: np.ndarray, f1: np.ndarray, f2: np.ndarray, noise_w: float, robust_c: float
+) -> tuple[np.ndarray, np.ndarray]:
     """The weighted Jacobian J (7, N) of the Sampson residuals at x = (yaw, t, d1, d2) with respect to
     (yaw, t along the tangent basis b1, b2, d1, d2), and the weighted residuals (N,): the rows of one
     Gauss-Newton step of :func:`gauss_newton_upright` (its caller drops the tilt rows when they are fixed).
@@ -189,8 +204,28 @@ def _upright_rows(x: np.ndarray, T1: np.ndarray, T2: np.ndarray, f1: np.ndarray,
     E00, E01, E02 = -t2 * sy, -t2 * cy, t1
     E10, E11, E12 = t2 * cy, -t2 * sy, -t0
     E20, E21 = -t1 * cy + t0 * sy, t1 * sy + t0 * cy
-    A00, A01, A02, A10, A11, A12, A20, A21, A22 = T1[0, 0], T1[0, 1], T1[0, 2], T1[1, 0], T1[1, 1], T1[1, 2], T1[2, 0], T1[2, 1], T1[2, 2]
-    B00, B01, B02, B10, B11, B12, B20, B21, B22 = T2[0, 0], T2[0, 1], T2[0, 2], T2[1, 0], T2[1, 1], T2[1, 2], T2[2, 0], T2[2, 1], T2[2, 2]
+    A00, A01, A02, A10, A11, A12, A20, A21, A22 = (
+        T1[0, 0],
+        T1[0, 1],
+        T1[0, 2],
+        T1[1, 0],
+        T1[1, 1],
+        T1[1, 2],
+        T1[2, 0],
+        T1[2, 1],
+        T1[2, 2],
+    )
+    B00, B01, B02, B10, B11, B12, B20, B21, B22 = (
+        T2[0, 0],
+        T2[0, 1],
+        T2[0, 2],
+        T2[1, 0],
+        T2[1, 1],
+        T2[1, 2],
+        T2[2, 0],
+        T2[2, 1],
+        T2[2, 2],
+    )
     inv_c = 1.0 / robust_c if robust_c > 0.0 else 0.0  # 0: the Cauchy weight below is 1
     N = f1.shape[0]
     J = np.empty((7, N))
@@ -237,8 +272,12 @@ def _upright_rows(x: np.ndarray, T1: np.ndarray, T2: np.ndarray, f1: np.ndarray,
         # forward flight's pairs 0.40 deg of median translation error where the minimum has 0.36.
         h = n / (2.0 * den)
         j0 -= h * (-2.0 * tg * (g0 * t1 - g1 * t0) - 4.0 * n * j0)  # d(t.g)/d yaw = (g x t)_z
-        j1 -= h * (-2.0 * tg * (b10 * g0 + b11 * g1 + b12 * g2) - 2.0 * tq * (b10 * q0 + b11 * q1 + b12 * q2) - 4.0 * n * j1)
-        j2 -= h * (-2.0 * tg * (b20 * g0 + b21 * g1 + b22 * g2) - 2.0 * tq * (b20 * q0 + b21 * q1 + b22 * q2) - 4.0 * n * j2)
+        j1 -= h * (
+            -2.0 * tg * (b10 * g0 + b11 * g1 + b12 * g2) - 2.0 * tq * (b10 * q0 + b11 * q1 + b12 * q2) - 4.0 * n * j1
+        )
+        j2 -= h * (
+            -2.0 * tg * (b20 * g0 + b21 * g1 + b22 * g2) - 2.0 * tq * (b20 * q0 + b21 * q1 + b22 * q2) - 4.0 * n * j2
+        )
         j3 -= h * (-2.0 * tg * (t0 * ux0 + t1 * ux1 + t2 * ux2) - 4.0 * n * j3)
         j4 -= h * (-2.0 * tg * (t0 * uy0 + t1 * uy1 + t2 * uy2) - 4.0 * n * j4)
         j5 -= h * (-2.0 * tq * (t2 * q1 - t1 * q2) - 4.0 * n * j5)  # e_x x f2c = (0, -q2, q1)
@@ -248,7 +287,15 @@ def _upright_rows(x: np.ndarray, T1: np.ndarray, T2: np.ndarray, f1: np.ndarray,
         rc = r * inv_c
         wgt = inv_s * noise_w / math.sqrt(1.0 + rc * rc)
         res[i] = r * noise_w / math.sqrt(1.0 + rc * rc)
-        J[0, i], J[1, i], J[2, i], J[3, i], J[4, i], J[5, i], J[6, i] = j0 * wgt, j1 * wgt, j2 * wgt, j3 * wgt, j4 * wgt, j5 * wgt, j6 * wgt
+        J[0, i], J[1, i], J[2, i], J[3, i], J[4, i], J[5, i], J[6, i] = (
+            j0 * wgt,
+            j1 * wgt,
+            j2 * wgt,
+            j3 * wgt,
+            j4 * wgt,
+            j5 * wgt,
+            j6 * wgt,
+        )
     return J, res
 
 
@@ -271,7 +318,14 @@ def _normal_equations(J: np.ndarray, res: np.ndarray, JtJ: np.ndarray, Jtr: np.n
 
 @kernel
 def gauss_newton_upright(
-    x: np.ndarray, f1: np.ndarray, f2: np.ndarray, iterations: int, with_tilt: bool, prior_w: np.ndarray, noise_w: float, robust_c: float
+    x: np.ndarray,
+    f1: np.ndarray,
+    f2: np.ndarray,
+    iterations: int,
+    with_tilt: bool,
+    prior_w: np.ndarray,
+    noise_w: float,
+    robust_c: float,
 ) -> int:
     """The steps of :func:`refine_upright` on x = (yaw, t (3), d1 (2), d2 (2)), updated in place; the
     number of steps taken; the rows of each step from :func:`_upright_rows`.
@@ -342,7 +396,9 @@ _MAX_HALVINGS = 6
 
 
 @kernel
-def _upright_cost(x: np.ndarray, f1: np.ndarray, f2: np.ndarray, with_tilt: bool, prior_w: np.ndarray, noise_w: float, robust_c: float) -> float:
+def _upright_cost(
+    x: np.ndarray, f1: np.ndarray, f2: np.ndarray, with_tilt: bool, prior_w: np.ndarray, noise_w: float, robust_c: float
+) -> float:
     """The cost :func:`gauss_newton_upright` lowers at x: sum over points of the Cauchy loss
     c^2 log(1 + r^2/c^2) of the Sampson residual r (r^2 without ``robust_c``), times ``noise_w``^2
     with the tilts free, plus the prior's sum (prior_w d)^2."""

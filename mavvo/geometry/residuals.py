@@ -25,12 +25,17 @@ def sampson_sq_upright(e: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndar
     the gradients E f1, E^T f2; on the sphere the gradient of r is projected onto the tangent planes of
     both bearings: ``err^2 = r^2 / (|E f1|^2 + |E^T f2|^2 - 2 r^2)``. Compiled (the sampling scores with :func:`sampson_msac_upright`).
     """
-    return sampson_sq_kernel(np.ascontiguousarray(e, dtype=np.float64).reshape(-1, 6), np.ascontiguousarray(f1, dtype=np.float64),
-                               np.ascontiguousarray(f2, dtype=np.float64))
+    return sampson_sq_kernel(
+        np.ascontiguousarray(e, dtype=np.float64).reshape(-1, 6),
+        np.ascontiguousarray(f1, dtype=np.float64),
+        np.ascontiguousarray(f2, dtype=np.float64),
+    )
 
 
 @kernel(inline=True)
-def sampson_sq_point(e: tuple[float, float, float, float, float, float], x: float, y: float, z: float, xp: float, yp: float, zp: float) -> float:
+def sampson_sq_point(
+    e: tuple[float, float, float, float, float, float], x: float, y: float, z: float, xp: float, yp: float, zp: float
+) -> float:
     """The squared Sampson error of one correspondence (x, y, z), (xp, yp, zp) under the upright e
     (E13, E21, E22, E23, E31, E32); ``UNMAPPABLE_SQ`` where its gradient vanishes but r does not."""
     e13, e21, e22, e23, e31, e32 = e
@@ -111,7 +116,11 @@ def rotation_sq(R: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
 def _per_model(fn, M: np.ndarray, f1: np.ndarray, f2: np.ndarray) -> np.ndarray:  # type: ignore[no-untyped-def]
     """A (K, N) kernel over models M (..., 3, 3), shaped back to (..., N)."""
     M = np.asarray(M, dtype=np.float64)
-    out = fn(np.ascontiguousarray(M.reshape(-1, 3, 3)), np.ascontiguousarray(f1, dtype=np.float64), np.ascontiguousarray(f2, dtype=np.float64))
+    out = fn(
+        np.ascontiguousarray(M.reshape(-1, 3, 3)),
+        np.ascontiguousarray(f1, dtype=np.float64),
+        np.ascontiguousarray(f2, dtype=np.float64),
+    )
     return out.reshape(M.shape[:-2] + (out.shape[1],))
 
 

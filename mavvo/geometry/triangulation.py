@@ -14,7 +14,9 @@ __all__ = ["triangulate_midpoints"]
 
 
 @kernel
-def triangulate_midpoints(f1: np.ndarray, f2: np.ndarray, R: np.ndarray, t: np.ndarray, min_parallax_rad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def triangulate_midpoints(
+    f1: np.ndarray, f2: np.ndarray, R: np.ndarray, t: np.ndarray, min_parallax_rad: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Midpoints of the closest approach of the rays of unit bearings f1, f2 (N, 3) (C-contiguous
     float64) for the pose ``x_2 = R x_1 + t`` (R (3, 3), t (3,)): depths (N,) along f1 and along f2
     in units of |t|, the rotation-compensated angle between the rays (N,) (rad), and valid (N,) where

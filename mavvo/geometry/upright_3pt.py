@@ -42,7 +42,9 @@ _CUBIC = ((3, 0), (2, 1), (2, 0), (1, 2), (1, 1), (1, 0), (0, 3), (0, 2), (0, 1)
 def _padua_points() -> np.ndarray:
     """The ten Padua points of degree 3 in [-1, 1]^2, (10, 2): cubics in (a, b) are interpolated
     there with a monomial Vandermonde matrix of condition number 11."""
-    return np.array([(np.cos(j * np.pi / 3), np.cos(k * np.pi / 4)) for j in range(4) for k in range(5) if (j + k) % 2 == 0])
+    return np.array(
+        [(np.cos(j * np.pi / 3), np.cos(k * np.pi / 4)) for j in range(4) for k in range(5) if (j + k) % 2 == 0]
+    )
 
 
 def _shift_map() -> np.ndarray:
@@ -150,7 +152,11 @@ def solve_sample(X1: np.ndarray, X2: np.ndarray, e: np.ndarray, valid: np.ndarra
     for k in range(4):
         if valid[k]:
             _unit_frobenius(e[k])
-            valid[k] = _is_finite(e[k]) and _distinct_epipolar_planes(e[k], X1) and _constraint_violation(e[k]) < _MAX_CONSTRAINT_RESIDUAL
+            valid[k] = (
+                _is_finite(e[k])
+                and _distinct_epipolar_planes(e[k], X1)
+                and _constraint_violation(e[k]) < _MAX_CONSTRAINT_RESIDUAL
+            )
 
 
 @kernel
@@ -208,9 +214,12 @@ def _constraint_values_at_padua(basis: np.ndarray) -> np.ndarray:
         a, b = _PADUA[p, 0], _PADUA[p, 1]
         # e(a, b) entry by entry: no temporary arrays per point
         q, d, tr, ti = _qdt_of(
-            a * basis[0, 0] + b * basis[1, 0] + basis[2, 0], a * basis[0, 1] + b * basis[1, 1] + basis[2, 1],
-            a * basis[0, 2] + b * basis[1, 2] + basis[2, 2], a * basis[0, 3] + b * basis[1, 3] + basis[2, 3],
-            a * basis[0, 4] + b * basis[1, 4] + basis[2, 4], a * basis[0, 5] + b * basis[1, 5] + basis[2, 5],
+            a * basis[0, 0] + b * basis[1, 0] + basis[2, 0],
+            a * basis[0, 1] + b * basis[1, 1] + basis[2, 1],
+            a * basis[0, 2] + b * basis[1, 2] + basis[2, 2],
+            a * basis[0, 3] + b * basis[1, 3] + basis[2, 3],
+            a * basis[0, 4] + b * basis[1, 4] + basis[2, 4],
+            a * basis[0, 5] + b * basis[1, 5] + basis[2, 5],
         )
         out[p], out[10 + p], out[20 + p], out[30 + p] = q, d, tr, ti
     return out
@@ -223,9 +232,18 @@ def _qdt(e: np.ndarray) -> tuple[float, float, float, float]:
 
 
 @kernel(inline=True)
-def _qdt_of(e13: float, e21: float, e22: float, e23: float, e31: float, e32: float) -> tuple[float, float, float, float]:
+def _qdt_of(
+    e13: float, e21: float, e22: float, e23: float, e31: float, e32: float
+) -> tuple[float, float, float, float]:
     """:func:`_qdt` of the entries of e."""
-    br, ar, ai, bi, gr, gi = e13, e22, e21, e23, e31, e32  # beta = E13 + i E23, alpha = E22 + i E21, gamma = E31 + i E32
+    br, ar, ai, bi, gr, gi = (
+        e13,
+        e22,
+        e21,
+        e23,
+        e31,
+        e32,
+    )  # beta = E13 + i E23, alpha = E22 + i E21, gamma = E31 + i E32
     q = br * br + bi * bi - gr * gr - gi * gi
     pr, pi = ar * gr - ai * gi, ar * gi + ai * gr  # alpha gamma
     d = pr * br + pi * bi  # Re(alpha gamma conj(beta))

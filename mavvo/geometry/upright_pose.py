@@ -73,7 +73,19 @@ def nearest_upright(e: np.ndarray) -> tuple[float, np.ndarray]:
 
 
 @kernel(inline=True)
-def midpoint_depths(c: float, s: float, t0: float, t1: float, t2: float, x1: float, y1: float, z1: float, x2: float, y2: float, z2: float) -> tuple[float, float, float]:
+def midpoint_depths(
+    c: float,
+    s: float,
+    t0: float,
+    t1: float,
+    t2: float,
+    x1: float,
+    y1: float,
+    z1: float,
+    x2: float,
+    y2: float,
+    z2: float,
+) -> tuple[float, float, float]:
     """The midpoint triangulation of f1 = (x1, y1, z1), f2 = (x2, y2, z2) for R = Rz(yaw) (c, s its
     cosine and sine) and t: its depths along f1 and along f2, each times ``det``, and ``det`` =
     sin^2 of the parallax times |f1|^2 |f2|^2."""
@@ -87,7 +99,9 @@ def midpoint_depths(c: float, s: float, t0: float, t1: float, t2: float, x1: flo
 
 
 @kernel(inline=True)
-def _row_depths(c: float, s: float, t: np.ndarray, f1: np.ndarray, f2: np.ndarray, i: int) -> tuple[float, float, float]:
+def _row_depths(
+    c: float, s: float, t: np.ndarray, f1: np.ndarray, f2: np.ndarray, i: int
+) -> tuple[float, float, float]:
     """:func:`midpoint_depths` of row i of f1, f2 (N, 3)."""
     return midpoint_depths(c, s, t[0], t[1], t[2], f1[i, 0], f1[i, 1], f1[i, 2], f2[i, 0], f2[i, 1], f2[i, 2])
 
@@ -112,12 +126,27 @@ def behind_upright(yaw: float, t: np.ndarray, f1: np.ndarray, f2: np.ndarray, mi
     min_det = math.sin(min_parallax_rad) ** 2
     out = np.zeros(f1.shape[0], dtype=np.bool_)
     for i in range(f1.shape[0]):
-        out[i] = point_behind(c, s, t[0], t[1], t[2], f1[i, 0], f1[i, 1], f1[i, 2], f2[i, 0], f2[i, 1], f2[i, 2], min_det)
+        out[i] = point_behind(
+            c, s, t[0], t[1], t[2], f1[i, 0], f1[i, 1], f1[i, 2], f2[i, 0], f2[i, 1], f2[i, 2], min_det
+        )
     return out
 
 
 @kernel(inline=True)
-def point_behind(c: float, s: float, t0: float, t1: float, t2: float, x1: float, y1: float, z1: float, x2: float, y2: float, z2: float, min_det: float) -> bool:
+def point_behind(
+    c: float,
+    s: float,
+    t0: float,
+    t1: float,
+    t2: float,
+    x1: float,
+    y1: float,
+    z1: float,
+    x2: float,
+    y2: float,
+    z2: float,
+    min_det: float,
+) -> bool:
     """:func:`behind_upright` of one point, ``min_det`` the sine of the least parallax squared."""
     d1, d2, det = midpoint_depths(c, s, t0, t1, t2, x1, y1, z1, x2, y2, z2)
     return det > min_det and (d1 <= 0.0 or d2 <= 0.0)

@@ -48,7 +48,9 @@ class TrackAhead:
         self.ahead = 0
         # A daemon thread, not a ThreadPoolExecutor's: those are joined at interpreter exit, so a
         # helper stuck inside OpenCV would keep the service from exiting for systemd to restart it.
-        self._jobs: queue.SimpleQueue[tuple[np.ndarray, Future[Tracks]] | None] | None = queue.SimpleQueue() if thread else None
+        self._jobs: queue.SimpleQueue[tuple[np.ndarray, Future[Tracks]] | None] | None = (
+            queue.SimpleQueue() if thread else None
+        )
         self._helper: threading.Thread | None = None
         self._pending: tuple[np.ndarray, Future[Tracks]] | None = None
 

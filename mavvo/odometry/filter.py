@@ -50,7 +50,9 @@ def chi2_cdf(x: float, dof: int) -> float:
     h = 0.5 * x
     if dof % 2 == 0:
         return 1.0 - math.exp(-h) * sum(h**i / math.factorial(i) for i in range(dof // 2))
-    return math.erf(math.sqrt(h)) - math.exp(-h) * sum(h ** (i + 0.5) / math.gamma(i + 1.5) for i in range((dof - 1) // 2))
+    return math.erf(math.sqrt(h)) - math.exp(-h) * sum(
+        h ** (i + 0.5) / math.gamma(i + 1.5) for i in range((dof - 1) // 2)
+    )
 
 
 def chi2_quantile(probability: float, dof: int) -> float:
@@ -76,8 +78,15 @@ class FilterOptions:
     accel_sigma_m_s2: float = bounded(3.0, "process noise: white acceleration, 1 sigma", gt=0, le=100)
     yaw_accel_sigma_rad_s2: float = bounded(2.0, "process noise: white yaw acceleration, 1 sigma", gt=0, le=100)
     initial_velocity_sigma_m_s: float = bounded(1.0, "velocity uncertainty at a (re)start", gt=0, le=100)
-    initial_yaw_rate_sigma_rad_s: float = bounded(2.0, "yaw rate uncertainty at a start (a start mid-turn must not be gated away)", gt=0, le=20)
-    gate_probability: float = bounded(0.999, "reject a measurement whose squared Mahalanobis distance exceeds the chi2 quantile of this probability (dof: the measurement's size)", gt=0, lt=1)
+    initial_yaw_rate_sigma_rad_s: float = bounded(
+        2.0, "yaw rate uncertainty at a start (a start mid-turn must not be gated away)", gt=0, le=20
+    )
+    gate_probability: float = bounded(
+        0.999,
+        "reject a measurement whose squared Mahalanobis distance exceeds the chi2 quantile of this probability (dof: the measurement's size)",
+        gt=0,
+        lt=1,
+    )
     max_rejections: int = bounded(5, "after this many rejections in a row, restart at the measurement", ge=1, le=1000)
 
 
@@ -94,8 +103,15 @@ class PoseFilter:
         self._gate = {k: chi2_quantile(self.options.gate_probability, k) for k in (1, _DIM_Z)}
 
     def reset(
-        self, t_s: float, p_ned_m: np.ndarray, yaw_rad: float, *, v_ned_m_s: np.ndarray | None = None, yaw_rate_rad_s: float | None = None,
-        pos_cov_m2: np.ndarray, yaw_sigma_rad: float,
+        self,
+        t_s: float,
+        p_ned_m: np.ndarray,
+        yaw_rad: float,
+        *,
+        v_ned_m_s: np.ndarray | None = None,
+        yaw_rate_rad_s: float | None = None,
+        pos_cov_m2: np.ndarray,
+        yaw_sigma_rad: float,
     ) -> None:
         """Start at a pose (velocity and yaw rate zero, with their initial sigmas, unless given);
         ``pos_cov_m2`` (3,3) its position covariance."""
@@ -126,14 +142,18 @@ class PoseFilter:
         # White acceleration over dt on each (position, velocity) pair and on (yaw, yaw rate):
         # q = [[dt^4/4, dt^3/2], [dt^3/2, dt^2]] times the acceleration's variance.
         Q = np.zeros((_DIM_X, _DIM_X))
-        for (i, j), var in zip(_PAIRS, (self.options.accel_sigma_m_s2**2,) * 3 + (self.options.yaw_accel_sigma_rad_s2**2,)):
+        for (i, j), var in zip(
+            _PAIRS, (self.options.accel_sigma_m_s2**2,) * 3 + (self.options.yaw_accel_sigma_rad_s2**2,)
+        ):
             Q[i, i], Q[i, j], Q[j, j] = var * dt**4 / 4, var * dt**3 / 2, var * dt**2
             Q[j, i] = Q[i, j]
         self._x = F @ self._x  # x = F x
         self._P = F @ self._P @ F.T + Q  # P = F P F' + Q
         self._t_s = float(t_s)
 
-    def update(self, p_ned_m: np.ndarray | None, yaw_rad: float, *, pos_cov_m2: np.ndarray, yaw_sigma_rad: float) -> Update:
+    def update(
+        self, p_ned_m: np.ndarray | None, yaw_rad: float, *, pos_cov_m2: np.ndarray, yaw_sigma_rad: float
+    ) -> Update:
         """Fuse a measurement taken at the current time (see :class:`Update`): a position with
         covariance ``pos_cov_m2`` (3,3) m^2, and a yaw.
 
@@ -159,13 +179,23 @@ class PoseFilter:
             if self.rejections < self.options.max_rejections:
                 return Update.REJECTED
             p = x[0:3, 0] if p_ned_m is None else p_ned_m
-            self.reset(self._t_s, p, z[-1, 0], v_ned_m_s=x[3:6, 0], yaw_rate_rad_s=float(x[7, 0]), pos_cov_m2=pos_cov_m2, yaw_sigma_rad=yaw_sigma_rad)
+            self.reset(
+                self._t_s,
+                p,
+                z[-1, 0],
+                v_ned_m_s=x[3:6, 0],
+                yaw_rate_rad_s=float(x[7, 0]),
+                pos_cov_m2=pos_cov_m2,
+                yaw_sigma_rad=yaw_sigma_rad,
+            )
             return Update.RESTARTED
         self.rejections = 0
         K = np.linalg.solve(S, H @ P).T  # gain K = P H' S^-1 (S and P symmetric)
         self._x = x + K @ y  # x = x + K y
         I_KH = np.eye(_DIM_X) - K @ H
-        self._P = I_KH @ P @ I_KH.T + K @ R @ K.T  # P = (I - K H) P (I - K H)' + K R K' (Joseph: stays symmetric, positive)
+        self._P = (
+            I_KH @ P @ I_KH.T + K @ R @ K.T
+        )  # P = (I - K H) P (I - K H)' + K R K' (Joseph: stays symmetric, positive)
         return Update.FUSED
 
     def shift_yaw(self, delta_rad: float) -> None:

@@ -37,15 +37,24 @@ class FrontendOptions:
     max_features: int = bounded(250, "tracks kept per frame (the detector tops up to this)", gt=0, le=5000)
     grid_cols: int = bounded(8, "detection grid columns (features are spread over the cells)", gt=0, le=64)
     grid_rows: int = bounded(6, "detection grid rows", gt=0, le=64)
-    fast_threshold: int = bounded(20, "FAST intensity threshold, grey levels (halved once when a frame yields too few)", gt=0, lt=255)
-    min_distance_px: float = bounded(12.0, "no new corner closer than this to a track or another new corner", gt=0, le=500)
-    redetect_fraction: float = bounded(0.8, "detect new corners when fewer than this fraction of max_features survive", gt=0, le=1)
+    fast_threshold: int = bounded(
+        20, "FAST intensity threshold, grey levels (halved once when a frame yields too few)", gt=0, lt=255
+    )
+    min_distance_px: float = bounded(
+        12.0, "no new corner closer than this to a track or another new corner", gt=0, le=500
+    )
+    redetect_fraction: float = bounded(
+        0.8, "detect new corners when fewer than this fraction of max_features survive", gt=0, le=1
+    )
     klt_window_px: int = bounded(15, "Lucas-Kanade window side", ge=5, le=101)
     klt_levels: int = bounded(3, "pyramid levels above the full image", ge=0, le=6)
     klt_iterations: int = bounded(20, "Lucas-Kanade iterations per level", gt=0, le=1000)
     fb_max_px: float = bounded(0.5, "largest forward-backward round-trip error of a surviving track", gt=0, le=50)
     klt_back_levels: int = bounded(
-        0, "pyramid levels of the backward check, which starts at the tracks' old positions (0: full resolution only, a third of the forward cost)", ge=0, le=6
+        0,
+        "pyramid levels of the backward check, which starts at the tracks' old positions (0: full resolution only, a third of the forward cost)",
+        ge=0,
+        le=6,
     )
     border_px: int = bounded(8, "tracks this close to the image edge are dropped", ge=0, le=500)
 
@@ -121,7 +130,9 @@ class Frontend:
             raise ValueError(f"image: expected a (H,W) uint8 grey image, got {a.dtype} of shape {a.shape}")
         h, w = a.shape
         if (w, h) != (self.camera.width_px, self.camera.height_px):
-            raise ValueError(f"image: expected {self.camera.width_px}x{self.camera.height_px} (the camera model's size), got {w}x{h}")
+            raise ValueError(
+                f"image: expected {self.camera.width_px}x{self.camera.height_px} (the camera model's size), got {w}x{h}"
+            )
         if not (_MIN_SIDE_PX <= min(h, w) and max(h, w) <= _MAX_SIDE_PX):
             raise ValueError(f"image: expected sides between {_MIN_SIDE_PX} and {_MAX_SIDE_PX} px, got {w}x{h}")
         return a
@@ -150,7 +161,9 @@ class Frontend:
     def _cell(self, uv: np.ndarray, w: int, h: int) -> np.ndarray:
         """(N,) index of each pixel's detection-grid cell."""
         gc, gr = self.options.grid_cols, self.options.grid_rows
-        return np.minimum((uv[:, 1] * gr / h).astype(int), gr - 1) * gc + np.minimum((uv[:, 0] * gc / w).astype(int), gc - 1)
+        return np.minimum((uv[:, 1] * gr / h).astype(int), gr - 1) * gc + np.minimum(
+            (uv[:, 0] * gc / w).astype(int), gc - 1
+        )
 
     def _detect(self, img: np.ndarray, live_uv: np.ndarray) -> np.ndarray:
         """New corners in cells short of their share, away from live tracks: (M,2) float32."""
@@ -182,7 +195,9 @@ class Frontend:
         free = ~occupied[fv, fu]
         pts, resp, fu, fv = pts[free], resp[free], fu[free], fv[free]
         cells = self._cell(pts, w, h)
-        quota = np.maximum(self._per_cell - np.bincount(self._cell(live_uv, w, h), minlength=opt.grid_cols * opt.grid_rows), 0)
+        quota = np.maximum(
+            self._per_cell - np.bincount(self._cell(live_uv, w, h), minlength=opt.grid_cols * opt.grid_rows), 0
+        )
         room = max(opt.max_features - len(live_uv), 0)
         # Greedy, strongest first: a corner takes its fine cell and the eight around it.
         taken: list[int] = []

@@ -94,18 +94,55 @@ class OdometryOptions:
     min_inliers: int = bounded(20, "fewer inliers: no pose from this frame", ge=5, le=5000)
     good_inliers: int = bounded(120, "inliers for full quality", ge=5, le=5000)
     max_failed_frames: int = bounded(5, "frames in a row without a pose before the keyframe is given up", ge=1, le=1000)
-    position_sigma_m: float = bounded(0.0008, "vision position noise from the image at full quality with the scene 10 m away (it scales with the depth, down to a fifth of it); the other terms: docs/odometry.md", gt=0, le=100)
-    position_sigma_per_speed_s: float = bounded(0.003, "vision position noise per m/s of speed with the tracks' noise at track_noise_px (the translation's direction and length errors grow with the motion and the noise; counted from half to ten times this noise), seconds", ge=0, le=10)
-    track_noise_px: float = bounded(0.1, "the tracks' noise (RMS of the relative pose's inlier residuals) position_sigma_per_speed_s is given for", gt=0, le=10)
+    position_sigma_m: float = bounded(
+        0.0008,
+        "vision position noise from the image at full quality with the scene 10 m away (it scales with the depth, down to a fifth of it); the other terms: docs/odometry.md",
+        gt=0,
+        le=100,
+    )
+    position_sigma_per_speed_s: float = bounded(
+        0.003,
+        "vision position noise per m/s of speed with the tracks' noise at track_noise_px (the translation's direction and length errors grow with the motion and the noise; counted from half to ten times this noise), seconds",
+        ge=0,
+        le=10,
+    )
+    track_noise_px: float = bounded(
+        0.1,
+        "the tracks' noise (RMS of the relative pose's inlier residuals) position_sigma_per_speed_s is given for",
+        gt=0,
+        le=10,
+    )
     yaw_sigma_deg: float = bounded(0.3, "vision yaw noise at full quality", gt=0, le=180)
     attitude_sigma_deg: float = bounded(0.2, "roll/pitch uncertainty reported in the covariance", gt=0, le=90)
-    heading_correction_time_s: float = bounded(10.0, "pull the vision heading toward the flight controller's yaw with this time constant (0: vision's heading alone)", ge=0, le=3600)
+    heading_correction_time_s: float = bounded(
+        10.0,
+        "pull the vision heading toward the flight controller's yaw with this time constant (0: vision's heading alone)",
+        ge=0,
+        le=3600,
+    )
     degraded_quality_max: int = bounded(50, "quality cap while degraded", ge=1, le=100)
-    anchor_sigma_m: float = bounded(0.3, "how far the flight controller's own position estimate, where tracking is (re)started, may be from the truth (VO_DRIFT)", gt=0, le=100)
-    dead_reckon_max_s: float = bounded(2.0, "re-initialising without the flight controller's position: move the last good pose on by the filter's velocity over at most this long", ge=0, le=60)
-    max_speed_m_s: float = bounded(10.0, "the vehicle's top speed: how uncertain a pose held over an outage is", gt=0, le=100)
+    anchor_sigma_m: float = bounded(
+        0.3,
+        "how far the flight controller's own position estimate, where tracking is (re)started, may be from the truth (VO_DRIFT)",
+        gt=0,
+        le=100,
+    )
+    dead_reckon_max_s: float = bounded(
+        2.0,
+        "re-initialising without the flight controller's position: move the last good pose on by the filter's velocity over at most this long",
+        ge=0,
+        le=60,
+    )
+    max_speed_m_s: float = bounded(
+        10.0, "the vehicle's top speed: how uncertain a pose held over an outage is", gt=0, le=100
+    )
     drift_per_m: float = bounded(0.02, "long-term drift (VO_DRIFT) per metre flown, 1 sigma", ge=0, le=1)
-    heading_sigma_deg: float = bounded(2.0, "heading uncertainty behind VO_DRIFT (the flight controller's yaw followed; without it vision's grows)", ge=0, le=180)
+    heading_sigma_deg: float = bounded(
+        2.0,
+        "heading uncertainty behind VO_DRIFT (the flight controller's yaw followed; without it vision's grows)",
+        ge=0,
+        le=180,
+    )
 
 
 @dataclass
@@ -172,7 +209,13 @@ class Odometry:
             from this service, so that a restarted service's first estimate counts as a reset.
     """
 
-    def __init__(self, camera: CameraModel, R_body_cam: np.ndarray, options: OdometryOptions | None = None, reset_counter: int = 0) -> None:
+    def __init__(
+        self,
+        camera: CameraModel,
+        R_body_cam: np.ndarray,
+        options: OdometryOptions | None = None,
+        reset_counter: int = 0,
+    ) -> None:
         self.camera = camera
         self.R_body_cam = as_rotation("R_body_cam", R_body_cam)
         self.options = opt = options or OdometryOptions()
@@ -215,7 +258,9 @@ class Odometry:
         (:class:`mavvo.odometry.ahead.TrackAhead`, on another thread); tracked here otherwise.
         """
         if not (math.isfinite(frame.roll_rad) and math.isfinite(frame.pitch_rad)):
-            raise ValueError(f"frame {frame.seq}: roll_rad and pitch_rad must be finite, got {frame.roll_rad}, {frame.pitch_rad}")
+            raise ValueError(
+                f"frame {frame.seq}: roll_rad and pitch_rad must be finite, got {frame.roll_rad}, {frame.pitch_rad}"
+            )
         if tracks is None:
             tracks = self.track(frame.image)
         f_lvl = tracks.f_cam @ R_lvl_cam(frame.roll_rad, frame.pitch_rad, self.R_body_cam).T
@@ -260,14 +305,28 @@ class Odometry:
             self.reset_counter = (self.reset_counter + 1) % 256
             log.info("re-initialised at frame %d (reset %d), anchored at %s", frame.seq, self.reset_counter, how)
         self._drift.anchor_p_ned_m, self._drift.flown_m, self._drift.last_p_ned_m = p.copy(), 0.0, None
-        kf = Keyframe(frame.seq, frame.t_exposure_s, tracks.ids, f_lvl, np.full(len(tracks.ids), np.nan), p, yaw, fc_yaw, self._attitude_sigma_rad(frame))
+        kf = Keyframe(
+            frame.seq,
+            frame.t_exposure_s,
+            tracks.ids,
+            f_lvl,
+            np.full(len(tracks.ids), np.nan),
+            p,
+            yaw,
+            fc_yaw,
+            self._attitude_sigma_rad(frame),
+        )
         self.chain.push(kf, self.reset_counter)
         self._last_yaw_2_1 = 0.0
         self._metric_interval = False
         self._failed_in_row = 0
-        self.filter.reset(frame.t_exposure_s, p, yaw, v_ned_m_s=v, pos_cov_m2=sigma**2 * np.eye(3), yaw_sigma_rad=self._yaw_sigma_rad)
+        self.filter.reset(
+            frame.t_exposure_s, p, yaw, v_ned_m_s=v, pos_cov_m2=sigma**2 * np.eye(3), yaw_sigma_rad=self._yaw_sigma_rad
+        )
         self._good = _Good(frame.t_exposure_s, p.copy(), np.zeros(3) if v is None else v.copy(), yaw, fc_yaw)
-        diag = VoDiagnostics(state=VisionState.INITIALISING, reason=StateReason.NEW_KEYFRAME, tracks=len(tracks.ids), keyframe=True)
+        diag = VoDiagnostics(
+            state=VisionState.INITIALISING, reason=StateReason.NEW_KEYFRAME, tracks=len(tracks.ids), keyframe=True
+        )
         return self._estimate(frame, diag, quality=1)
 
     def _anchor(self, t_s: float, fc_p: np.ndarray | None) -> tuple[np.ndarray, float, str]:
@@ -283,10 +342,14 @@ class Odometry:
         # Dead reckoning: the filter's velocity error times the time, then a pose held at top speed.
         sigma_v = math.sqrt(max(np.trace(self.filter.velocity_covariance) / 3.0, 0.0))
         sigma = opt.position_sigma_m + sigma_v * reckon + opt.max_speed_m_s * (dt - reckon)
-        how = f"the last good pose of {dt:.2f} s ago" + (f", moved on by its velocity for {reckon:.2f} s" if reckon > 0 else "")
+        how = f"the last good pose of {dt:.2f} s ago" + (
+            f", moved on by its velocity for {reckon:.2f} s" if reckon > 0 else ""
+        )
         return p, sigma, how
 
-    def _measure(self, frame: PairedFrame, kf: Keyframe, i_kf: np.ndarray, i_cur: np.ndarray, f_lvl: np.ndarray) -> _Measurement | _NoPose:
+    def _measure(
+        self, frame: PairedFrame, kf: Keyframe, i_kf: np.ndarray, i_cur: np.ndarray, f_lvl: np.ndarray
+    ) -> _Measurement | _NoPose:
         """The frame's pose against the keyframe, or the reason there is none."""
         opt = self.options
         f1, f2 = kf.f_lvl[i_kf], f_lvl[i_cur]
@@ -298,7 +361,13 @@ class Odometry:
         # flight controller's uncertainty, and what follows works in the corrected level frames.
         sigmas = self._view_attitude_sigmas_rad(kf, frame) if opt.ransac.attitude_correction else None
         rp = estimate_upright_relpose(
-            f1, f2, max_err_rad=self._max_err_rad, seed=frame.seq, options=opt.ransac, yaw_prior_rad=prior, attitude_sigma_rad=sigmas,
+            f1,
+            f2,
+            max_err_rad=self._max_err_rad,
+            seed=frame.seq,
+            options=opt.ransac,
+            yaw_prior_rad=prior,
+            attitude_sigma_rad=sigmas,
         )
         if not rp.success and rp.reason != RelposeFailure.PURE_ROTATION:
             return _NoPose(StateReason(rp.reason.value))
@@ -326,13 +395,22 @@ class Odometry:
             down2 = R_lvl_body2[:, 2]
             c2_unit = -rp.R_2_1.T @ rp.t_2_1
             scale = estimate_scale(
-                opt.scale, points_lvl=pts, parallax_rad=par_i[valid], c2_lvl1=c2_unit, down_lvl2=down2,
-                range_m=frame.range_m, height_m=frame.height_m, carried_depth_m=carried[known],
-                depth_unit=lam1[valid][known], first_interval=not self._metric_interval,
+                opt.scale,
+                points_lvl=pts,
+                parallax_rad=par_i[valid],
+                c2_lvl1=c2_unit,
+                down_lvl2=down2,
+                range_m=frame.range_m,
+                height_m=frame.height_m,
+                carried_depth_m=carried[known],
+                depth_unit=lam1[valid][known],
+                first_interval=not self._metric_interval,
             )
             if scale is None:
                 depth = self._scene_depth_m or opt.scale.initial_depth_m
-                scale = scale_from_scene_depth(pts, depth, ScaleSource.HELD if self._scene_depth_m else ScaleSource.ASSUMED, opt.scale.min_points)
+                scale = scale_from_scene_depth(
+                    pts, depth, ScaleSource.HELD if self._scene_depth_m else ScaleSource.ASSUMED, opt.scale.min_points
+                )
             if scale is None:
                 # Too little parallax to triangulate: the baseline is below what the images resolve
                 # (about depth * min_parallax), so the frame is where the keyframe is (_accept).
@@ -348,7 +426,16 @@ class Odometry:
         parallax_px = median(par[inl]) * self._focal_px
         return _Measurement(p, yaw, rp, scale, c2, parallax_px, depth2, par, (roll2, pitch2))
 
-    def _accept(self, frame: PairedFrame, tracks: Tracks, f_lvl: np.ndarray, kf: Keyframe, i_kf: np.ndarray, i_cur: np.ndarray, m: _Measurement) -> PoseEstimate:
+    def _accept(
+        self,
+        frame: PairedFrame,
+        tracks: Tracks,
+        f_lvl: np.ndarray,
+        kf: Keyframe,
+        i_kf: np.ndarray,
+        i_cur: np.ndarray,
+        m: _Measurement,
+    ) -> PoseEstimate:
         opt = self.options
         rp = m.relpose
         reason = StateReason.NONE
@@ -371,32 +458,72 @@ class Odometry:
         if outcome == Update.RESTARTED:
             # The filter jumped to the measurement: a change of the sent pose that is not motion.
             self.reset_counter = (self.reset_counter + 1) % 256
-            log.info("filter restarted at frame %d after %d rejections (reset %d)", frame.seq, opt.filter.max_rejections, self.reset_counter)
+            log.info(
+                "filter restarted at frame %d after %d rejections (reset %d)",
+                frame.seq,
+                opt.filter.max_rejections,
+                self.reset_counter,
+            )
         survival = len(i_kf) / len(kf.ids)
-        why_kf = keyframe_reason(opt.keyframes, parallax_px=m.parallax_px, survival=survival, inliers=rp.num_inliers) if accepted else ""
+        why_kf = (
+            keyframe_reason(opt.keyframes, parallax_px=m.parallax_px, survival=survival, inliers=rp.num_inliers)
+            if accepted
+            else ""
+        )
         if why_kf:
             self._new_keyframe(frame, tracks, f_lvl, kf, i_kf, i_cur, m, reason)
         if accepted:
-            self._good = _Good(frame.t_exposure_s, self.filter.position_ned_m, self.filter.velocity_ned_m_s, self.filter.yaw_rad, frame.yaw_rad)
+            self._good = _Good(
+                frame.t_exposure_s,
+                self.filter.position_ned_m,
+                self.filter.velocity_ned_m_s,
+                self.filter.yaw_rad,
+                frame.yaw_rad,
+            )
             d = self._drift
             if d.last_p_ned_m is not None:
                 d.flown_m += float(np.linalg.norm(self._good.p_ned_m - d.last_p_ned_m))
             d.last_p_ned_m = self._good.p_ned_m
         diag = VoDiagnostics(
-            state=VisionState.DEGRADED if degraded else VisionState.TRACKING, reason=reason, tracks=len(tracks.ids), inliers=rp.num_inliers,
-            inlier_ratio=rp.inlier_ratio, parallax_px=m.parallax_px, residual_rms_px=rp.residual_rms_rad * self._focal_px,
-            scale_source=m.scale.source if m.scale is not None else ScaleSource.NONE, keyframe=bool(why_kf),
-            attitude_gap_s=frame.attitude_gap_s, attitude_sigma_deg=math.degrees(self._attitude_sigma_rad(frame)),
+            state=VisionState.DEGRADED if degraded else VisionState.TRACKING,
+            reason=reason,
+            tracks=len(tracks.ids),
+            inliers=rp.num_inliers,
+            inlier_ratio=rp.inlier_ratio,
+            parallax_px=m.parallax_px,
+            residual_rms_px=rp.residual_rms_rad * self._focal_px,
+            scale_source=m.scale.source if m.scale is not None else ScaleSource.NONE,
+            keyframe=bool(why_kf),
+            attitude_gap_s=frame.attitude_gap_s,
+            attitude_sigma_deg=math.degrees(self._attitude_sigma_rad(frame)),
         )
         return self._estimate(frame, diag, quality=quality, roll_pitch_rad=m.roll_pitch_rad)
 
     def _new_keyframe(
-        self, frame: PairedFrame, tracks: Tracks, f_lvl: np.ndarray, kf: Keyframe, i_kf: np.ndarray, i_cur: np.ndarray, m: _Measurement, reason: StateReason,
+        self,
+        frame: PairedFrame,
+        tracks: Tracks,
+        f_lvl: np.ndarray,
+        kf: Keyframe,
+        i_kf: np.ndarray,
+        i_cur: np.ndarray,
+        m: _Measurement,
+        reason: StateReason,
     ) -> None:
         rp = m.relpose
         p_kf, k = self._keyframe_position(kf, m, reason)
         t_m = -rp.R_2_1 @ m.c2_m * k  # metric t_2_1
-        depth = carry_depths(kf, i_kf, i_cur, len(tracks.ids), rp.R_2_1, t_m, m.depth2_m * k, m.parallax_rad, self._carry_min_parallax_rad)
+        depth = carry_depths(
+            kf,
+            i_kf,
+            i_cur,
+            len(tracks.ids),
+            rp.R_2_1,
+            t_m,
+            m.depth2_m * k,
+            m.parallax_rad,
+            self._carry_min_parallax_rad,
+        )
         yaw = wrap_angle(m.yaw_rad)
         tau = self.options.heading_correction_time_s
         if tau > 0 and math.isfinite(frame.yaw_rad):
@@ -407,12 +534,25 @@ class Odometry:
         f_kf = f_lvl @ tilt_rotation(m.relpose.tilt2_rad).T
         unmeasured = self._unresolved_baseline_m(kf, m) if m.scale is None else 0.0
         self.chain.push(
-            Keyframe(frame.seq, frame.t_exposure_s, tracks.ids, f_kf, depth, p_kf, yaw, frame.yaw_rad, self._attitude_sigma_rad(frame), unmeasured),
+            Keyframe(
+                frame.seq,
+                frame.t_exposure_s,
+                tracks.ids,
+                f_kf,
+                depth,
+                p_kf,
+                yaw,
+                frame.yaw_rad,
+                self._attitude_sigma_rad(frame),
+                unmeasured,
+            ),
             self.reset_counter,
         )
         self._last_yaw_2_1 = 0.0
         known = np.isfinite(depth)
-        self._metric_interval = m.scale is not None and self._trusted(m.scale) and np.count_nonzero(known) >= self.options.scale.min_points
+        self._metric_interval = (
+            m.scale is not None and self._trusted(m.scale) and np.count_nonzero(known) >= self.options.scale.min_points
+        )
         if np.any(known):
             self._scene_depth_m = median(depth[known])
 
@@ -454,7 +594,9 @@ class Odometry:
         self.filter.predict(frame.t_exposure_s)  # the filter runs from the first keyframe on
         return self._estimate(frame, VoDiagnostics(state=VisionState.FAILED, reason=reason, tracks=tracks), quality=-1)
 
-    def _position_noise(self, frame: PairedFrame, kf: Keyframe, m: _Measurement) -> tuple[np.ndarray | None, np.ndarray]:
+    def _position_noise(
+        self, frame: PairedFrame, kf: Keyframe, m: _Measurement
+    ) -> tuple[np.ndarray | None, np.ndarray]:
         """The position to fuse (None: the translation is not measured) and its noise covariance (3,3)
         m^2 at full quality (docs/odometry.md, Covariance)."""
         opt = self.options
@@ -469,9 +611,15 @@ class Odometry:
             # The motion's errors grow with the tracks' noise (the relative pose's residuals, over
             # the noise position_sigma_per_speed_s is given for). Independent sources: they add in
             # quadrature; a height source's noise moves the position along the translation only.
-            tilt_rad = frame.interpolation_sigma_rad if rp.attitude_resolved else math.hypot(*self._view_attitude_sigmas_rad(kf, frame))
+            tilt_rad = (
+                frame.interpolation_sigma_rad
+                if rp.attitude_resolved
+                else math.hypot(*self._view_attitude_sigmas_rad(kf, frame))
+            )
             resid_px = rp.residual_rms_rad * self._focal_px if math.isfinite(rp.residual_rms_rad) else math.inf
-            track_noise = min(max(resid_px / opt.track_noise_px, _TRACK_NOISE_MIN), _TRACK_NOISE_MAX)  # unknown: the most
+            track_noise = min(
+                max(resid_px / opt.track_noise_px, _TRACK_NOISE_MIN), _TRACK_NOISE_MAX
+            )  # unknown: the most
             c2_m = float(np.linalg.norm(m.c2_m))
             unresolved = math.hypot(
                 m.scale.spread * c2_m,
@@ -507,7 +655,9 @@ class Odometry:
         span = max(opt.good_inliers - opt.min_inliers, 1)
         inl = min(max((rp.num_inliers - opt.min_inliers) / span, 0.0), 1.0)
         ratio = min(rp.inlier_ratio / 0.8, 1.0)
-        resid = rp.residual_rms_rad * self._focal_px / opt.ransac.max_err_px if math.isfinite(rp.residual_rms_rad) else 1.0
+        resid = (
+            rp.residual_rms_rad * self._focal_px / opt.ransac.max_err_px if math.isfinite(rp.residual_rms_rad) else 1.0
+        )
         q = 100.0 * math.sqrt(inl) * ratio * min(max(1.0 - 0.5 * resid, 0.2), 1.0)
         q = max(1, int(round(q)))
         return min(q, opt.degraded_quality_max) if degraded else q
@@ -520,7 +670,9 @@ class Odometry:
         """Roll/pitch uncertainty of the keyframe's view and of the frame's (1 sigma each)."""
         return kf.attitude_sigma_rad or self._att_sigma_rad, self._attitude_sigma_rad(frame)
 
-    def _estimate(self, frame: PairedFrame, diag: VoDiagnostics, quality: int, roll_pitch_rad: tuple[float, float] | None = None) -> PoseEstimate:
+    def _estimate(
+        self, frame: PairedFrame, diag: VoDiagnostics, quality: int, roll_pitch_rad: tuple[float, float] | None = None
+    ) -> PoseEstimate:
         f = self.filter
         cov = np.zeros((6, 6))
         cov[:3, :3] = f.position_covariance
@@ -541,4 +693,3 @@ class Odometry:
             diagnostics=diag,
             drift_m=max(drift, math.sqrt(float(np.trace(cov[:2, :2])) / 2.0)),
         )
-

@@ -38,7 +38,14 @@ from mavvo.geometry.triangulation import triangulate_midpoints
 from mavvo.options import bounded
 from mavvo.types import ScaleSource
 
-__all__ = ["ScaleOptions", "ScaleEstimate", "triangulate_unit", "ground_depth", "estimate_scale", "scale_from_scene_depth"]
+__all__ = [
+    "ScaleOptions",
+    "ScaleEstimate",
+    "triangulate_unit",
+    "ground_depth",
+    "estimate_scale",
+    "scale_from_scene_depth",
+]
 
 ConfiguredScale = Literal["rangefinder", "altitude", "fixed", "carried"]
 
@@ -49,15 +56,28 @@ class ScaleOptions:
 
     source: ConfiguredScale = bounded("rangefinder", "rangefinder, altitude, fixed or carried (see docs/odometry.md)")
     fixed_height_m: float = bounded(10.0, "source fixed: height of the camera above flat ground", gt=0, le=10000)
-    initial_depth_m: float = bounded(10.0, "last resort: assumed median depth of the scene at the first keyframe", gt=0, le=10000)
+    initial_depth_m: float = bounded(
+        10.0, "last resort: assumed median depth of the scene at the first keyframe", gt=0, le=10000
+    )
     min_points: int = bounded(12, "fewest triangulated points for a scale", ge=3, le=5000)
     min_parallax_deg: float = bounded(0.05, "points with less parallax than this are not triangulated", gt=0, le=90)
-    carry_min_parallax_deg: float = bounded(1.0, "carried: only points triangulated with at least this parallax carry or compare depths", gt=0, le=90)
-    max_depth_ratio: float = bounded(3.0, "carried: depth ratios further than this factor from their median are outliers", gt=1, le=1000)
-    rangefinder_sigma_m: float = bounded(0.02, "rangefinder noise (1 sigma): its share of the scale's uncertainty is this over the range", ge=0, le=100)
-    altitude_sigma_m: float = bounded(0.1, "noise of the flight controller's height (1 sigma), the same for the altitude source", ge=0, le=1000)
+    carry_min_parallax_deg: float = bounded(
+        1.0, "carried: only points triangulated with at least this parallax carry or compare depths", gt=0, le=90
+    )
+    max_depth_ratio: float = bounded(
+        3.0, "carried: depth ratios further than this factor from their median are outliers", gt=1, le=1000
+    )
+    rangefinder_sigma_m: float = bounded(
+        0.02, "rangefinder noise (1 sigma): its share of the scale's uncertainty is this over the range", ge=0, le=100
+    )
+    altitude_sigma_m: float = bounded(
+        0.1, "noise of the flight controller's height (1 sigma), the same for the altitude source", ge=0, le=1000
+    )
     max_ground_spread: float = bounded(
-        0.5, "rangefinder/altitude: a ground fit whose depths spread more than this (median absolute deviation over the median) gives no scale", gt=0, le=100,
+        0.5,
+        "rangefinder/altitude: a ground fit whose depths spread more than this (median absolute deviation over the median) gives no scale",
+        gt=0,
+        le=100,
     )
 
 
@@ -103,7 +123,13 @@ def triangulate_unit(
     # Writable copies: the relative pose's outputs are read-only, and numba compiles read-only arrays
     # as a type of their own, which the warm-up would not have seen.
     f1, f2 = np.array(f1_lvl, dtype=np.float64, order="C"), np.array(f2_lvl, dtype=np.float64, order="C")
-    return triangulate_midpoints(f1, f2, np.array(R_2_1, dtype=np.float64, order="C"), np.array(t_2_1, dtype=np.float64, order="C"), float(min_parallax_rad))
+    return triangulate_midpoints(
+        f1,
+        f2,
+        np.array(R_2_1, dtype=np.float64, order="C"),
+        np.array(t_2_1, dtype=np.float64, order="C"),
+        float(min_parallax_rad),
+    )
 
 
 def ground_depth(points_lvl: np.ndarray, weights: np.ndarray, min_points: int) -> tuple[float, float] | None:
@@ -168,7 +194,9 @@ def estimate_scale(
             return None
         # A new reading every frame: its noise over the height is the scale's frame-to-frame error
         # (2 cm at 0.5 m is 4%, what moved the landing's positions by centimetres).
-        return ScaleEstimate(h2_m / h2_unit, source, int(np.count_nonzero(points_lvl[:, 2] > 0)), spread, sigma_m / h2_m)
+        return ScaleEstimate(
+            h2_m / h2_unit, source, int(np.count_nonzero(points_lvl[:, 2] > 0)), spread, sigma_m / h2_m
+        )
 
     def rangefinder() -> ScaleEstimate | None:
         if range_m is None or not (np.isfinite(range_m) and range_m > 0) or down_lvl2[2] < 0.5:
@@ -189,7 +217,9 @@ def estimate_scale(
         if np.count_nonzero(ok) < options.min_points:
             return None
         med = median(r[ok])
-        return ScaleEstimate(float(np.exp(med)), ScaleSource.CARRIED, int(np.count_nonzero(ok)), median(np.abs(r[ok] - med)))
+        return ScaleEstimate(
+            float(np.exp(med)), ScaleSource.CARRIED, int(np.count_nonzero(ok)), median(np.abs(r[ok] - med))
+        )
 
     def fixed() -> ScaleEstimate | None:
         return from_height(options.fixed_height_m, ScaleSource.FIXED, 0.0)
@@ -207,7 +237,9 @@ def estimate_scale(
     return None
 
 
-def scale_from_scene_depth(points_lvl: np.ndarray, scene_depth_m: float, source: ScaleSource, min_points: int) -> ScaleEstimate | None:
+def scale_from_scene_depth(
+    points_lvl: np.ndarray, scene_depth_m: float, source: ScaleSource, min_points: int
+) -> ScaleEstimate | None:
     """The last resort: the keyframe's scene is taken to have the median depth ``scene_depth_m``
     (the last metric frame's, or ``initial_depth_m`` before any); None with too few points."""
     if len(points_lvl) < min_points:

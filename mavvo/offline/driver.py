@@ -74,7 +74,9 @@ class ReplayInput:
     expected_vpe: list[bytes] | None = None  # a recording's VISION_POSITION_ESTIMATE payloads, in order
     notes: dict[str, Any] = field(default_factory=dict)  # facts worth reporting (e.g. the time offset used)
     problems: list[str] = field(default_factory=list)  # bad input found while loading: the exit is non-zero
-    warnings: list[str] = field(default_factory=list)  # what the result lacks (no reference, a guessed height): told, exit 0
+    warnings: list[str] = field(
+        default_factory=list
+    )  # what the result lacks (no reference, a guessed height): told, exit 0
 
 
 @dataclass(frozen=True)
@@ -160,7 +162,19 @@ def image_loader(path: Path) -> Callable[[], np.ndarray]:
 
 def empty_result() -> ReplayResult:
     """The result of a replay that had nothing to replay (the input's problems say why)."""
-    return ReplayResult(DaemonSummary({}, VisionState.STANDBY, None), PoseSeries(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4))), [], [], {}, [], 0, 0, 0.0, 0.0, False)
+    return ReplayResult(
+        DaemonSummary({}, VisionState.STANDBY, None),
+        PoseSeries(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4))),
+        [],
+        [],
+        {},
+        [],
+        0,
+        0,
+        0.0,
+        0.0,
+        False,
+    )
 
 
 def _wait(pred: Callable[[], bool], timeout_s: float, stop: threading.Event) -> bool:
@@ -175,8 +189,15 @@ def _wait(pred: Callable[[], bool], timeout_s: float, stop: threading.Event) -> 
 class _Driver:
     """Feeds messages and frames in the order described in the module docstring (its own thread)."""
 
-    def __init__(self, inp: ReplayInput, daemon: Daemon, fc: ReplayFlightController, source: InjectedSource, clock: LockstepClock,
-                 progress: Callable[[int, int], None] | None) -> None:
+    def __init__(
+        self,
+        inp: ReplayInput,
+        daemon: Daemon,
+        fc: ReplayFlightController,
+        source: InjectedSource,
+        clock: LockstepClock,
+        progress: Callable[[int, int], None] | None,
+    ) -> None:
         self.inp, self.daemon, self.fc, self.source, self.clock = inp, daemon, fc, source, clock
         self.progress = progress
         self.sent = 0
@@ -267,14 +288,30 @@ def replay(inp: ReplayInput, progress: Callable[[int, int], None] | None = None)
 
     def on_estimate(e: PoseEstimate) -> None:
         d = e.diagnostics
-        quality.append(QualityRow(
-            e.t_exposure_s, d.state, d.reason, int(e.quality), d.tracks, d.inliers, d.inlier_ratio, d.parallax_px,
-            d.residual_rms_px, d.scale_source, d.keyframe, e.reset_counter, d.attitude_gap_s, d.attitude_sigma_deg,
-        ))
+        quality.append(
+            QualityRow(
+                e.t_exposure_s,
+                d.state,
+                d.reason,
+                int(e.quality),
+                d.tracks,
+                d.inliers,
+                d.inlier_ratio,
+                d.parallax_px,
+                d.residual_rms_px,
+                d.scale_source,
+                d.keyframe,
+                e.reset_counter,
+                d.attitude_gap_s,
+                d.attitude_sigma_deg,
+            )
+        )
 
     wall0 = time.perf_counter()
     try:
-        daemon = Daemon(replay_config(inp.config, fc.url_for_client), clock=clock, source=source, on_estimate=on_estimate)
+        daemon = Daemon(
+            replay_config(inp.config, fc.url_for_client), clock=clock, source=source, on_estimate=on_estimate
+        )
         driver = _Driver(inp, daemon, fc, source, clock, progress)
         thread = threading.Thread(target=driver.run, name="mavvo-replay", daemon=True)
         thread.start()
@@ -293,7 +330,15 @@ def replay(inp: ReplayInput, progress: Callable[[int, int], None] | None = None)
         received[r.type] = received.get(r.type, 0) + 1
     span = (inp.frames[-1].t_exposure_s - inp.frames[0].t_exposure_s) if inp.frames else 0.0
     return ReplayResult(
-        summary, vision_estimates(fc.received, "usec"), [payload(r.raw) for r in vpe], quality,
-        dict(sorted(received.items())), [r.msg.text for r in fc.received if r.type == "STATUSTEXT"],
-        driver.frames, driver.lost, wall, span, driver.frames < len(inp.frames),
+        summary,
+        vision_estimates(fc.received, "usec"),
+        [payload(r.raw) for r in vpe],
+        quality,
+        dict(sorted(received.items())),
+        [r.msg.text for r in fc.received if r.type == "STATUSTEXT"],
+        driver.frames,
+        driver.lost,
+        wall,
+        span,
+        driver.frames < len(inp.frames),
     )

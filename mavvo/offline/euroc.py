@@ -90,14 +90,19 @@ def dataset_times(mav0: Path) -> dict[str, tuple[str, np.ndarray]]:
     return {
         "frames": ("cam0/data.csv", np.array([int(t) * 1e-9 for t, _ in _frame_rows(mav0 / "cam0" / "data.csv")])),
         "imu": ("imu0/data.csv", _csv(mav0 / "imu0" / "data.csv", 7)[:, 0] * 1e-9),
-        "ground_truth": ("state_groundtruth_estimate0/data.csv", _csv(gt, 8)[:, 0] * 1e-9 if gt.is_file() else np.zeros(0)),
+        "ground_truth": (
+            "state_groundtruth_estimate0/data.csv",
+            _csv(gt, 8)[:, 0] * 1e-9 if gt.is_file() else np.zeros(0),
+        ),
     }
 
 
 def _sensor_yaml(path: Path) -> dict[str, Any]:
     try:
         text = path.read_text(encoding="utf-8")
-        data = yaml.safe_load("\n".join(line for line in text.splitlines() if not line.startswith("%")))  # OpenCV's %YAML:1.0
+        data = yaml.safe_load(
+            "\n".join(line for line in text.splitlines() if not line.startswith("%"))
+        )  # OpenCV's %YAML:1.0
     except (OSError, yaml.YAMLError) as e:
         raise ConfigError(f"{path}: cannot read: {e}") from e
     if not isinstance(data, dict) or "T_BS" not in data:
@@ -186,7 +191,9 @@ def tilt_error_deg(attitude: np.ndarray, t_truth_s: np.ndarray, R_lvl_body_truth
     return {"median": round(float(np.median(err)), 3), "p95": round(float(np.percentile(err, 95)), 3)}
 
 
-def load_euroc(root: Path, overrides: dict[str, Any], *, attitude: str = "imu", attitude_noise_deg: float = 0.1, seed: int = 0) -> ReplayInput:
+def load_euroc(
+    root: Path, overrides: dict[str, Any], *, attitude: str = "imu", attitude_noise_deg: float = 0.1, seed: int = 0
+) -> ReplayInput:
     """The dataset at ``root`` (the folder holding mav0, or mav0 itself); ``overrides``: settings that
     replace the ones derived from the dataset."""
     mav0 = root if root.name == "mav0" else root / "mav0"
@@ -198,9 +205,13 @@ def load_euroc(root: Path, overrides: dict[str, Any], *, attitude: str = "imu", 
         dist = tuple(float(x) for x in cam.get("distortion_coefficients", ()))
         rate = float(cam.get("rate_hz", 20.0))
     except (KeyError, TypeError, ValueError) as e:
-        raise ConfigError(f"{mav0 / 'cam0' / 'sensor.yaml'}: expected T_BS (4x4), intrinsics [fu, fv, cu, cv], resolution [w, h]: {e}") from e
+        raise ConfigError(
+            f"{mav0 / 'cam0' / 'sensor.yaml'}: expected T_BS (4x4), intrinsics [fu, fv, cu, cv], resolution [w, h]: {e}"
+        ) from e
     if cam.get("distortion_model", "radial-tangential") != "radial-tangential":
-        raise ConfigError(f"{mav0 / 'cam0' / 'sensor.yaml'}: distortion_model: expected radial-tangential, got {cam.get('distortion_model')!r}")
+        raise ConfigError(
+            f"{mav0 / 'cam0' / 'sensor.yaml'}: distortion_model: expected radial-tangential, got {cam.get('distortion_model')!r}"
+        )
     imu = _csv(mav0 / "imu0" / "data.csv", 7)
     if len(imu) < 10:
         raise ConfigError(f"{mav0 / 'imu0' / 'data.csv'}: expected IMU samples, found {len(imu)}")
@@ -209,12 +220,25 @@ def load_euroc(root: Path, overrides: dict[str, Any], *, attitude: str = "imu", 
     R_imu_body = _body_from_imu(imu[first_s, 4:7].mean(axis=0), R_imu_cam)
     R_body_cam = R_imu_body.T @ R_imu_cam
     lever = R_imu_body.T @ t_imu_cam
-    data = merge({
-        "camera": {"source": "euroc", "width_px": width, "height_px": height, "rate_hz": rate, "fx_px": fu, "fy_px": fv, "cx_px": cu, "cy_px": cv,
-                   "model": "pinhole", "distortion": list(dist)},
-        "mounting": {"R_body_cam": R_body_cam.round(9).tolist(), "lever_arm_m": lever.round(6).tolist()},
-        "odometry": {"scale": {"source": "altitude"}},
-    }, overrides)
+    data = merge(
+        {
+            "camera": {
+                "source": "euroc",
+                "width_px": width,
+                "height_px": height,
+                "rate_hz": rate,
+                "fx_px": fu,
+                "fy_px": fv,
+                "cx_px": cu,
+                "cy_px": cv,
+                "model": "pinhole",
+                "distortion": list(dist),
+            },
+            "mounting": {"R_body_cam": R_body_cam.round(9).tolist(), "lever_arm_m": lever.round(6).tolist()},
+            "odometry": {"scale": {"source": "altitude"}},
+        },
+        overrides,
+    )
     gt_path = mav0 / "state_groundtruth_estimate0" / "data.csv"
     gt = _csv(gt_path, 8) if gt_path.is_file() else None
     warnings: list[str] = []
@@ -228,8 +252,11 @@ def load_euroc(root: Path, overrides: dict[str, Any], *, attitude: str = "imu", 
     config = parse_config(data, f"{mav0} (with --config)")
     if gt is None:
         sc = config.odometry.scale
-        how = (f"a fixed height of {sc.fixed_height_m:g} m above flat ground (odometry.scale.fixed_height_m)" if sc.source == "fixed"
-               else "depths carried between keyframes, from an assumed first depth (odometry.scale.initial_depth_m)")
+        how = (
+            f"a fixed height of {sc.fixed_height_m:g} m above flat ground (odometry.scale.fixed_height_m)"
+            if sc.source == "fixed"
+            else "depths carried between keyframes, from an assumed first depth (odometry.scale.initial_depth_m)"
+        )
         warnings.append(
             f"{gt_path}: missing: no reference (unless --ground-truth gives one), no attitude error to report, and no height: metric scale from {how}; "
             "give the flight's height with --config (odometry: {scale: {source: fixed, fixed_height_m: H}})"
@@ -271,5 +298,15 @@ def load_euroc(root: Path, overrides: dict[str, Any], *, attitude: str = "imu", 
             break
         t = int(t_ns) * 1e-9
         frames.append(ReplayFrame(k, t, t + gap, None, image_loader(path)))
-    return ReplayInput("euroc", str(root), config, series_messages(series, boot_epoch_s=float(np.floor(imu[0, 0] * 1e-9))), frames, reference,
-                       "ground truth" if reference is not None else "", notes=notes, problems=problems, warnings=warnings)
+    return ReplayInput(
+        "euroc",
+        str(root),
+        config,
+        series_messages(series, boot_epoch_s=float(np.floor(imu[0, 0] * 1e-9))),
+        frames,
+        reference,
+        "ground truth" if reference is not None else "",
+        notes=notes,
+        problems=problems,
+        warnings=warnings,
+    )

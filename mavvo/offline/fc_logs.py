@@ -47,7 +47,9 @@ class FcSeries:
     local_ned_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # (L,4): t_fc_s, north, east, down
     problems: list[str] = field(default_factory=list)
     triggers_s: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T,): camera shutter times the log holds
-    sources: dict[str, str] = field(default_factory=dict)  # what each series was read from: attitude, range, height, position, triggers
+    sources: dict[str, str] = field(
+        default_factory=dict
+    )  # what each series was read from: attitude, range, height, position, triggers
 
 
 def _array(rows: list[tuple[float, ...]], width: int) -> np.ndarray:
@@ -72,7 +74,9 @@ def read_fc_log(path: str | Path) -> FcSeries:
     elif suffix == ".ulg":
         s = _read_ulog(p)
     else:
-        raise ConfigError(f"{p}: expected a flight-controller log (.tlog, dataflash .bin or .log, PX4 .ulg), got a {p.suffix or 'file without extension'}")
+        raise ConfigError(
+            f"{p}: expected a flight-controller log (.tlog, dataflash .bin or .log, PX4 .ulg), got a {p.suffix or 'file without extension'}"
+        )
     if len(s.attitude) < 2:
         what = {"tlog": "ATTITUDE", "dataflash": "ATT, AHR2 or NKF1", "ulog": "vehicle_attitude"}[s.kind]
         raise ConfigError(f"{p}: no {what} messages in the log (found {len(s.attitude)}); roll and pitch are needed")
@@ -97,7 +101,9 @@ def _read_tlog(p: Path) -> FcSeries:
                 continue
             kind = msg.get_type()
             src = (msg.get_srcSystem(), msg.get_srcComponent())
-            if kind == "HEARTBEAT" and fc is None and msg.autopilot != 8:  # 8: MAV_AUTOPILOT_INVALID (not a flight controller)
+            if (
+                kind == "HEARTBEAT" and fc is None and msg.autopilot != 8
+            ):  # 8: MAV_AUTOPILOT_INVALID (not a flight controller)
                 fc = src
             if fc is not None and src != fc:
                 continue
@@ -115,9 +121,24 @@ def _read_tlog(p: Path) -> FcSeries:
                 trig.append((msg.time_usec * 1e-6 if kind == "CAMERA_TRIGGER" else t,))
     except ConfigError as e:
         problems.append(str(e))
-    sources = {"attitude": "ATTITUDE", "range": "DISTANCE_SENSOR", "height": "GLOBAL_POSITION_INT.relative_alt",
-               "position": "LOCAL_POSITION_NED", "triggers": "CAMERA_FEEDBACK/CAMERA_TRIGGER"}
-    return FcSeries(str(p), "tlog", _array(att, 4), _array(rng, 2), _array(hgt, 2), _array(pos, 4), problems, _array(trig, 1)[:, 0], sources)
+    sources = {
+        "attitude": "ATTITUDE",
+        "range": "DISTANCE_SENSOR",
+        "height": "GLOBAL_POSITION_INT.relative_alt",
+        "position": "LOCAL_POSITION_NED",
+        "triggers": "CAMERA_FEEDBACK/CAMERA_TRIGGER",
+    }
+    return FcSeries(
+        str(p),
+        "tlog",
+        _array(att, 4),
+        _array(rng, 2),
+        _array(hgt, 2),
+        _array(pos, 4),
+        problems,
+        _array(trig, 1)[:, 0],
+        sources,
+    )
 
 
 # Roll/pitch/yaw in a dataflash log, by preference: the attitude the vehicle flew on, then the
@@ -176,9 +197,15 @@ def _read_dataflash(p: Path) -> FcSeries:
     problems: list[str] = []
     with _captured_output() as skipped:
         try:
-            reader = DFReader.DFReader_text(str(p), zero_time_base=True) if text else DFReader.DFReader_binary(str(p), zero_time_base=True)
+            reader = (
+                DFReader.DFReader_text(str(p), zero_time_base=True)
+                if text
+                else DFReader.DFReader_binary(str(p), zero_time_base=True)
+            )
         except Exception as e:  # DFReader raises assorted errors on a file that is not a log
-            raise ConfigError(f"{p}: not a readable dataflash log ({'text' if text else 'binary'}): {' '.join(str(e).split())[:200]}") from e
+            raise ConfigError(
+                f"{p}: not a readable dataflash log ({'text' if text else 'binary'}): {' '.join(str(e).split())[:200]}"
+            ) from e
         while True:
             try:
                 m = reader.recv_match(type=[*_DF_ATTITUDE, "RFND", "BARO", "XKF1", "CAM"])
@@ -205,17 +232,36 @@ def _read_dataflash(p: Path) -> FcSeries:
     if skipped:
         problems.append(f"{p}: the reader skipped {len(skipped)} damaged places (first: {skipped[0][:80]})")
     if not text and reader.offset < reader.data_len:
-        problems.append(f"{p}: truncated: {reader.data_len - reader.offset} bytes at the end are not a whole record (the log was cut off)")
+        problems.append(
+            f"{p}: truncated: {reader.data_len - reader.offset} bytes at the end are not a whole record (the log was cut off)"
+        )
     source = next((k for k in _DF_ATTITUDE if len(att[k]) >= 2), _DF_ATTITUDE[0])
     if source != "ATT" and att[source]:
         problems.append(f"{p}: no ATT records; roll/pitch from {source}")
     sources = {"attitude": source, "range": "RFND", "height": "BARO.Alt", "position": "XKF1", "triggers": "CAM"}
-    return FcSeries(str(p), "dataflash", _array(att[source], 4), _array(rng, 2), _array(hgt, 2), _array(pos, 4), problems, _array(trig, 1)[:, 0], sources)
+    return FcSeries(
+        str(p),
+        "dataflash",
+        _array(att[source], 4),
+        _array(rng, 2),
+        _array(hgt, 2),
+        _array(pos, 4),
+        problems,
+        _array(trig, 1)[:, 0],
+        sources,
+    )
 
 
 # ---------------------------------------------------------------------- PX4 ULog
 
-_ULOG_TOPICS = ["vehicle_attitude", "distance_sensor", "vehicle_local_position", "vehicle_air_data", "camera_capture", "camera_trigger"]
+_ULOG_TOPICS = [
+    "vehicle_attitude",
+    "distance_sensor",
+    "vehicle_local_position",
+    "vehicle_air_data",
+    "camera_capture",
+    "camera_trigger",
+]
 _PX4_DOWNWARD = 25  # distance_sensor.orientation ROTATION_DOWNWARD_FACING
 
 
@@ -229,9 +275,13 @@ def _read_ulog(p: Path) -> FcSeries:
         try:
             ulog = ULog(str(p), _ULOG_TOPICS)
         except Exception as e:  # pyulog raises its ULogException, struct and index errors on a file that is not a log
-            raise ConfigError(f"{p}: not a readable PX4 ULog (expected the 'ULog' header and definitions): {' '.join(str(e).split())[:200]}") from e
+            raise ConfigError(
+                f"{p}: not a readable PX4 ULog (expected the 'ULog' header and definitions): {' '.join(str(e).split())[:200]}"
+            ) from e
     if printed or ulog.file_corruption:
-        problems.append(f"{p}: damaged: pyulog skipped corrupt data ({len(printed)} messages; first: {(printed or ['-'])[0][:80]})")
+        problems.append(
+            f"{p}: damaged: pyulog skipped corrupt data ({len(printed)} messages; first: {(printed or ['-'])[0][:80]})"
+        )
     topics = {d.name: d.data for d in ulog.data_list if d.multi_id == 0}
 
     def times(d: dict[str, np.ndarray]) -> np.ndarray:
@@ -278,12 +328,18 @@ def _read_ulog(p: Path) -> FcSeries:
         if name in topics:
             trig = np.sort(times(topics[name]))
             break
-    sources = {"attitude": "vehicle_attitude", "range": "distance_sensor", "height": height_source, "position": "vehicle_local_position",
-               "triggers": "camera_capture/camera_trigger"}
+    sources = {
+        "attitude": "vehicle_attitude",
+        "range": "distance_sensor",
+        "height": height_source,
+        "position": "vehicle_local_position",
+        "triggers": "camera_capture/camera_trigger",
+    }
     return FcSeries(str(p), "ulog", att, rng, hgt, pos, problems, trig, sources)
 
 
 # ---------------------------------------------------------------------- back to MAVLink
+
 
 def series_messages(s: FcSeries, *, heartbeat_hz: float = 1.0, boot_epoch_s: float = 0.0) -> list[tuple[int, bytes]]:
     """The log as the MAVLink 2 messages a flight controller (system 1, component 1) would have sent,
@@ -296,14 +352,49 @@ def series_messages(s: FcSeries, *, heartbeat_hz: float = 1.0, boot_epoch_s: flo
     t0, t1 = s.attitude[0, 0], s.attitude[-1, 0]
     autopilot = m.MAV_AUTOPILOT_PX4 if s.kind == "ulog" else m.MAV_AUTOPILOT_ARDUPILOTMEGA
     for t in np.arange(t0, t1 + 1e-9, 1.0 / heartbeat_hz):
-        events.append((round(t * 1e6), 0, m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, autopilot, 0, 0, m.MAV_STATE_ACTIVE, 3)))
+        events.append(
+            (
+                round(t * 1e6),
+                0,
+                m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, autopilot, 0, 0, m.MAV_STATE_ACTIVE, 3),
+            )
+        )
     nan = float("nan")  # the log has no body rates: NaN says "unknown" (zero would claim a vehicle that never turns)
     for t, r, pch, y in s.attitude:
-        events.append((round(t * 1e6), 1, m.MAVLink_attitude_message(int(round((t - boot_epoch_s) * 1e3)), r, pch, y, nan, nan, nan)))
+        events.append(
+            (
+                round(t * 1e6),
+                1,
+                m.MAVLink_attitude_message(int(round((t - boot_epoch_s) * 1e3)), r, pch, y, nan, nan, nan),
+            )
+        )
     for t, d in s.range_m:
         cm = 4001 if not np.isfinite(d) else int(round(d * 100))
-        events.append((round(t * 1e6), 2, m.MAVLink_distance_sensor_message(int(round((t - boot_epoch_s) * 1e3)), 20, 4000, cm, m.MAV_DISTANCE_SENSOR_LASER, 0, m.MAV_SENSOR_ROTATION_PITCH_270, 255)))
+        events.append(
+            (
+                round(t * 1e6),
+                2,
+                m.MAVLink_distance_sensor_message(
+                    int(round((t - boot_epoch_s) * 1e3)),
+                    20,
+                    4000,
+                    cm,
+                    m.MAV_DISTANCE_SENSOR_LASER,
+                    0,
+                    m.MAV_SENSOR_ROTATION_PITCH_270,
+                    255,
+                ),
+            )
+        )
     for t, h in s.height_m:
-        events.append((round(t * 1e6), 3, m.MAVLink_global_position_int_message(int(round((t - boot_epoch_s) * 1e3)), 0, 0, 0, int(round(h * 1e3)), 0, 0, 0, 65535)))
+        events.append(
+            (
+                round(t * 1e6),
+                3,
+                m.MAVLink_global_position_int_message(
+                    int(round((t - boot_epoch_s) * 1e3)), 0, 0, 0, int(round(h * 1e3)), 0, 0, 0, 65535
+                ),
+            )
+        )
     events.sort(key=lambda e: (e[0], e[1]))
     return [(t_us, bytes(msg.pack(mav))) for t_us, _, msg in events]

@@ -78,8 +78,15 @@ def series_info(name: str, source: str, t_s: np.ndarray) -> SeriesInfo:
     span = float(t[-1] - t[0])
     rate = (len(t) - 1) / span if len(t) > 1 and span > 0 else None
     gap = float(np.diff(t).max()) if len(t) > 1 else None
-    return SeriesInfo(name, source, len(t), None if rate is None else round(rate, 3), round(float(t[0]), 6), round(float(t[-1]), 6),
-                      None if gap is None else round(gap, 4))
+    return SeriesInfo(
+        name,
+        source,
+        len(t),
+        None if rate is None else round(rate, 3),
+        round(float(t[0]), 6),
+        round(float(t[-1]), 6),
+        None if gap is None else round(gap, 4),
+    )
 
 
 def _interpolation_sigma_deg(gap_s: float) -> float:
@@ -94,7 +101,9 @@ def _overlap(facts: dict[str, Any], a: SeriesInfo, b: SeriesInfo, offset_s: floa
         facts[f"{a.name}_{b.name}_overlap_s"] = round(max(hi - lo, 0.0), 3)
 
 
-def _inspect_log(p: Path, video: Path | None, fps: float | None, offset_s: float | None, config: Path | None) -> Inspection:
+def _inspect_log(
+    p: Path, video: Path | None, fps: float | None, offset_s: float | None, config: Path | None
+) -> Inspection:
     from mavvo.offline.fc_logs import read_fc_log
 
     s = read_fc_log(p)
@@ -109,9 +118,13 @@ def _inspect_log(p: Path, video: Path | None, fps: float | None, offset_s: float
     facts: dict[str, Any] = {"duration_s": round(float(s.attitude[-1, 0] - s.attitude[0, 0]), 3)}
     gap = log_pairing_gap_s(s.attitude[:, 0], TimingOptions().max_attitude_gap_s)
     facts["attitude_pairing_max_gap_s"] = gap
-    facts["attitude_pairing"] = "exact enough (at the flight controller's rate)" if not att.rate_hz or att.rate_hz >= _SLOW_ATTITUDE_HZ else (
-        f"slow stream: every frame pairs, degraded; roll/pitch sigma up to {_interpolation_sigma_deg(1.0 / att.rate_hz):.1f} deg "  # type: ignore[operator]
-        f"between samples {1.0 / att.rate_hz:.2f} s apart"  # type: ignore[operator]
+    facts["attitude_pairing"] = (
+        "exact enough (at the flight controller's rate)"
+        if not att.rate_hz or att.rate_hz >= _SLOW_ATTITUDE_HZ
+        else (
+            f"slow stream: every frame pairs, degraded; roll/pitch sigma up to {_interpolation_sigma_deg(1.0 / att.rate_hz):.1f} deg "  # type: ignore[operator]
+            f"between samples {1.0 / att.rate_hz:.2f} s apart"  # type: ignore[operator]
+        )
     )
     if len(s.range_m):
         facts["range_valid_fraction"] = round(len(rng_ok) / len(s.range_m), 3)
@@ -127,12 +140,25 @@ def _inspect_log(p: Path, video: Path | None, fps: float | None, offset_s: float
         else:
             facts["time_offset_s"] = "estimated by replay from the rotation the camera sees (or give --offset-s)"
     if config is None:
-        missing.append(Missing("the camera (intrinsics, rate) and its mounting", "--config FILE (mavvo calibrate writes the camera part)", True))
+        missing.append(
+            Missing(
+                "the camera (intrinsics, rate) and its mounting",
+                "--config FILE (mavvo calibrate writes the camera part)",
+                True,
+            )
+        )
     if not len(rng_ok) and not len(s.height_m):
-        missing.append(Missing("a rangefinder or height for metric scale",
-                               "--config with odometry.scale.source: fixed and fixed_height_m, or carried", False))
+        missing.append(
+            Missing(
+                "a rangefinder or height for metric scale",
+                "--config with odometry.scale.source: fixed and fixed_height_m, or carried",
+                False,
+            )
+        )
     if not len(s.local_ned_m):
-        missing.append(Missing("a reference trajectory to evaluate against", "--ground-truth FILE (TUM or EuRoC CSV)", False))
+        missing.append(
+            Missing("a reference trajectory to evaluate against", "--ground-truth FILE (TUM or EuRoC CSV)", False)
+        )
     return Inspection(str(p), s.kind, tuple(series), facts, tuple(missing), tuple(s.problems))
 
 
@@ -149,7 +175,9 @@ def _inspect_video(p: Path, fps: float | None) -> Inspection:
     v = VideoFrames(p, fps)
     frames = series_info("frames", "image folder" if p.is_dir() else "video file", v.times_s)
     missing = (Missing("the flight-controller log with the attitude", "mavvo replay LOG --video " + str(p), True),)
-    return Inspection(str(p), "images" if p.is_dir() else "video", (frames,), {"duration_s": frames.end_s}, missing, tuple(v.problems))
+    return Inspection(
+        str(p), "images" if p.is_dir() else "video", (frames,), {"duration_s": frames.end_s}, missing, tuple(v.problems)
+    )
 
 
 _MSG_IDS = {30: "ATTITUDE", 132: "DISTANCE_SENSOR", 33: "GLOBAL_POSITION_INT", 32: "LOCAL_POSITION_NED"}
@@ -167,8 +195,11 @@ def _inspect_recording(p: Path) -> Inspection:
                 by_id[msg_id].append(t_us * 1e-6)
     frames = series_info("frames", "frames/ (recorded exposures)", np.array([f.t_exposure_s for f in inp.frames]))
     series = [frames] + [series_info(name.lower(), name, np.array(by_id[i])) for i, name in _MSG_IDS.items()]
-    facts: dict[str, Any] = {"duration_s": None if frames.start_s is None else round(frames.end_s - frames.start_s, 3),  # type: ignore[operator]
-                             "recorded_estimates": len(inp.expected_vpe or []), "reference": inp.reference_label or None}
+    facts: dict[str, Any] = {
+        "duration_s": None if frames.start_s is None else round(frames.end_s - frames.start_s, 3),  # type: ignore[operator]
+        "recorded_estimates": len(inp.expected_vpe or []),
+        "reference": inp.reference_label or None,
+    }
     _overlap(facts, frames, series[1])
     return Inspection(str(p), "recording", tuple(series), facts, (), tuple(inp.problems))
 
@@ -184,16 +215,27 @@ def _inspect_euroc(p: Path) -> Inspection:
     _overlap(facts, by["frames"], by["imu"])
     missing: list[Missing] = []
     if by["ground_truth"].count == 0:
-        missing.append(Missing("ground truth (state_groundtruth_estimate0): no reference, no height for scale",
-                               "--ground-truth FILE; --config with odometry.scale.fixed_height_m (the flight's height)", False))
+        missing.append(
+            Missing(
+                "ground truth (state_groundtruth_estimate0): no reference, no height for scale",
+                "--ground-truth FILE; --config with odometry.scale.fixed_height_m (the flight's height)",
+                False,
+            )
+        )
     else:
         _overlap(facts, by["frames"], by["ground_truth"])
     facts["attitude"] = "from the IMU through an attitude filter that estimates the gyro bias (--attitude imu)"
     return Inspection(str(p), "euroc", tuple(series), facts, tuple(missing), ())
 
 
-def inspect_source(path: Path, *, video: Path | None = None, fps: float | None = None, offset_s: float | None = None,
-                   config: Path | None = None) -> Inspection:
+def inspect_source(
+    path: Path,
+    *,
+    video: Path | None = None,
+    fps: float | None = None,
+    offset_s: float | None = None,
+    config: Path | None = None,
+) -> Inspection:
     """What replay would use from ``path`` (see the module docstring); ConfigError naming what is
     wrong when it cannot be read at all."""
     from mavvo.offline.recording import is_recording

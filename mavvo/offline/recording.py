@@ -24,7 +24,6 @@ from mavvo.service.yaml_loader import load_yaml
 __all__ = ["is_recording", "load_recording", "merge"]
 
 
-
 def is_recording(path: Path) -> bool:
     return (path / "meta.json").is_file() and (path / "config.yaml").is_file()
 
@@ -49,16 +48,22 @@ def load_recording(path: str | Path, overrides: dict[str, Any] | None = None) ->
     except (OSError, ValueError) as e:
         raise ConfigError(f"{p / 'meta.json'}: cannot read: {e}") from e
     if meta.get("format") != "mavvo-recording" or meta.get("version") != FORMAT_VERSION:
-        raise ConfigError(f"{p / 'meta.json'}: expected format mavvo-recording version {FORMAT_VERSION}, got {meta.get('format')!r} version {meta.get('version')!r}")
+        raise ConfigError(
+            f"{p / 'meta.json'}: expected format mavvo-recording version {FORMAT_VERSION}, got {meta.get('format')!r} version {meta.get('version')!r}"
+        )
     config_data = load_yaml(p / "config.yaml")
     config = parse_config(merge(config_data, overrides or {}), str(p / "config.yaml"))
     problems: list[str] = []
     counters = meta.get("counters", {})
     if not meta.get("complete", False):
-        problems.append(f"{p}: the recording was not closed cleanly ({meta.get('stopped_reason') or 'the service did not stop normally'}): it ends early")
+        problems.append(
+            f"{p}: the recording was not closed cleanly ({meta.get('stopped_reason') or 'the service did not stop normally'}): it ends early"
+        )
     for key in ("dropped_frames", "dropped_messages"):
         if counters.get(key):
-            problems.append(f"{p}: {counters[key]} {key.split('_')[1]} were dropped while recording: the replay differs from the flight")
+            problems.append(
+                f"{p}: {counters[key]} {key.split('_')[1]} were dropped while recording: the replay differs from the flight"
+            )
 
     unix_minus_host_us = int(meta["unix_minus_host_us"])
     mavvo_component = int(meta.get("mavvo_component_id", 197))
@@ -89,12 +94,20 @@ def load_recording(path: str | Path, overrides: dict[str, Any] | None = None) ->
                 try:
                     rec = dict(zip(FRAME_COLUMNS, row, strict=True))
                     t_paired = float(rec["t_paired_s"])
-                    fr = ReplayFrame(int(rec["seq"]), float(rec["t_exposure_s"]), t_paired, int(rec["fc_version"]), image_loader(p / "frames" / rec["file"]))
+                    fr = ReplayFrame(
+                        int(rec["seq"]),
+                        float(rec["t_exposure_s"]),
+                        t_paired,
+                        int(rec["fc_version"]),
+                        image_loader(p / "frames" / rec["file"]),
+                    )
                 except ValueError as e:
                     problems.append(f"{index}:{n}: malformed row ({e}); stopped reading this index")
                     break
                 if not (p / "frames" / rec["file"]).is_file():
-                    problems.append(f"{index}:{n}: frame file frames/{rec['file']} is missing; the frames after it are not replayed")
+                    problems.append(
+                        f"{index}:{n}: frame file frames/{rec['file']} is missing; the frames after it are not replayed"
+                    )
                     break
                 frames.append(fr)
     if not frames:
@@ -104,9 +117,14 @@ def load_recording(path: str | Path, overrides: dict[str, Any] | None = None) ->
     if gt.is_file():
         reference, label = read_tum(gt), "ground truth"
     return ReplayInput(
-        "recording", str(p), config, inbound, frames, reference, label, vpe,
+        "recording",
+        str(p),
+        config,
+        inbound,
+        frames,
+        reference,
+        label,
+        vpe,
         notes={"frames_format": meta.get("frames_format"), "mavvo_recorded": meta.get("mavvo")},
         problems=problems,
     )
-
-

@@ -37,7 +37,11 @@ def reference_at(ref: PoseSeries, times_s: np.ndarray) -> tuple[np.ndarray, Pose
     t = ref.timestamps_s
     keep = np.flatnonzero((times_s >= t[0]) & (times_s <= t[-1])) if len(t) >= 2 else np.zeros(0, int)
     ts = times_s[keep]
-    p = np.column_stack([np.interp(ts, t, ref.positions_xyz_m[:, k]) for k in range(3)]) if len(ts) else np.zeros((0, 3))
+    p = (
+        np.column_stack([np.interp(ts, t, ref.positions_xyz_m[:, k]) for k in range(3)])
+        if len(ts)
+        else np.zeros((0, 3))
+    )
     j = np.clip(np.searchsorted(t, ts), 1, max(len(t) - 1, 1))
     j = np.where(np.abs(ts - t[j - 1]) <= np.abs(t[j] - ts), j - 1, j) if len(ts) else j
     q = ref.orientations_quat_wxyz[j] if len(ts) else np.zeros((0, 4))
@@ -86,11 +90,15 @@ def write_quality(out: Path, rows: list[QualityRow], title: str) -> None:
     ax.set_ylim(-5, 105)
     sigma = [r.attitude_sigma_deg for r in rows]
     ax_att.plot(t, sigma, color="tab:purple", lw=1.0)
-    ax_att.set_ylim(0.0, 1.3 * float(np.nanmax(sigma)) if np.isfinite(sigma).any() else 1.0)  # from zero: a flat line reads flat
+    ax_att.set_ylim(
+        0.0, 1.3 * float(np.nanmax(sigma)) if np.isfinite(sigma).any() else 1.0
+    )  # from zero: a flat line reads flat
     ax_att.set_ylabel("roll/pitch\nsigma [deg]", fontsize=8)
     ax_att.set_xlabel("time [s]")
     gaps = [r.attitude_gap_s for r in rows]
-    ax_att.set_title(f"attitude pairing: samples up to {max(gaps):.2f} s apart (median {float(np.median(gaps)):.3f} s)", fontsize=8)
+    ax_att.set_title(
+        f"attitude pairing: samples up to {max(gaps):.2f} s apart (median {float(np.median(gaps)):.3f} s)", fontsize=8
+    )
     ax.set_ylabel("quality [%]")
     ax2 = ax.twinx()
     ax2.plot(t, [r.inliers for r in rows], color="tab:green", lw=0.8, alpha=0.8, label="inliers")
@@ -99,7 +107,13 @@ def write_quality(out: Path, rows: list[QualityRow], title: str) -> None:
     for x in resets:
         ax.axvline(x, color="tab:red", lw=0.8, ls="--")
     handles = [plt.Rectangle((0, 0), 1, 1, color=c) for c in _STATE_COLOURS.values()]
-    ax.legend(handles + ax.get_lines()[:1] + ax2.get_lines(), list(_STATE_COLOURS) + ["quality", "inliers"], loc="lower left", fontsize=7, ncol=6)
+    ax.legend(
+        handles + ax.get_lines()[:1] + ax2.get_lines(),
+        list(_STATE_COLOURS) + ["quality", "inliers"],
+        loc="lower left",
+        fontsize=7,
+        ncol=6,
+    )
     ax.set_title(f"{title}: quality timeline ({len(rows)} estimates, {len(resets)} resets: dashed)", fontsize=9)
     fig.tight_layout()
     fig.savefig(out / "quality.png", dpi=90)
@@ -134,7 +148,8 @@ def attitude_pairing(rows: list[QualityRow]) -> dict[str, Any] | None:
     sigma = np.array([r.attitude_sigma_deg for r in rows])
     sigma = sigma[np.isfinite(sigma)]
     return {
-        "gap_s_median": round(float(np.median(gap)), 4), "gap_s_max": round(float(gap.max()), 4),
+        "gap_s_median": round(float(np.median(gap)), 4),
+        "gap_s_max": round(float(gap.max()), 4),
         "sigma_deg_median": round(float(np.median(sigma)), 3) if len(sigma) else None,
         "sigma_deg_p95": round(float(np.percentile(sigma, 95)), 3) if len(sigma) else None,
         "degraded": sum(1 for r in rows if r.reason == StateReason.ATTITUDE_INTERPOLATED),
@@ -170,20 +185,31 @@ def write_replay_report(out_dir: str | Path, inp: ReplayInput, res: ReplayResult
         identical = res.vpe_payloads == inp.expected_vpe
     c = res.daemon.counters
     summary = {
-        "source": inp.source, "kind": inp.kind,
-        "frames": len(inp.frames), "frames_replayed": res.frames_replayed, "paired": c.get("paired", 0),
-        "messages": len(inp.messages), "messages_lost": res.messages_lost,
-        "estimates_received": len(est), "resets": sum(1 for a, b in zip(res.quality, res.quality[1:]) if a.reset_counter != b.reset_counter),
-        "duration_s": round(res.duration_s, 3), "wall_s": round(res.wall_s, 3),
+        "source": inp.source,
+        "kind": inp.kind,
+        "frames": len(inp.frames),
+        "frames_replayed": res.frames_replayed,
+        "paired": c.get("paired", 0),
+        "messages": len(inp.messages),
+        "messages_lost": res.messages_lost,
+        "estimates_received": len(est),
+        "resets": sum(1 for a, b in zip(res.quality, res.quality[1:]) if a.reset_counter != b.reset_counter),
+        "duration_s": round(res.duration_s, 3),
+        "wall_s": round(res.wall_s, 3),
         "speed_x_real_time": round(res.duration_s / res.wall_s, 2) if res.wall_s > 0 else None,
-        "final_state": res.daemon.state, "complete": not res.stopped,
+        "final_state": res.daemon.state,
+        "complete": not res.stopped,
         "identical_to_recording": identical,
         "recorded_estimates": None if inp.expected_vpe is None else len(inp.expected_vpe),
         "reference": inp.reference_label or None,
         "evaluation": None if evaluation is None else evaluation.to_dict(),
         "attitude_pairing": attitude_pairing(res.quality),
-        "notes": inp.notes, "problems": inp.problems, "warnings": inp.warnings, "statustexts": res.statustexts,
-        "counters": c, "files": sorted(files),
+        "notes": inp.notes,
+        "problems": inp.problems,
+        "warnings": inp.warnings,
+        "statustexts": res.statustexts,
+        "counters": c,
+        "files": sorted(files),
     }
     summary = _finite(summary)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")

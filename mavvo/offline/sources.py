@@ -96,7 +96,9 @@ class VideoFrames:
             times.append(t)
         cap.release()
         if declared > 0 and len(times) < declared:
-            self.problems.append(f"--video {path}: the video ends after {len(times)} of the {declared} frames its header declares (cut off?)")
+            self.problems.append(
+                f"--video {path}: the video ends after {len(times)} of the {declared} frames its header declares (cut off?)"
+            )
         return np.array(times) - (times[0] if times else 0.0)
 
     def __iter__(self) -> Iterator[tuple[float, np.ndarray]]:
@@ -173,12 +175,18 @@ def paired_at_log_rate(config: ServiceConfig, t_attitude_s: np.ndarray) -> tuple
     if not len(dt):
         return config, {"rate_hz": None, "max_gap_s": configured}
     gap = log_pairing_gap_s(t_attitude_s, configured)
-    timing = dataclasses.replace(config.timing, max_attitude_gap_s=gap, history_s=max(config.timing.history_s, 4.0 * gap))
+    timing = dataclasses.replace(
+        config.timing, max_attitude_gap_s=gap, history_s=max(config.timing.history_s, 4.0 * gap)
+    )
     # A frame is handed over once the sample after it has come, up to the gap after its exposure: its
     # estimate must not be dropped as too old to send for that wait.
     output = dataclasses.replace(config.output, max_age_s=max(config.output.max_age_s, gap + 0.5))
-    note = {"rate_hz": round(1.0 / float(np.median(dt)), 2), "max_gap_s": gap, "configured_max_gap_s": configured,
-            "longest_interval_s": round(float(dt.max()), 3)}
+    note = {
+        "rate_hz": round(1.0 / float(np.median(dt)), 2),
+        "max_gap_s": gap,
+        "configured_max_gap_s": configured,
+        "longest_interval_s": round(float(dt.max()), 3),
+    }
     return dataclasses.replace(config, timing=timing, output=output), note
 
 
@@ -189,20 +197,31 @@ def _fc_reference(s: FcSeries) -> PoseSeries | None:
     t = s.local_ned_m[:, 0]
     att = s.attitude
     yaw = np.interp(t, att[:, 0], np.unwrap(att[:, 3]))
-    R = np.array([R_from_euler321(np.interp(ti, att[:, 0], att[:, 1]), np.interp(ti, att[:, 0], att[:, 2]), y) for ti, y in zip(t, yaw)])
+    R = np.array(
+        [
+            R_from_euler321(np.interp(ti, att[:, 0], att[:, 1]), np.interp(ti, att[:, 0], att[:, 2]), y)
+            for ti, y in zip(t, yaw)
+        ]
+    )
     return PoseSeries.from_rotations(t, s.local_ned_m[:, 1:4], R)
 
 
-def _from_log(log_path: Path, config_path: Path | None, video: Path | None, fps: float | None, offset_s: float | None) -> ReplayInput:
+def _from_log(
+    log_path: Path, config_path: Path | None, video: Path | None, fps: float | None, offset_s: float | None
+) -> ReplayInput:
     if video is None:
         raise ConfigError(f"{log_path}: a flight-controller log needs the flight's video: --video FILE_OR_FOLDER")
     if config_path is None:
-        raise ConfigError(f"{log_path}: a flight-controller log needs --config with the camera (intrinsics, rate) and its mounting")
+        raise ConfigError(
+            f"{log_path}: a flight-controller log needs --config with the camera (intrinsics, rate) and its mounting"
+        )
     config = parse_config(_load_config(config_path), str(config_path))
     s = read_fc_log(log_path)
     frames_src = VideoFrames(video, fps)
     problems = s.problems + frames_src.problems
-    notes: dict[str, Any] = {"log": f"{s.kind}, {len(s.attitude)} attitude samples over {s.attitude[-1, 0] - s.attitude[0, 0]:.1f} s"}
+    notes: dict[str, Any] = {
+        "log": f"{s.kind}, {len(s.attitude)} attitude samples over {s.attitude[-1, 0] - s.attitude[0, 0]:.1f} s"
+    }
     if offset_s is None:
         step = 2
         cam_t, cam_w = camera_rotation_rates(frames_src, config.camera.camera_model(), step=step)
@@ -216,25 +235,42 @@ def _from_log(log_path: Path, config_path: Path | None, video: Path | None, fps:
     t_exp = frames_src.times_s + offset_s
     inside = (t_exp >= s.attitude[0, 0]) & (t_exp <= s.attitude[-1, 0])
     if not inside.any():
-        raise ConfigError(f"--video {video}: with the offset {offset_s:.3f} s no frame falls inside the log's attitude ({s.attitude[0, 0]:.1f} to {s.attitude[-1, 0]:.1f} s)")
+        raise ConfigError(
+            f"--video {video}: with the offset {offset_s:.3f} s no frame falls inside the log's attitude ({s.attitude[0, 0]:.1f} to {s.attitude[-1, 0]:.1f} s)"
+        )
     if not inside.all():
         notes["frames_outside_log"] = int((~inside).sum())
     config, notes["attitude_pairing"] = paired_at_log_rate(config, s.attitude[:, 0])
     gap = config.timing.max_attitude_gap_s
     frames = [
         ReplayFrame(k, float(t), float(t) + gap, None, (lambda k=k: frames_src.load(k)))
-        for k, t in enumerate(t_exp) if inside[k]
+        for k, t in enumerate(t_exp)
+        if inside[k]
     ]
     ref = _fc_reference(s)
     return ReplayInput(
-        s.kind, str(log_path), config, series_messages(s), frames, ref, "flight controller's local position" if ref is not None else "",
-        notes=notes, problems=problems,
+        s.kind,
+        str(log_path),
+        config,
+        series_messages(s),
+        frames,
+        ref,
+        "flight controller's local position" if ref is not None else "",
+        notes=notes,
+        problems=problems,
     )
 
 
 def open_replay_source(
-    source: Path, *, config: Path | None = None, video: Path | None = None, fps: float | None = None, offset_s: float | None = None,
-    ground_truth: Path | None = None, attitude: str = "imu", attitude_noise_deg: float = 0.1,
+    source: Path,
+    *,
+    config: Path | None = None,
+    video: Path | None = None,
+    fps: float | None = None,
+    offset_s: float | None = None,
+    ground_truth: Path | None = None,
+    attitude: str = "imu",
+    attitude_noise_deg: float = 0.1,
 ) -> ReplayInput:
     """The replay input for ``source`` (see the module docstring); ConfigError naming what is wrong."""
     if not source.exists():
@@ -252,4 +288,3 @@ def open_replay_source(
     if ground_truth is not None:
         inp.reference, inp.reference_label = read_reference(ground_truth)
     return inp
-

@@ -69,7 +69,11 @@ def _roll_about_axis_rad(img0: np.ndarray, img1: np.ndarray, camera: CameraModel
 
 
 def camera_rotation_rates(
-    frames: Iterable[tuple[float, np.ndarray]], camera: CameraModel, *, step: int = 2, max_features: int = 300,
+    frames: Iterable[tuple[float, np.ndarray]],
+    camera: CameraModel,
+    *,
+    step: int = 2,
+    max_features: int = 300,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(t_mid_s, rate_rad_s): the camera's rotation rate about its optical axis between frames ``step``
     apart, at the middle of their interval; NaN where it could not be measured."""
@@ -84,7 +88,9 @@ def camera_rotation_rates(
     return np.array(t_out), np.array(w_out)
 
 
-def attitude_rotation_rates(attitude: np.ndarray, axis_body: np.ndarray, interval_s: float) -> tuple[np.ndarray, np.ndarray]:
+def attitude_rotation_rates(
+    attitude: np.ndarray, axis_body: np.ndarray, interval_s: float
+) -> tuple[np.ndarray, np.ndarray]:
     """(t_s, rate_rad_s) on a 10 ms grid from an (N,4) array of t_s, roll, pitch, yaw: the body's
     rotation rate about ``axis_body`` (a unit vector in the body frame: the camera's optical axis),
     over ``interval_s`` centred on each grid time."""
@@ -100,7 +106,9 @@ def attitude_rotation_rates(attitude: np.ndarray, axis_body: np.ndarray, interva
     rates = np.empty(len(grid))
     for i in range(len(grid)):
         dR = R_from_euler321(*a[i]).T @ R_from_euler321(*b[i])  # body at the start to body at the end
-        w = 0.5 * np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]])  # small-angle rotation vector
+        w = 0.5 * np.array(
+            [dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]]
+        )  # small-angle rotation vector
         rates[i] = float(w @ axis) / interval_s
     return grid, rates
 
@@ -128,14 +136,22 @@ def _ncc_valid(long: np.ndarray, short: np.ndarray) -> np.ndarray:
 
 
 def estimate_offset(
-    cam_t: np.ndarray, cam_rate: np.ndarray, fc_t: np.ndarray, fc_rate: np.ndarray, *,
-    min_correlation: float = 0.5, max_runner_up_ratio: float = 0.9, source: str = "video",
+    cam_t: np.ndarray,
+    cam_rate: np.ndarray,
+    fc_t: np.ndarray,
+    fc_rate: np.ndarray,
+    *,
+    min_correlation: float = 0.5,
+    max_runner_up_ratio: float = 0.9,
+    source: str = "video",
 ) -> OffsetEstimate:
     """The offset (see :class:`OffsetEstimate`); ConfigError naming ``source`` when it cannot be
     estimated with confidence (too little overlap or rotation, an ambiguous peak)."""
     ok = np.isfinite(cam_rate)
     if ok.sum() < 20 or len(fc_t) < 20:
-        raise ConfigError(f"{source}: cannot estimate the time offset: only {int(ok.sum())} frame pairs with a measured rotation; give --offset-s")
+        raise ConfigError(
+            f"{source}: cannot estimate the time offset: only {int(ok.sum())} frame pairs with a measured rotation; give --offset-s"
+        )
     n_cam = int((cam_t[-1] - cam_t[0]) / GRID_S) + 1
     n_fc = int((fc_t[-1] - fc_t[0]) / GRID_S) + 1
     cam = _on_grid(cam_t, cam_rate, cam_t[0], n_cam)
@@ -147,7 +163,9 @@ def estimate_offset(
         ncc = _ncc_valid(cam, fc)
         offsets = fc_t[0] - cam_t[0] - GRID_S * np.arange(len(ncc))
     if float(np.std(cam)) < 0.02:
-        raise ConfigError(f"{source}: cannot estimate the time offset: the camera barely turned about its axis (rate spread {np.std(cam):.3f} rad/s); give --offset-s")
+        raise ConfigError(
+            f"{source}: cannot estimate the time offset: the camera barely turned about its axis (rate spread {np.std(cam):.3f} rad/s); give --offset-s"
+        )
     i = int(np.argmax(ncc))
     peak = float(ncc[i])
     # The runner-up: the best other local maximum outside the peak's own lobe.
@@ -162,7 +180,9 @@ def estimate_offset(
     step = offsets[1] - offsets[0] if len(offsets) > 1 else GRID_S
     est = OffsetEstimate(float(offsets[i] + shift * step), peak, runner, float(offsets[j]), min(n_cam, n_fc) * GRID_S)
     if peak < min_correlation:
-        raise ConfigError(f"{source}: cannot estimate the time offset: best correlation {peak:.2f} at {est.offset_s:.2f} s is below {min_correlation}; give --offset-s")
+        raise ConfigError(
+            f"{source}: cannot estimate the time offset: best correlation {peak:.2f} at {est.offset_s:.2f} s is below {min_correlation}; give --offset-s"
+        )
     if np.isfinite(runner) and runner > max_runner_up_ratio * peak:
         raise ConfigError(
             f"{source}: cannot estimate the time offset: ambiguous, correlation {peak:.2f} at {est.offset_s:.2f} s and {runner:.2f} at "

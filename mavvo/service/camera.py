@@ -32,8 +32,15 @@ from mavvo.service.timing import Clock, FlightControllerState
 from mavvo.types import Frame
 
 __all__ = [
-    "CameraOptions", "FrameSource", "FrameQueue", "InjectedSource", "V4L2Source", "VideoFileSource",
-    "ImageFolderSource", "ReconnectingSource", "open_source",
+    "CameraOptions",
+    "FrameSource",
+    "FrameQueue",
+    "InjectedSource",
+    "V4L2Source",
+    "VideoFileSource",
+    "ImageFolderSource",
+    "ReconnectingSource",
+    "open_source",
 ]
 
 log = logging.getLogger(__name__)
@@ -187,13 +194,18 @@ def _set_v4l2_controls(cap: cv2.VideoCapture, device: str, options: CameraOption
     key when the driver has no such control."""
     wanted = []
     if options.exposure_us > 0:
-        wanted += [("exposure_us", cv2.CAP_PROP_AUTO_EXPOSURE, 1.0), ("exposure_us", cv2.CAP_PROP_EXPOSURE, options.exposure_us / 100.0)]
+        wanted += [
+            ("exposure_us", cv2.CAP_PROP_AUTO_EXPOSURE, 1.0),
+            ("exposure_us", cv2.CAP_PROP_EXPOSURE, options.exposure_us / 100.0),
+        ]
     if options.gain > 0:
         wanted.append(("gain", cv2.CAP_PROP_GAIN, options.gain))
     for key, prop, value in wanted:
         if not cap.set(prop, value):
             cap.release()
-            raise CameraError(f"camera.{key}: camera.source {device} has no such V4L2 control (or refused {value}); set it to 0 for the driver's automatic one")
+            raise CameraError(
+                f"camera.{key}: camera.source {device} has no such V4L2 control (or refused {value}); set it to 0 for the driver's automatic one"
+            )
 
 
 class _PacedSource:
@@ -271,16 +283,22 @@ def image_size_px(path: Path) -> tuple[int, int] | None:
     if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
         return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
     if head[:2] == b"BM" and len(head) >= 26:
-        return int.from_bytes(head[18:22], "little", signed=True), abs(int.from_bytes(head[22:26], "little", signed=True))
+        return int.from_bytes(head[18:22], "little", signed=True), abs(
+            int.from_bytes(head[22:26], "little", signed=True)
+        )
     if head[:2] in (b"P2", b"P5", b"P3", b"P6"):
         tokens = [t for line in head[2:].split(b"\n") for t in line.split(b"#", 1)[0].split()]
-        return (int(tokens[0]), int(tokens[1])) if len(tokens) >= 2 and tokens[0].isdigit() and tokens[1].isdigit() else None
+        return (
+            (int(tokens[0]), int(tokens[1]))
+            if len(tokens) >= 2 and tokens[0].isdigit() and tokens[1].isdigit()
+            else None
+        )
     if head[:2] == b"\xff\xd8":  # JPEG: walk the segments to the first start-of-frame
         i = 2
         while i + 9 <= len(head) and head[i] == 0xFF:
-            marker, length = head[i + 1], int.from_bytes(head[i + 2:i + 4], "big")
+            marker, length = head[i + 1], int.from_bytes(head[i + 2 : i + 4], "big")
             if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
-                return int.from_bytes(head[i + 7:i + 9], "big"), int.from_bytes(head[i + 5:i + 7], "big")
+                return int.from_bytes(head[i + 7 : i + 9], "big"), int.from_bytes(head[i + 5 : i + 7], "big")
             i += 2 + length
     return None
 
@@ -335,7 +353,11 @@ class ImageFolderSource(_PacedSource):
             except OSError as e:  # not advanced: the next read tries this file again
                 raise CameraError(f"camera.source {self.name}: cannot read {path.name}: {e.strerror or e}") from e
             self._i += 1
-            if size is not None and self.max_size_px is not None and (size[0] > self.max_size_px[0] or size[1] > self.max_size_px[1]):
+            if (
+                size is not None
+                and self.max_size_px is not None
+                and (size[0] > self.max_size_px[0] or size[1] > self.max_size_px[1])
+            ):
                 raise FrameRefused(
                     f"camera.source {self.name}: {path.name} is {size[0]}x{size[1]} px, larger than camera.width_px x height_px "
                     f"= {self.max_size_px[0]}x{self.max_size_px[1]}; refused"
@@ -353,7 +375,13 @@ class ReconnectingSource:
     Counts ``reconnects``."""
 
     def __init__(
-        self, open_source: Callable[[], FrameSource], clock: Clock, *, reconnect_max_s: float = 5.0, lost_after_s: float = math.inf, name: str = "camera",
+        self,
+        open_source: Callable[[], FrameSource],
+        clock: Clock,
+        *,
+        reconnect_max_s: float = 5.0,
+        lost_after_s: float = math.inf,
+        name: str = "camera",
     ) -> None:
         self._open = open_source
         self.clock = clock
@@ -369,7 +397,9 @@ class ReconnectingSource:
     def read(self, timeout_s: float) -> Frame | None:
         if self._source is None:
             if self.clock.now_s() - self._away_since_s > self.lost_after_s:
-                raise CameraLost(f"camera.source {self.name}: away for {self.clock.now_s() - self._away_since_s:.0f} s (camera.lost_after_s)")
+                raise CameraLost(
+                    f"camera.source {self.name}: away for {self.clock.now_s() - self._away_since_s:.0f} s (camera.lost_after_s)"
+                )
             if self.clock.now_s() < self._retry_at_s:
                 time.sleep(min(timeout_s, 0.05))
                 return None
@@ -412,7 +442,10 @@ controller's clock."""
 
 
 def open_source(
-    options: CameraOptions, clock: Clock, schemes: dict[str, SourceFactory] | None = None, fc: FlightControllerState | None = None,
+    options: CameraOptions,
+    clock: Clock,
+    schemes: dict[str, SourceFactory] | None = None,
+    fc: FlightControllerState | None = None,
 ) -> FrameSource:
     """The source ``options.source`` names (see the module docstring); devices are wrapped to reconnect.
     CameraError naming the source when it is none of the known forms or cannot be opened."""
@@ -424,7 +457,11 @@ def open_source(
     if sep and scheme == "gst":
         from mavvo.service.camera_gst import GstSource
 
-        _refuse_controls(options, ("exposure_us", "gain", "readout_ms"), "a gst: source takes its controls in the pipeline description (e.g. v4l2src extra-controls=...)")
+        _refuse_controls(
+            options,
+            ("exposure_us", "gain", "readout_ms"),
+            "a gst: source takes its controls in the pipeline description (e.g. v4l2src extra-controls=...)",
+        )
         device = lambda: GstSource(arg, options, clock)  # noqa: E731
     elif sep and scheme == "picamera2":
         from mavvo.service.camera_picamera2 import Picamera2Source
@@ -434,18 +471,24 @@ def open_source(
         _refuse_controls(options, ("readout_ms",), "a V4L2 frame is stamped as the driver stamps it")
         device = lambda: V4L2Source(spec, options, clock)  # noqa: E731
     if device is not None:
-        return ReconnectingSource(device, clock, reconnect_max_s=options.reconnect_max_s, lost_after_s=options.lost_after_s, name=spec)
+        return ReconnectingSource(
+            device, clock, reconnect_max_s=options.reconnect_max_s, lost_after_s=options.lost_after_s, name=spec
+        )
     p = Path(spec)
     if p.is_dir():
         return ImageFolderSource(p, clock, (options.width_px, options.height_px))
     if p.is_file():
         return VideoFileSource(p, clock)
     known = ", ".join(f"{s}:" for s in ("gst", "picamera2", *(schemes or {})))
-    raise CameraError(f"camera.source {spec!r}: expected /dev/videoN, a video file, an image folder or {known}ARGUMENT; nothing there")
+    raise CameraError(
+        f"camera.source {spec!r}: expected /dev/videoN, a video file, an image folder or {known}ARGUMENT; nothing there"
+    )
 
 
 def _refuse_controls(options: CameraOptions, keys: tuple[str, ...], why: str) -> None:
     """CameraError naming the first of ``keys`` set away from its default (0) for a source that cannot apply it."""
     for key in keys:
         if getattr(options, key):
-            raise CameraError(f"camera.{key}: {getattr(options, key)} is not supported by camera.source {options.source!r}: {why}; set it to 0")
+            raise CameraError(
+                f"camera.{key}: {getattr(options, key)} is not supported by camera.source {options.source!r}: {why}; set it to 0"
+            )

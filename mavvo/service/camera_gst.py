@@ -86,7 +86,9 @@ def _grey_from_sample(Gst: Any, sample: Any, name: str) -> np.ndarray:
     ok_w, width = caps.get_int("width")
     ok_h, height = caps.get_int("height")
     if not (ok_w and ok_h) or fmt not in ("GRAY8", "I420", "NV12", "YV12", "NV21"):
-        raise CameraError(f"camera.source {name}: the appsink gets {caps.to_string()}; expected video/x-raw with format GRAY8 (or I420/NV12)")
+        raise CameraError(
+            f"camera.source {name}: the appsink gets {caps.to_string()}; expected video/x-raw with format GRAY8 (or I420/NV12)"
+        )
     buf = sample.get_buffer()
     ok, info = buf.map(Gst.MapFlags.READ)
     if not ok:
@@ -96,7 +98,9 @@ def _grey_from_sample(Gst: Any, sample: Any, name: str) -> np.ndarray:
         # Rows are padded to 4 bytes in GStreamer's default video layout.
         stride = (width + 3) & ~3
         if data.size < stride * (height - 1) + width:
-            raise CameraError(f"camera.source {name}: a {width}x{height} {fmt} buffer of {data.size} bytes is too short")
+            raise CameraError(
+                f"camera.source {name}: a {width}x{height} {fmt} buffer of {data.size} bytes is too short"
+            )
         return np.lib.stride_tricks.as_strided(data, (height, width), (stride, 1)).copy()
     finally:
         buf.unmap(info)
@@ -141,7 +145,9 @@ class GstSource:
                 if elem.get_factory() is not None and elem.get_factory().get_name() == "appsink":
                     sinks.append(elem)
         if len(sinks) != 1:
-            raise CameraError(f"camera.source {self.name}: expected one appsink (or one named {SINK_NAME!r}), found {len(sinks)}")
+            raise CameraError(
+                f"camera.source {self.name}: expected one appsink (or one named {SINK_NAME!r}), found {len(sinks)}"
+            )
         return sinks[0]
 
     def _bus_error(self) -> str | None:

@@ -80,7 +80,9 @@ class Picamera2Source:
         try:
             num = int(index or "0")
         except ValueError:
-            raise CameraError(f"camera.source {self.name}: expected picamera2:INDEX with a camera number, got {index!r}") from None
+            raise CameraError(
+                f"camera.source {self.name}: expected picamera2:INDEX with a camera number, got {index!r}"
+            ) from None
         cls = picamera2_cls or import_picamera2()
         try:
             self._cam = cls(num)
@@ -96,7 +98,9 @@ class Picamera2Source:
             self._cam.start()
         except (RuntimeError, ValueError, OSError) as e:
             self._cam.close()
-            raise CameraError(f"camera.source {self.name}: the camera refused {options.width_px}x{options.height_px} at {options.rate_hz} Hz: {e}") from None
+            raise CameraError(
+                f"camera.source {self.name}: the camera refused {options.width_px}x{options.height_px} at {options.rate_hz} Hz: {e}"
+            ) from None
         self._seq = 0
         self._closed = False
 

@@ -71,12 +71,22 @@ def list_cameras() -> list[CameraListing]:
     try:
         Picamera2 = import_picamera2()
         for i, info in enumerate(Picamera2.global_camera_info()):
-            out.append(CameraListing(f"picamera2:{info.get('Num', i)}", "libcamera", f"{info.get('Model', '?')} at {info.get('Location', '?')}"))
+            out.append(
+                CameraListing(
+                    f"picamera2:{info.get('Num', i)}",
+                    "libcamera",
+                    f"{info.get('Model', '?')} at {info.get('Location', '?')}",
+                )
+            )
     except CameraError:
         out.append(CameraListing("picamera2:INDEX", "libcamera", f"not available: {PICAMERA2_HINT}"))
     try:
         Gst, _ = import_gst()
-        out.append(CameraListing("gst:PIPELINE", "gstreamer", f"{Gst.version_string()}: any pipeline, e.g. gst:videotestsrc is-live=true"))
+        out.append(
+            CameraListing(
+                "gst:PIPELINE", "gstreamer", f"{Gst.version_string()}: any pipeline, e.g. gst:videotestsrc is-live=true"
+            )
+        )
     except CameraError:
         out.append(CameraListing("gst:PIPELINE", "gstreamer", f"not available: {GST_HINT}"))
     return out
@@ -115,11 +125,18 @@ def measure(source: FrameSource, clock: Clock, seconds: float, name: str) -> Cam
     dropped = sum(max(0, b - a - 1) for a, b in zip(seqs, seqs[1:]))
     nan = float("nan")
     return CameraMeasurement(
-        source=name, seconds=seconds, frames=n, width_px=int(shape[1]), height_px=int(shape[0]),
-        rate_hz=(n - 1) / span if span > 0 else nan, dropped=dropped,
+        source=name,
+        seconds=seconds,
+        frames=n,
+        width_px=int(shape[1]),
+        height_px=int(shape[0]),
+        rate_hz=(n - 1) / span if span > 0 else nan,
+        dropped=dropped,
         age_median_ms=statistics.median(ages_ms) if ages_ms else nan,
         age_spread_ms=_percentile(ages_ms, 0.95) - _percentile(ages_ms, 0.05) if ages_ms else nan,
-        brightness_min=min(brightness, default=nan), brightness_max=max(brightness, default=nan), ended=ended,
+        brightness_min=min(brightness, default=nan),
+        brightness_max=max(brightness, default=nan),
+        ended=ended,
     )
 
 
@@ -129,17 +146,29 @@ def advice(m: CameraMeasurement, options: CameraOptions) -> list[str]:
     if m.frames == 0:
         return [f"no frame in {m.seconds:g} s: check camera.source and that nothing else holds the camera"]
     if not m.rate_hz >= 0.9 * options.rate_hz:
-        out.append(f"frame rate {m.rate_hz:.1f} Hz is below camera.rate_hz {options.rate_hz:g}: lower camera.rate_hz, or the exposure time or resolution")
+        out.append(
+            f"frame rate {m.rate_hz:.1f} Hz is below camera.rate_hz {options.rate_hz:g}: lower camera.rate_hz, or the exposure time or resolution"
+        )
     if m.dropped:
         out.append(f"{m.dropped} frames lost before mavvo (gaps in the sequence): a slow consumer or a busy bus")
     if (m.width_px, m.height_px) != (options.width_px, options.height_px):
-        out.append(f"frames are {m.width_px}x{m.height_px} px but camera.width_px x height_px is {options.width_px}x{options.height_px}: the intrinsics must be of the delivered size")
+        out.append(
+            f"frames are {m.width_px}x{m.height_px} px but camera.width_px x height_px is {options.width_px}x{options.height_px}: the intrinsics must be of the delivered size"
+        )
     if options.timestamps == "grab" or (m.age_spread_ms < 0.05 and abs(m.age_median_ms - options.latency_ms) < 0.05):
-        out.append(f"stamps come from the grab time minus camera.latency_ms ({options.latency_ms:g} ms): pairing with attitude is only as good as that guess; a source with driver stamps (V4L2, gst:, picamera2:) is better")
+        out.append(
+            f"stamps come from the grab time minus camera.latency_ms ({options.latency_ms:g} ms): pairing with attitude is only as good as that guess; a source with driver stamps (V4L2, gst:, picamera2:) is better"
+        )
     elif m.age_spread_ms > 10.0:
-        out.append(f"frame stamps age by {m.age_median_ms:.1f} ms with a {m.age_spread_ms:.1f} ms spread: the delivery jitters (load, USB); the stamps themselves may still be right")
+        out.append(
+            f"frame stamps age by {m.age_median_ms:.1f} ms with a {m.age_spread_ms:.1f} ms spread: the delivery jitters (load, USB); the stamps themselves may still be right"
+        )
     if options.exposure_us == 0:
-        out.append("auto-exposure is on: set camera.exposure_us (e.g. 2000-5000) to bound motion blur and stop brightness jumps between frames")
+        out.append(
+            "auto-exposure is on: set camera.exposure_us (e.g. 2000-5000) to bound motion blur and stop brightness jumps between frames"
+        )
     if m.brightness_max - m.brightness_min > 0.2 * max(m.brightness_max, 1.0):
-        out.append(f"brightness moved {m.brightness_min:.0f}-{m.brightness_max:.0f} of 255 while measuring: the exposure or gain is changing")
+        out.append(
+            f"brightness moved {m.brightness_min:.0f}-{m.brightness_max:.0f} of 255 while measuring: the exposure or gain is changing"
+        )
     return out

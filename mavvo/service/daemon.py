@@ -57,7 +57,9 @@ log = logging.getLogger(__name__)
 _SUPERVISE_TICK_S = 0.1
 _ARRIVALS_KEPT = 64
 _UNPAIRED_TELL_S = 2.0  # frames unpaired for one cause this long: the operator is told which and what to change
-_SAMPLES_PER_GAP = 1.5  # ATTITUDE at this many samples per max_attitude_gap_s is fast enough: stale frames then mean stalls
+_SAMPLES_PER_GAP = (
+    1.5  # ATTITUDE at this many samples per max_attitude_gap_s is fast enough: stale frames then mean stalls
+)
 _UNPAIRED_CAUSES = {
     "skipped_attitude_stale": "ATTITUDE too sparse; raise link.attitude_rate_hz",
     "skipped_attitude_missing": "no ATTITUDE; check link.url",
@@ -71,8 +73,11 @@ _STUCK_MIN_S = 2.0  # a thread whose loop has not turned for this long (at least
 _PAUSE_SLICE_S = 0.25  # long waits are cut into slices, each a turn of the thread's loop
 _THREADS = ("link", "camera", "worker")
 _SYSTEM_STATUS = {
-    VisionState.STANDBY: SystemStatus.STANDBY, VisionState.INITIALISING: SystemStatus.ACTIVE, VisionState.TRACKING: SystemStatus.ACTIVE,
-    VisionState.DEGRADED: SystemStatus.CRITICAL, VisionState.FAILED: SystemStatus.CRITICAL,
+    VisionState.STANDBY: SystemStatus.STANDBY,
+    VisionState.INITIALISING: SystemStatus.ACTIVE,
+    VisionState.TRACKING: SystemStatus.ACTIVE,
+    VisionState.DEGRADED: SystemStatus.CRITICAL,
+    VisionState.FAILED: SystemStatus.CRITICAL,
 }
 
 
@@ -178,7 +183,13 @@ class Daemon:
         self._pending_texts: deque[dict[str, object]] = deque()  # STATUSTEXTs other threads ask the supervisor to send
         try:
             self.recorder = self._open_recorder()
-            self.link = Link(config.link, self.clock, self.fc, self._system_status, tap=self.recorder.mavlink if self.recorder else None)
+            self.link = Link(
+                config.link,
+                self.clock,
+                self.fc,
+                self._system_status,
+                tap=self.recorder.mavlink if self.recorder else None,
+            )
         except BaseException:
             self.source.close()
             if getattr(self, "recorder", None) is not None:
@@ -202,7 +213,12 @@ class Daemon:
         self._next_health_s = -math.inf
         self._reset_counter: int | None = None
         self._errors_logged: Counter[str] = Counter()
-        self.odometry = Odometry(config.camera.camera_model(), config.mounting.rotation(), config.odometry, reset_counter=self._first_reset_counter())
+        self.odometry = Odometry(
+            config.camera.camera_model(),
+            config.mounting.rotation(),
+            config.odometry,
+            reset_counter=self._first_reset_counter(),
+        )
         # The odometry is looked up at each call: a test may put another in its place.
         self._ahead = TrackAhead(lambda image: self.odometry.track(image), thread=config.service.track_ahead)
         self._next_frame: Frame | None = None  # taken from the queue by the worker, its tracking started
@@ -222,9 +238,15 @@ class Daemon:
     def progress(self) -> LockstepProgress:
         """The counts a lockstep driver waits on (thread-safe: each is read in one step)."""
         return LockstepProgress(
-            self.link.counters["rx"], self.fc.version, self.counters["frames_done"], self.counters["frames_queued"],
+            self.link.counters["rx"],
+            self.fc.version,
+            self.counters["frames_done"],
+            self.counters["frames_queued"],
             self.link.sends_pending() if self.link.connected.is_set() else 0,
-            self.link.counters["sent"], self.link.datagrams_done, self.link.tick_clock_s, self.fc.waiting_for_data(),
+            self.link.counters["sent"],
+            self.link.datagrams_done,
+            self.link.tick_clock_s,
+            self.fc.waiting_for_data(),
         )
 
     def tick(self) -> None:
@@ -271,7 +293,10 @@ class Daemon:
         warm_kernels()
         took_s = self._wall.now_s() - t0
         if took_s > 5.0:
-            log.warning("compiled the kernels in %.0f s (a cold cache: the first start after an install or update; NUMBA_CACHE_DIR keeps them)", took_s)
+            log.warning(
+                "compiled the kernels in %.0f s (a cold cache: the first start after an install or update; NUMBA_CACHE_DIR keeps them)",
+                took_s,
+            )
         else:
             log.info("kernels loaded in %.1f s", took_s)
 
@@ -285,9 +310,15 @@ class Daemon:
             previous = {s: signal.signal(s, self.on_signal) for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
         link_stop = threading.Event()
         threads = [
-            threading.Thread(target=self._guarded, args=("link", self.link.run, link_stop), name="mavvo-link", daemon=True),
-            threading.Thread(target=self._guarded, args=("camera", self._camera_loop), name="mavvo-camera", daemon=True),
-            threading.Thread(target=self._guarded, args=("worker", self._worker_loop), name="mavvo-worker", daemon=True),
+            threading.Thread(
+                target=self._guarded, args=("link", self.link.run, link_stop), name="mavvo-link", daemon=True
+            ),
+            threading.Thread(
+                target=self._guarded, args=("camera", self._camera_loop), name="mavvo-camera", daemon=True
+            ),
+            threading.Thread(
+                target=self._guarded, args=("worker", self._worker_loop), name="mavvo-worker", daemon=True
+            ),
         ]
         try:
             self._warm_kernels()
@@ -296,7 +327,9 @@ class Daemon:
             m = self.config.mounting
             log.info(
                 "mavvo running: link %s, camera %s; camera lever arm %s m: set VISO_POS_X/Y/Z (ArduPilot) or EKF2_EV_POS_X/Y/Z (PX4) to it",
-                self.config.link.url, self.config.camera.source, list(m.lever_arm_m),
+                self.config.link.url,
+                self.config.camera.source,
+                list(m.lever_arm_m),
             )
             sdnotify.notify("READY=1")
             self._supervise()
@@ -335,7 +368,9 @@ class Daemon:
         try:
             target(*args)
         except BaseException as e:  # noqa: BLE001 - whatever killed the thread, the service must not go on without it
-            log.critical("the %s thread died: %s: %s", name, type(e).__name__, e, exc_info=not isinstance(e, CameraLost))
+            log.critical(
+                "the %s thread died: %s: %s", name, type(e).__name__, e, exc_info=not isinstance(e, CameraLost)
+            )
             with self._state_lock:
                 self._failure = self._failure or f"the {name} thread stopped: {type(e).__name__}: {e}"
             self.stop_event.set()
@@ -382,7 +417,11 @@ class Daemon:
             if stuck != told_stuck:
                 if stuck:
                     self.counters["threads_stuck"] += 1
-                    log.error("no progress for %.0f s in the %s thread(s): systemd's watchdog is no longer fed", stuck_limit_s, ", ".join(stuck))
+                    log.error(
+                        "no progress for %.0f s in the %s thread(s): systemd's watchdog is no longer fed",
+                        stuck_limit_s,
+                        ", ".join(stuck),
+                    )
                 told_stuck = stuck
             # Only a service whose every thread makes progress keeps systemd's watchdog fed.
             if watchdog_s is not None and self._wall.now_s() >= next_ping:
@@ -416,7 +455,9 @@ class Daemon:
                     now = self._wall.now_s()
                     failing_since = now if failing_since is None else failing_since
                     if now - failing_since > opts.lost_after_s:
-                        raise CameraLost(f"camera.source {opts.source}: failing for {now - failing_since:.0f} s (camera.lost_after_s): {e}") from e
+                        raise CameraLost(
+                            f"camera.source {opts.source}: failing for {now - failing_since:.0f} s (camera.lost_after_s): {e}"
+                        ) from e
                     self.counters["camera_errors"] += 1
                     self._log_error("camera", e)
                     self._pause("camera", backoff)
@@ -428,7 +469,12 @@ class Daemon:
                 h, w = frame.image.shape[:2]
                 if w > opts.width_px or h > opts.height_px:  # kept out of the queue: it could only fail, slowly
                     self.counters["frames_refused"] += 1
-                    self._log_error("camera", FrameRefused(f"frame {frame.seq} is {w}x{h} px, larger than camera.width_px x height_px = {opts.width_px}x{opts.height_px}; refused"))
+                    self._log_error(
+                        "camera",
+                        FrameRefused(
+                            f"frame {frame.seq} is {w}x{h} px, larger than camera.width_px x height_px = {opts.width_px}x{opts.height_px}; refused"
+                        ),
+                    )
                     continue
                 if len(self._arrival_s) > _ARRIVALS_KEPT:  # frames dropped from the queue never come back
                     self._arrival_s.clear()
@@ -486,7 +532,17 @@ class Daemon:
         # a boot or reboot); meanwhile vision's heading carries on alone.
         fc_yaw = p.yaw_rad if p.yaw_settled else math.nan
         paired = PairedFrame(
-            frame.image, frame.t_exposure_s, frame.seq, p.roll_rad, p.pitch_rad, fc_yaw, p.range_m, p.height_m, fc_p, p.attitude_gap_s, p.interpolation_sigma_rad,
+            frame.image,
+            frame.t_exposure_s,
+            frame.seq,
+            p.roll_rad,
+            p.pitch_rad,
+            fc_yaw,
+            p.range_m,
+            p.height_m,
+            fc_p,
+            p.attitude_gap_s,
+            p.interpolation_sigma_rad,
         )
         try:
             est = self.odometry.step(paired, self._tracks(frame))
@@ -544,8 +600,16 @@ class Daemon:
             self._heading_wait_over = True
         elif t_s - self._first_paired_s >= self.config.service.heading_wait_max_s:
             self._heading_wait_over = True
-            log.warning("the flight controller's yaw has not settled after %.0f s: starting with it; north may be off", self.config.service.heading_wait_max_s)
-            self.link.send("STATUSTEXT", messages.statustext_line("mavvo: FC yaw unsettled, north may be off", severity=messages.MAV_SEVERITY_WARNING))
+            log.warning(
+                "the flight controller's yaw has not settled after %.0f s: starting with it; north may be off",
+                self.config.service.heading_wait_max_s,
+            )
+            self.link.send(
+                "STATUSTEXT",
+                messages.statustext_line(
+                    "mavvo: FC yaw unsettled, north may be off", severity=messages.MAV_SEVERITY_WARNING
+                ),
+            )
         return self._heading_wait_over
 
     def _open_recorder(self) -> Recorder | None:
@@ -558,12 +622,16 @@ class Daemon:
         except RecordingError as e:
             self.counters["record_failed"] += 1
             log.error("%s; running without recording", e)
-            self._pending_texts.append(messages.statustext_line("mavvo: recording failed to start", severity=messages.MAV_SEVERITY_WARNING))
+            self._pending_texts.append(
+                messages.statustext_line("mavvo: recording failed to start", severity=messages.MAV_SEVERITY_WARNING)
+            )
             return None
 
     def _recording_stopped(self, reason: str) -> None:
         """The recorder's writer thread stopped on a disk problem: the operator is told (vision goes on)."""
-        self._pending_texts.append(messages.statustext_line(f"mavvo: recording stopped: {reason}", severity=messages.MAV_SEVERITY_WARNING))
+        self._pending_texts.append(
+            messages.statustext_line(f"mavvo: recording stopped: {reason}", severity=messages.MAV_SEVERITY_WARNING)
+        )
 
     def _first_reset_counter(self) -> int:
         """A ``reset_counter`` the flight controller has not seen from this service: one past the
@@ -575,7 +643,9 @@ class Daemon:
             except FileNotFoundError:
                 last = -1
             except (OSError, ValueError, KeyError, TypeError) as e:
-                log.warning("service.state_file %s: cannot read the last reset_counter (%s); starting from the clock", path, e)
+                log.warning(
+                    "service.state_file %s: cannot read the last reset_counter (%s); starting from the clock", path, e
+                )
                 last = int(self.clock.now_s() * 10)
             first = (last + 1) % 256
             self._save_reset_counter(first)
@@ -615,7 +685,9 @@ class Daemon:
             self.counters["not_sent_rate"] += 1
         else:
             self._last_sent_t_s = est.t_exposure_s
-            send_by_s = est.t_exposure_s + out.max_age_s  # later, the flight controller would fuse the past as the present
+            send_by_s = (
+                est.t_exposure_s + out.max_age_s
+            )  # later, the flight controller would fuse the past as the present
             self.link.send("VISION_POSITION_ESTIMATE", messages.vision_position_estimate(est), send_by_s=send_by_s)
             self.latency.add(self._latency_s(est.t_exposure_s))
             if out.speed_estimate:
@@ -643,7 +715,10 @@ class Daemon:
         skipped = sum(v for k, v in counters.items() if k.startswith("skipped_attitude"))
         self._tell_why_unpaired(now, counters)
         if est is not None and self.state != VisionState.FAILED and now - est.t_exposure_s > _NO_ESTIMATE_S:
-            self._set_state(VisionState.FAILED, StateReason.NO_ATTITUDE if skipped > self._skipped_at_last_report else StateReason.NO_FRAMES)
+            self._set_state(
+                VisionState.FAILED,
+                StateReason.NO_ATTITUDE if skipped > self._skipped_at_last_report else StateReason.NO_FRAMES,
+            )
         self._skipped_at_last_report = skipped
         with self._state_lock:
             text = None
@@ -661,7 +736,8 @@ class Daemon:
             latency = self.latency.stats()
             fresh = est is not None and now - est.t_exposure_s <= _NO_ESTIMATE_S
             values = (
-                ("VO_QUAL", est.quality if fresh else -1), ("VO_INLIER", est.diagnostics.inliers if fresh else 0),
+                ("VO_QUAL", est.quality if fresh else -1),
+                ("VO_INLIER", est.diagnostics.inliers if fresh else 0),
                 ("VO_STATE", messages.STATE_CODES[self.state]),
                 ("VO_LAT_MS", latency.p50_ms if latency is not None else math.nan),
                 ("VO_DRIFT", est.drift_m if est is not None else math.nan),
@@ -698,7 +774,9 @@ class Daemon:
                 text = f"ATTITUDE arrives at {rate:.0f} Hz; raise link.attitude_rate_hz to {want:.0f}"
                 short = f"ATTITUDE {rate:.0f} Hz; link.attitude_rate_hz {want:.0f}"  # STATUSTEXT holds 50 characters
         log.warning("no frame paired for %.0f s: %s", now - t0, text)
-        self.link.send("STATUSTEXT", messages.statustext_line(f"mavvo: {short}", severity=messages.MAV_SEVERITY_WARNING))
+        self.link.send(
+            "STATUSTEXT", messages.statustext_line(f"mavvo: {short}", severity=messages.MAV_SEVERITY_WARNING)
+        )
 
     # ------------------------------------------------------------------ health
 
@@ -723,10 +801,28 @@ class Daemon:
         h = self.health()
         latency = self.latency.stats()
         lat = "" if latency is None else f"; {latency.advice()}"
-        keys = ("frames", "paired", "estimates_sent", "not_sent_failed", "resets", "frames_dropped", "bad_frames",
-                "skipped_attitude_wait", "skipped_attitude_stale", "skipped_attitude_missing", "fc_attitude_rejected",
-                "link_bad_data", "link_reconnects", "link_reboots", "camera_errors", "camera_reconnects", "errors",
-                "record_frames", "record_dropped_frames", "record_dropped_messages")
+        keys = (
+            "frames",
+            "paired",
+            "estimates_sent",
+            "not_sent_failed",
+            "resets",
+            "frames_dropped",
+            "bad_frames",
+            "skipped_attitude_wait",
+            "skipped_attitude_stale",
+            "skipped_attitude_missing",
+            "fc_attitude_rejected",
+            "link_bad_data",
+            "link_reconnects",
+            "link_reboots",
+            "camera_errors",
+            "camera_reconnects",
+            "errors",
+            "record_frames",
+            "record_dropped_frames",
+            "record_dropped_messages",
+        )
         counts = ", ".join(f"{k} {h[k]}" for k in keys if h.get(k))
         log.info("%s: state %s; %s%s", "final" if final else "health", self.state, counts or "nothing yet", lat)
 

@@ -45,10 +45,19 @@ from mavvo.service.mavlink import SOCKET_SCHEMES, mavutil
 from mavvo.service.timing import Clock
 from mavvo.types import StrEnum
 
-__all__ = ["LinkOptions", "LinkListener", "Link", "SystemStatus", "Tap", "parse_url", "read_signing_key", "stamp_us", "us_to_s"]
+__all__ = [
+    "LinkOptions",
+    "LinkListener",
+    "Link",
+    "SystemStatus",
+    "Tap",
+    "parse_url",
+    "read_signing_key",
+    "stamp_us",
+    "us_to_s",
+]
 
 log = logging.getLogger(__name__)
-
 
 
 class SystemStatus(StrEnum):
@@ -58,6 +67,7 @@ class SystemStatus(StrEnum):
     STANDBY = "standby"  #: no estimate yet
     ACTIVE = "active"  #: tracking
     CRITICAL = "critical"  #: degraded or failed
+
 
 COMPONENT_ID = 197  # MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
 _REBOOT_STEP_S = 1.0  # time_boot_ms going back by more than this is a reboot, not a reordered packet
@@ -75,18 +85,45 @@ _WAIT_SLICE_S = 0.25  # long back-off waits are cut into slices, each a turn of 
 class LinkOptions:
     """The MAVLink connection."""
 
-    url: str = bounded("/dev/ttyAMA0:921600", "serial DEVICE:BAUD, udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or tcpin:HOST:PORT")
-    fc_system_id: int = bounded(0, "the flight controller's MAVLink system id (0: the first autopilot that sends HEARTBEAT and ATTITUDE consistently for fc_confirm_s); mavvo uses the same", ge=0, le=255)
-    fc_confirm_s: float = bounded(1.0, "without fc_system_id: an autopilot is followed once its HEARTBEAT and ATTITUDE have come for this long; another one after that is reported, not followed", gt=0, le=60)
-    attitude_rate_hz: float = bounded(100.0, "ATTITUDE rate to request (at least the camera rate; 100 Hz brackets every exposure closely)", gt=0, le=1000)
+    url: str = bounded(
+        "/dev/ttyAMA0:921600", "serial DEVICE:BAUD, udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or tcpin:HOST:PORT"
+    )
+    fc_system_id: int = bounded(
+        0,
+        "the flight controller's MAVLink system id (0: the first autopilot that sends HEARTBEAT and ATTITUDE consistently for fc_confirm_s); mavvo uses the same",
+        ge=0,
+        le=255,
+    )
+    fc_confirm_s: float = bounded(
+        1.0,
+        "without fc_system_id: an autopilot is followed once its HEARTBEAT and ATTITUDE have come for this long; another one after that is reported, not followed",
+        gt=0,
+        le=60,
+    )
+    attitude_rate_hz: float = bounded(
+        100.0,
+        "ATTITUDE rate to request (at least the camera rate; 100 Hz brackets every exposure closely)",
+        gt=0,
+        le=1000,
+    )
     range_rate_hz: float = bounded(20.0, "DISTANCE_SENSOR rate to request", gt=0, le=1000)
     height_rate_hz: float = bounded(10.0, "GLOBAL_POSITION_INT (height above home) rate to request", gt=0, le=1000)
-    local_position_rate_hz: float = bounded(10.0, "LOCAL_POSITION_NED (the flight controller's own position, where re-initialised tracking is anchored) rate to request", gt=0, le=1000)
-    request_retry_s: float = bounded(2.0, "first retry of a stream request that brought nothing; doubles up to 30 s", gt=0, le=30)
+    local_position_rate_hz: float = bounded(
+        10.0,
+        "LOCAL_POSITION_NED (the flight controller's own position, where re-initialised tracking is anchored) rate to request",
+        gt=0,
+        le=1000,
+    )
+    request_retry_s: float = bounded(
+        2.0, "first retry of a stream request that brought nothing; doubles up to 30 s", gt=0, le=30
+    )
     timesync_interval_s: float = bounded(1.0, "TIMESYNC request period", gt=0, le=60)
     silence_timeout_s: float = bounded(3.0, "nothing heard for this long: reconnect", gt=0, le=600)
     reconnect_max_s: float = bounded(8.0, "longest back-off between reconnection attempts", gt=0, le=600)
-    signing_key_file: str = bounded("", "MAVLink 2 signing key: 64 hex digits, 32 raw bytes or a passphrase (SHA-256); mode 0600 or stricter; keep it at /var/lib/mavvo/signing.key (the unit's 0700 state directory); empty: unsigned")
+    signing_key_file: str = bounded(
+        "",
+        "MAVLink 2 signing key: 64 hex digits, 32 raw bytes or a passphrase (SHA-256); mode 0600 or stricter; keep it at /var/lib/mavvo/signing.key (the unit's 0700 state directory); empty: unsigned",
+    )
 
 
 class LinkListener(Protocol):
@@ -102,7 +139,11 @@ class LinkListener(Protocol):
         body_rates_rad_s: tuple[float, float, float] | None = None,
     ) -> None: ...
     def on_local_position(
-        self, t_fc_ms: int, p_ned_m: tuple[float, float, float], v_ned_m_s: tuple[float, float, float], t_arrival_host_s: float | None = None
+        self,
+        t_fc_ms: int,
+        p_ned_m: tuple[float, float, float],
+        v_ned_m_s: tuple[float, float, float],
+        t_arrival_host_s: float | None = None,
     ) -> None: ...
     def on_range(self, t_fc_ms: int, range_m: float | None, t_arrival_host_s: float | None = None) -> None: ...
     def on_height(self, t_fc_ms: int, height_m: float, t_arrival_host_s: float | None = None) -> None: ...
@@ -138,7 +179,9 @@ def parse_url(url: str) -> tuple[str, int | None]:
     if dev.startswith("/dev/") or dev.startswith("/"):
         path, _, baud = dev.rpartition(":")
         if not path or not baud.isdigit() or int(baud) <= 0:
-            raise ConfigError(f"link.url: expected a serial device with its baud rate, like /dev/ttyAMA0:921600, got {url!r}")
+            raise ConfigError(
+                f"link.url: expected a serial device with its baud rate, like /dev/ttyAMA0:921600, got {url!r}"
+            )
         return path, int(baud)
     raise ConfigError(
         f"link.url: expected /dev/DEVICE:BAUD, udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or tcpin:HOST:PORT, got {url!r}"
@@ -156,7 +199,9 @@ def read_signing_key(path: str | Path) -> bytes:
     except OSError as e:
         raise ConfigError(f"link.signing_key_file {p}: cannot read: {e.strerror or e}") from e
     if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
-        raise ConfigError(f"link.signing_key_file {p}: expected mode 0600 or stricter (owner only), got {stat.S_IMODE(st.st_mode):04o}; run chmod 600 {p}")
+        raise ConfigError(
+            f"link.signing_key_file {p}: expected mode 0600 or stricter (owner only), got {stat.S_IMODE(st.st_mode):04o}; run chmod 600 {p}"
+        )
     text = raw.strip()
     if len(text) == 64:
         try:
@@ -190,7 +235,9 @@ def check_udp_port_free(url: str) -> None:
     try:
         probe.bind((host, int(port)))
     except OSError as e:
-        raise LinkError(f"link.url {url}: cannot listen on {host}:{port}: {e.strerror or e} (another process has the port?)") from e
+        raise LinkError(
+            f"link.url {url}: cannot listen on {host}:{port}: {e.strerror or e} (another process has the port?)"
+        ) from e
     finally:
         probe.close()
 
@@ -221,8 +268,12 @@ class Link:
     """
 
     def __init__(
-        self, options: LinkOptions, clock: Clock, listener: LinkListener,
-        system_status: Callable[[], SystemStatus] = lambda: SystemStatus.STANDBY, tap: Tap | None = None,
+        self,
+        options: LinkOptions,
+        clock: Clock,
+        listener: LinkListener,
+        system_status: Callable[[], SystemStatus] = lambda: SystemStatus.STANDBY,
+        tap: Tap | None = None,
     ) -> None:
         self.options = options
         self.tap = tap
@@ -266,7 +317,9 @@ class Link:
             _Stream(mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, options.local_position_rate_hz),
         ]
         self._status_map = {
-            SystemStatus.STANDBY: mav.MAV_STATE_STANDBY, SystemStatus.ACTIVE: mav.MAV_STATE_ACTIVE, SystemStatus.CRITICAL: mav.MAV_STATE_CRITICAL,
+            SystemStatus.STANDBY: mav.MAV_STATE_STANDBY,
+            SystemStatus.ACTIVE: mav.MAV_STATE_ACTIVE,
+            SystemStatus.CRITICAL: mav.MAV_STATE_CRITICAL,
         }
 
     # ------------------------------------------------------------------ other threads
@@ -530,11 +583,19 @@ class Link:
         if now >= self._next_heartbeat_s:
             self._next_heartbeat_s = now + 1.0
             status = self._status_map[self.system_status()]
-            self._write("HEARTBEAT", {
-                "type": mav.MAV_TYPE_ONBOARD_CONTROLLER, "autopilot": mav.MAV_AUTOPILOT_INVALID,
-                "base_mode": 0, "custom_mode": 0, "system_status": status,
-            })
-        targets = [(self.fc_system_id, self.fc_component_id)] if self.fc_component_id is not None else list(self._candidates)
+            self._write(
+                "HEARTBEAT",
+                {
+                    "type": mav.MAV_TYPE_ONBOARD_CONTROLLER,
+                    "autopilot": mav.MAV_AUTOPILOT_INVALID,
+                    "base_mode": 0,
+                    "custom_mode": 0,
+                    "system_status": status,
+                },
+            )
+        targets = (
+            [(self.fc_system_id, self.fc_component_id)] if self.fc_component_id is not None else list(self._candidates)
+        )
         if not targets:
             return  # requests go to a flight controller we have heard
         if self.fc_component_id is not None and now >= self._next_timesync_s:
@@ -547,11 +608,22 @@ class Link:
                 s.next_request_s = now + s.backoff_s
                 for target_system, target_component in targets[:4]:  # candidates: a few at most
                     self.counters["stream_requests"] += 1
-                    self._write("COMMAND_LONG", {
-                        "target_system": target_system, "target_component": target_component,
-                        "command": mav.MAV_CMD_SET_MESSAGE_INTERVAL, "confirmation": 0,
-                        "param1": s.msg_id, "param2": 1e6 / s.rate_hz, "param3": 0, "param4": 0, "param5": 0, "param6": 0, "param7": 0,
-                    })
+                    self._write(
+                        "COMMAND_LONG",
+                        {
+                            "target_system": target_system,
+                            "target_component": target_component,
+                            "command": mav.MAV_CMD_SET_MESSAGE_INTERVAL,
+                            "confirmation": 0,
+                            "param1": s.msg_id,
+                            "param2": 1e6 / s.rate_hz,
+                            "param3": 0,
+                            "param4": 0,
+                            "param5": 0,
+                            "param6": 0,
+                            "param7": 0,
+                        },
+                    )
 
     # ------------------------------------------------------------------ what arrives
 
@@ -594,7 +666,9 @@ class Link:
             if s.msg_id == msg.get_msgId():
                 s.last_rx_s, s.backoff_s = now, 0.0
         if kind == "ATTITUDE":
-            self.listener.on_attitude(msg.time_boot_ms, msg.roll, msg.pitch, msg.yaw, now, (msg.rollspeed, msg.pitchspeed, msg.yawspeed))
+            self.listener.on_attitude(
+                msg.time_boot_ms, msg.roll, msg.pitch, msg.yaw, now, (msg.rollspeed, msg.pitchspeed, msg.yawspeed)
+            )
         elif kind == "LOCAL_POSITION_NED":
             self.listener.on_local_position(msg.time_boot_ms, (msg.x, msg.y, msg.z), (msg.vx, msg.vy, msg.vz), now)
         elif kind == "DISTANCE_SENSOR":
@@ -608,7 +682,11 @@ class Link:
                 self._write("TIMESYNC", {"tc1": int(now * 1e9), "ts1": msg.ts1})
             elif 0.0 <= now - msg.ts1 * 1e-9 <= _TIMESYNC_MAX_RTT_S:
                 self.listener.on_timesync(msg.ts1 * 1e-9, msg.tc1 * 1e-9, now)
-        elif kind == "COMMAND_ACK" and msg.command == self._mav.MAV_CMD_SET_MESSAGE_INTERVAL and msg.result != self._mav.MAV_RESULT_ACCEPTED:
+        elif (
+            kind == "COMMAND_ACK"
+            and msg.command == self._mav.MAV_CMD_SET_MESSAGE_INTERVAL
+            and msg.result != self._mav.MAV_RESULT_ACCEPTED
+        ):
             self.counters["denied"] += 1
             if self.counters["denied"] <= 3:
                 log.info("flight controller refused a stream request (result %d); retrying with back-off", msg.result)
@@ -625,8 +703,13 @@ class Link:
                 self.counters["other_autopilots"] += 1
                 if key not in self._others_told and len(self._others_told) < 16:
                     self._others_told.add(key)
-                    log.warning("another autopilot on the link (system %d component %d): ignored; following system %d component %d",
-                                sys_id, comp_id, self.fc_system_id, self.fc_component_id)
+                    log.warning(
+                        "another autopilot on the link (system %d component %d): ignored; following system %d component %d",
+                        sys_id,
+                        comp_id,
+                        self.fc_system_id,
+                        self.fc_component_id,
+                    )
             return
         if self.options.fc_system_id and sys_id != self.options.fc_system_id:
             self.counters["other_autopilots"] += 1

@@ -37,11 +37,26 @@ MAV_SEVERITY_INFO = 6
 _TRIU6 = np.triu_indices(6)
 _STATUSTEXT_MAX = 50
 # NAMED_VALUE_FLOAT VO_STATE for each state (every VisionState has one).
-STATE_CODES = {VisionState.STANDBY: -1, VisionState.INITIALISING: 0, VisionState.TRACKING: 1, VisionState.DEGRADED: 2, VisionState.FAILED: 3}
-_SEVERITY_RANK = {VisionState.STANDBY: 0, VisionState.INITIALISING: 0, VisionState.TRACKING: 0, VisionState.DEGRADED: 1, VisionState.FAILED: 2}
+STATE_CODES = {
+    VisionState.STANDBY: -1,
+    VisionState.INITIALISING: 0,
+    VisionState.TRACKING: 1,
+    VisionState.DEGRADED: 2,
+    VisionState.FAILED: 3,
+}
+_SEVERITY_RANK = {
+    VisionState.STANDBY: 0,
+    VisionState.INITIALISING: 0,
+    VisionState.TRACKING: 0,
+    VisionState.DEGRADED: 1,
+    VisionState.FAILED: 2,
+}
 _SEVERITY = {
-    VisionState.STANDBY: MAV_SEVERITY_INFO, VisionState.INITIALISING: MAV_SEVERITY_INFO, VisionState.TRACKING: MAV_SEVERITY_INFO,
-    VisionState.DEGRADED: MAV_SEVERITY_WARNING, VisionState.FAILED: MAV_SEVERITY_CRITICAL,
+    VisionState.STANDBY: MAV_SEVERITY_INFO,
+    VisionState.INITIALISING: MAV_SEVERITY_INFO,
+    VisionState.TRACKING: MAV_SEVERITY_INFO,
+    VisionState.DEGRADED: MAV_SEVERITY_WARNING,
+    VisionState.FAILED: MAV_SEVERITY_CRITICAL,
 }
 
 
@@ -58,16 +73,25 @@ def usec(t_s: float) -> int:
 def vision_position_estimate(est: PoseEstimate) -> dict[str, Any]:
     p, rpy = est.p_ned_m, est.rpy_rad
     return {
-        "usec": usec(est.t_exposure_s), "x": float(p[0]), "y": float(p[1]), "z": float(p[2]),
-        "roll": float(rpy[0]), "pitch": float(rpy[1]), "yaw": float(rpy[2]),
-        "covariance": upper_triangle(est.covariance), "reset_counter": est.reset_counter % 256,
+        "usec": usec(est.t_exposure_s),
+        "x": float(p[0]),
+        "y": float(p[1]),
+        "z": float(p[2]),
+        "roll": float(rpy[0]),
+        "pitch": float(rpy[1]),
+        "yaw": float(rpy[2]),
+        "covariance": upper_triangle(est.covariance),
+        "reset_counter": est.reset_counter % 256,
     }
 
 
 def vision_speed_estimate(est: PoseEstimate) -> dict[str, Any]:
     v = est.v_ned_m_s
     return {
-        "usec": usec(est.t_exposure_s), "x": float(v[0]), "y": float(v[1]), "z": float(v[2]),
+        "usec": usec(est.t_exposure_s),
+        "x": float(v[0]),
+        "y": float(v[1]),
+        "z": float(v[2]),
         "covariance": [float(c) for c in np.asarray(est.v_covariance, dtype=float).ravel()],
         "reset_counter": est.reset_counter % 256,
     }
@@ -81,19 +105,32 @@ def autopilot_of(heartbeat_autopilot: int | None, configured: Autopilot) -> Lite
     return "px4" if heartbeat_autopilot == MAV_AUTOPILOT_PX4 else "ardupilot"
 
 
-def odometry(est: PoseEstimate, autopilot: Literal["ardupilot", "px4"] = "ardupilot", estimator_type: Literal["vision", "vio"] = "vision") -> dict[str, Any]:
+def odometry(
+    est: PoseEstimate,
+    autopilot: Literal["ardupilot", "px4"] = "ardupilot",
+    estimator_type: Literal["vision", "vio"] = "vision",
+) -> dict[str, Any]:
     R_ned_body = R_from_euler321(*est.rpy_rad)
     v_body = R_ned_body.T @ est.v_ned_m_s
     v_cov = np.full((6, 6), math.nan)
     v_cov[:3, :3] = R_ned_body.T @ est.v_covariance @ R_ned_body
     p = est.p_ned_m
     return {
-        "time_usec": usec(est.t_exposure_s), "frame_id": MAV_FRAME_LOCAL_NED if autopilot == "px4" else MAV_FRAME_LOCAL_FRD,
+        "time_usec": usec(est.t_exposure_s),
+        "frame_id": MAV_FRAME_LOCAL_NED if autopilot == "px4" else MAV_FRAME_LOCAL_FRD,
         "child_frame_id": MAV_FRAME_BODY_FRD,
-        "x": float(p[0]), "y": float(p[1]), "z": float(p[2]), "q": [float(c) for c in quat_wxyz_from_R(R_ned_body)],
-        "vx": float(v_body[0]), "vy": float(v_body[1]), "vz": float(v_body[2]),
-        "rollspeed": math.nan, "pitchspeed": math.nan, "yawspeed": math.nan,
-        "pose_covariance": upper_triangle(est.covariance), "velocity_covariance": upper_triangle(v_cov),
+        "x": float(p[0]),
+        "y": float(p[1]),
+        "z": float(p[2]),
+        "q": [float(c) for c in quat_wxyz_from_R(R_ned_body)],
+        "vx": float(v_body[0]),
+        "vy": float(v_body[1]),
+        "vz": float(v_body[2]),
+        "rollspeed": math.nan,
+        "pitchspeed": math.nan,
+        "yawspeed": math.nan,
+        "pose_covariance": upper_triangle(est.covariance),
+        "velocity_covariance": upper_triangle(v_cov),
         "reset_counter": est.reset_counter % 256,
         "estimator_type": MAV_ESTIMATOR_TYPE_VIO if estimator_type == "vio" else MAV_ESTIMATOR_TYPE_VISION,
         "quality": max(int(est.quality), -1),

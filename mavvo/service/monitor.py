@@ -91,8 +91,16 @@ class Monitor:
             self.values[name.rstrip("\x00")] = float(msg.value)
             if name.startswith("VO_DRIFT"):  # the last of each second's values: a point of the timeline
                 v = self.values
-                self.timeline.append(TimelinePoint(t_s, v.get("VO_STATE", math.nan), v.get("VO_QUAL", math.nan), v.get("VO_INLIER", math.nan),
-                                                   v.get("VO_LAT_MS", math.nan), v.get("VO_DRIFT", math.nan)))
+                self.timeline.append(
+                    TimelinePoint(
+                        t_s,
+                        v.get("VO_STATE", math.nan),
+                        v.get("VO_QUAL", math.nan),
+                        v.get("VO_INLIER", math.nan),
+                        v.get("VO_LAT_MS", math.nan),
+                        v.get("VO_DRIFT", math.nan),
+                    )
+                )
         elif kind == "STATUSTEXT":
             text = msg.text.decode(errors="replace") if isinstance(msg.text, bytes) else msg.text
             self._texts.append((t_s, text.rstrip("\x00")))
@@ -108,10 +116,19 @@ class Monitor:
         v = self.values
         code = v.get("VO_STATE")
         return MonitorSnapshot(
-            t_s, math.isfinite(self._last_heard_s), t_s - self._last_heard_s,
-            None if code is None else _STATE_OF_CODE.get(int(code), f"code {code:g}"), self._system_status,
-            v.get("VO_QUAL", math.nan), v.get("VO_INLIER", math.nan), v.get("VO_LAT_MS", math.nan), v.get("VO_DRIFT", math.nan),
-            len(self._estimates) / _RATE_WINDOW_S, self._resets, tuple(self._texts), self._ekf,
+            t_s,
+            math.isfinite(self._last_heard_s),
+            t_s - self._last_heard_s,
+            None if code is None else _STATE_OF_CODE.get(int(code), f"code {code:g}"),
+            self._system_status,
+            v.get("VO_QUAL", math.nan),
+            v.get("VO_INLIER", math.nan),
+            v.get("VO_LAT_MS", math.nan),
+            v.get("VO_DRIFT", math.nan),
+            len(self._estimates) / _RATE_WINDOW_S,
+            self._resets,
+            tuple(self._texts),
+            self._ekf,
         )
 
 
@@ -122,7 +139,9 @@ def _num(x: float, fmt: str) -> str:
 def render(s: MonitorSnapshot, source: str) -> str:
     """The snapshot as a screen of text (no colours: it also goes to logs)."""
     if not s.heard:
-        return f"mavvo monitor on {source}: nothing heard from mavvo (component {COMPONENT_ID}) yet after {s.t_s:.0f} s\n"
+        return (
+            f"mavvo monitor on {source}: nothing heard from mavvo (component {COMPONENT_ID}) yet after {s.t_s:.0f} s\n"
+        )
     silent = f"   SILENT for {s.silent_s:.0f} s" if s.silent_s > _SILENT_AFTER_S else ""
     lines = [
         f"mavvo monitor on {source}   t {s.t_s:.0f} s{silent}",

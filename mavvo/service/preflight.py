@@ -45,25 +45,41 @@ def params_to_read(autopilot: str) -> tuple[str, ...]:
     """The parameters the checks of ``autopilot`` (``ardupilot`` or ``px4``) read."""
     if autopilot == "px4":
         return ("EKF2_EV_CTRL", "EKF2_EV_DELAY", "EKF2_HGT_REF", "EKF2_EV_POS_X", "EKF2_EV_POS_Y", "EKF2_EV_POS_Z")
-    return ("AHRS_EKF_TYPE", "VISO_TYPE", "VISO_DELAY_MS", "VISO_POS_X", "VISO_POS_Y", "VISO_POS_Z",
-            "EK3_SRC1_POSXY", "EK3_SRC1_VELXY", "EK3_SRC1_POSZ", "EK3_SRC1_YAW")
+    return (
+        "AHRS_EKF_TYPE",
+        "VISO_TYPE",
+        "VISO_DELAY_MS",
+        "VISO_POS_X",
+        "VISO_POS_Y",
+        "VISO_POS_Z",
+        "EK3_SRC1_POSXY",
+        "EK3_SRC1_VELXY",
+        "EK3_SRC1_POSZ",
+        "EK3_SRC1_YAW",
+    )
 
 
 def _fmt(v: float | None) -> str:
     return "(missing)" if v is None else (f"{v:g}" if math.isfinite(v) else str(v))
 
 
-def _equal(name: str, params: Mapping[str, float], want: float, advice: str, block: bool = True, fix: bool = True) -> Check:
+def _equal(
+    name: str, params: Mapping[str, float], want: float, advice: str, block: bool = True, fix: bool = True
+) -> Check:
     v = params.get(name)
     ok = v is not None and abs(v - want) < 1e-6
     verdict = Verdict.OK if ok else (Verdict.BLOCK if block else Verdict.WARN)
-    return Check(name, _fmt(v), f"{want:g}", verdict, "" if ok else advice, None if ok or not fix or v is None else want)
+    return Check(
+        name, _fmt(v), f"{want:g}", verdict, "" if ok else advice, None if ok or not fix or v is None else want
+    )
 
 
 def _one_of(name: str, params: Mapping[str, float], allowed: Sequence[float], advice: str) -> Check:
     v = params.get(name)
     ok = v is not None and any(abs(v - a) < 1e-6 for a in allowed)
-    return Check(name, _fmt(v), " or ".join(f"{a:g}" for a in allowed), Verdict.OK if ok else Verdict.WARN, "" if ok else advice)
+    return Check(
+        name, _fmt(v), " or ".join(f"{a:g}" for a in allowed), Verdict.OK if ok else Verdict.WARN, "" if ok else advice
+    )
 
 
 def _lever(names: Sequence[str], params: Mapping[str, float], lever_m: Sequence[float]) -> list[Check]:
@@ -71,19 +87,38 @@ def _lever(names: Sequence[str], params: Mapping[str, float], lever_m: Sequence[
     for name, want in zip(names, lever_m):
         v = params.get(name)
         ok = v is not None and abs(v - want) <= _LEVER_TOLERANCE_M
-        out.append(Check(name, _fmt(v), f"{want:g} (mounting.lever_arm_m)", Verdict.OK if ok else Verdict.WARN,
-                         "" if ok else "the camera's lever arm: every yaw otherwise becomes a position error", None if ok or v is None else float(want)))
+        out.append(
+            Check(
+                name,
+                _fmt(v),
+                f"{want:g} (mounting.lever_arm_m)",
+                Verdict.OK if ok else Verdict.WARN,
+                "" if ok else "the camera's lever arm: every yaw otherwise becomes a position error",
+                None if ok or v is None else float(want),
+            )
+        )
     return out
 
 
 def _delay(name: str, params: Mapping[str, float], advised_ms: float | None) -> Check:
     v = params.get(name)
     if advised_ms is None:
-        return Check(name, _fmt(v), "the latency mavvo measures", Verdict.OK if v is not None else Verdict.WARN,
-                     "run the service and preflight again to compare with its measured latency" if v is not None else "missing")
+        return Check(
+            name,
+            _fmt(v),
+            "the latency mavvo measures",
+            Verdict.OK if v is not None else Verdict.WARN,
+            "run the service and preflight again to compare with its measured latency" if v is not None else "missing",
+        )
     ok = v is not None and abs(v - advised_ms) <= _DELAY_TOLERANCE_MS
-    return Check(name, _fmt(v), f"{advised_ms:.0f} +- {_DELAY_TOLERANCE_MS:.0f} (measured)", Verdict.OK if ok else Verdict.WARN,
-                 "" if ok else "the EKF fuses each sample at the wrong moment", None if ok or v is None else float(round(advised_ms)))
+    return Check(
+        name,
+        _fmt(v),
+        f"{advised_ms:.0f} +- {_DELAY_TOLERANCE_MS:.0f} (measured)",
+        Verdict.OK if ok else Verdict.WARN,
+        "" if ok else "the EKF fuses each sample at the wrong moment",
+        None if ok or v is None else float(round(advised_ms)),
+    )
 
 
 _EKF_POS_HORIZ_REL = 0x8  # EKF_STATUS_REPORT flags (ArduPilot)
@@ -91,7 +126,12 @@ _EKF_CONST_POS_MODE = 0x80
 
 
 def checks(
-    autopilot: str, params: Mapping[str, float], config: ServiceConfig, *, advised_delay_ms: float | None = None, has_origin: bool | None = None,
+    autopilot: str,
+    params: Mapping[str, float],
+    config: ServiceConfig,
+    *,
+    advised_delay_ms: float | None = None,
+    has_origin: bool | None = None,
     ekf_flags: int | None = None,
 ) -> list[Check]:
     """The checks for ``autopilot`` (``ardupilot`` or ``px4``) on the ``params`` read (a missing one is
@@ -102,15 +142,33 @@ def checks(
     if autopilot == "px4":
         v = params.get("EKF2_EV_CTRL")
         hpos = v is not None and int(v) & _PX4_EV_HPOS
-        out.append(Check("EKF2_EV_CTRL", _fmt(v), "bit 0 set (horizontal position; 1 vertical, 2 velocity, 3 yaw as wanted)",
-                         Verdict.OK if hpos else Verdict.BLOCK, "" if hpos else "EKF2 ignores vision positions",
-                         None if hpos or v is None else float(int(v) | _PX4_EV_HPOS)))
+        out.append(
+            Check(
+                "EKF2_EV_CTRL",
+                _fmt(v),
+                "bit 0 set (horizontal position; 1 vertical, 2 velocity, 3 yaw as wanted)",
+                Verdict.OK if hpos else Verdict.BLOCK,
+                "" if hpos else "EKF2 ignores vision positions",
+                None if hpos or v is None else float(int(v) | _PX4_EV_HPOS),
+            )
+        )
         out.append(_delay("EKF2_EV_DELAY", params, advised_delay_ms))
-        out.append(_one_of("EKF2_HGT_REF", params, (1, 2, 3), "the height source: 1 baro, 2 GNSS, 3 range; 4 vision only with vision Z"))
+        out.append(
+            _one_of(
+                "EKF2_HGT_REF",
+                params,
+                (1, 2, 3),
+                "the height source: 1 baro, 2 GNSS, 3 range; 4 vision only with vision Z",
+            )
+        )
         out += _lever(("EKF2_EV_POS_X", "EKF2_EV_POS_Y", "EKF2_EV_POS_Z"), params, lever)
         return out
     out.append(_equal("AHRS_EKF_TYPE", params, 3, "EKF3 fuses external navigation", fix=False))
-    out.append(_equal("VISO_TYPE", params, 1, "1 (MAVLink): without it VISION_POSITION_ESTIMATE is ignored; reboot after setting"))
+    out.append(
+        _equal(
+            "VISO_TYPE", params, 1, "1 (MAVLink): without it VISION_POSITION_ESTIMATE is ignored; reboot after setting"
+        )
+    )
     out.append(_equal("EK3_SRC1_POSXY", params, 6, "6 (ExternalNav): the EKF takes horizontal position from vision"))
     out.append(_one_of("EK3_SRC1_VELXY", params, (6, 0), "6 (ExternalNav) or 0"))
     out.append(_one_of("EK3_SRC1_POSZ", params, (1, 6), "1 (baro) or 6 (ExternalNav)"))
@@ -119,11 +177,27 @@ def checks(
     out += _lever(("VISO_POS_X", "VISO_POS_Y", "VISO_POS_Z"), params, lever)
     if ekf_flags is not None:
         pos = bool(ekf_flags & _EKF_POS_HORIZ_REL) and not ekf_flags & _EKF_CONST_POS_MODE
-        out.append(Check("EKF status", f"flags 0x{ekf_flags:04x}", "horizontal position, not constant-position mode", Verdict.OK if pos else Verdict.WARN,
-                         "" if pos else "the EKF has no horizontal position yet: is vision fused (the service running, the sources above)?"))
+        out.append(
+            Check(
+                "EKF status",
+                f"flags 0x{ekf_flags:04x}",
+                "horizontal position, not constant-position mode",
+                Verdict.OK if pos else Verdict.WARN,
+                ""
+                if pos
+                else "the EKF has no horizontal position yet: is vision fused (the service running, the sources above)?",
+            )
+        )
     if has_origin is not None:
-        out.append(Check("EKF origin", "set" if has_origin else "none", "set", Verdict.OK if has_origin else Verdict.BLOCK,
-                         "" if has_origin else "set one before arming (SET_GPS_GLOBAL_ORIGIN; Mission Planner: Set EKF Origin)"))
+        out.append(
+            Check(
+                "EKF origin",
+                "set" if has_origin else "none",
+                "set",
+                Verdict.OK if has_origin else Verdict.BLOCK,
+                "" if has_origin else "set one before arming (SET_GPS_GLOBAL_ORIGIN; Mission Planner: Set EKF Origin)",
+            )
+        )
     return out
 
 
@@ -134,8 +208,14 @@ def blocks_flight(results: Sequence[Check]) -> bool:
 def table(results: Sequence[Check]) -> str:
     """The checks as an aligned text table: parameter, value, expected, verdict, what to set."""
     rows = [("parameter", "value", "expected", "verdict", "what to do")] + [
-        (c.name, c.value, c.expected, c.verdict.value.upper() if c.verdict is not Verdict.OK else "ok",
-         (f"set {c.set_to:g}: " if c.set_to is not None else "") + c.advice) for c in results
+        (
+            c.name,
+            c.value,
+            c.expected,
+            c.verdict.value.upper() if c.verdict is not Verdict.OK else "ok",
+            (f"set {c.set_to:g}: " if c.set_to is not None else "") + c.advice,
+        )
+        for c in results
     ]
     widths = [max(len(r[i]) for r in rows) for i in range(4)]
     return "\n".join("  ".join(r[i].ljust(widths[i]) for i in range(4)) + "  " + r[4] for r in rows) + "\n"

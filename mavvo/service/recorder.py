@@ -52,7 +52,19 @@ __all__ = ["RecordOptions", "Recorder", "FORMAT_VERSION", "FRAME_COLUMNS"]
 log = logging.getLogger(__name__)
 
 FORMAT_VERSION = 1
-FRAME_COLUMNS = ("seq", "t_exposure_s", "t_paired_s", "fc_version", "status", "roll_rad", "pitch_rad", "yaw_rad", "range_m", "height_m", "file")
+FRAME_COLUMNS = (
+    "seq",
+    "t_exposure_s",
+    "t_paired_s",
+    "fc_version",
+    "status",
+    "roll_rad",
+    "pitch_rad",
+    "yaw_rad",
+    "range_m",
+    "height_m",
+    "file",
+)
 _MB = 1 << 20
 _FREE_CHECK_S = 1.0
 _CLOSE_DRAIN_S = 5.0
@@ -63,13 +75,19 @@ class RecordOptions:
     """Recording the flight for replay (mavvo run --record DIR sets dir)."""
 
     dir: str = bounded("", "record each run into a new folder under this directory (empty: no recording)")
-    frames: Literal["png", "jpg"] = bounded("png", "png: lossless, replays bit for bit; jpg: about 5x smaller at jpeg_quality")
+    frames: Literal["png", "jpg"] = bounded(
+        "png", "png: lossless, replays bit for bit; jpg: about 5x smaller at jpeg_quality"
+    )
     jpeg_quality: int = bounded(95, "JPEG quality of jpg frames", ge=50, le=100)
     max_total_mb: float = bounded(4096.0, "stop recording when the recording reaches this size", gt=0, le=1e7)
     min_free_mb: float = bounded(512.0, "stop recording when the disk has less free space than this", ge=0, le=1e7)
     rotate_mb: float = bounded(256.0, "start a new .tlog and frame index after this many MB", gt=0, le=1e6)
-    queue_frames: int = bounded(16, "frames waiting for the disk; beyond, new frames are dropped and counted", ge=1, le=4096)
-    queue_messages: int = bounded(8192, "MAVLink messages waiting for the disk; beyond, dropped and counted", ge=1, le=1000000)
+    queue_frames: int = bounded(
+        16, "frames waiting for the disk; beyond, new frames are dropped and counted", ge=1, le=4096
+    )
+    queue_messages: int = bounded(
+        8192, "MAVLink messages waiting for the disk; beyond, dropped and counted", ge=1, le=1000000
+    )
 
 
 def _float(v: float | None) -> str:
@@ -84,7 +102,9 @@ class Recorder:
     or recording stopped), ``write_errors``, ``segments``.
     """
 
-    def __init__(self, options: RecordOptions, config_yaml: str, clock: Clock, on_stop: Callable[[str], None] | None = None) -> None:
+    def __init__(
+        self, options: RecordOptions, config_yaml: str, clock: Clock, on_stop: Callable[[str], None] | None = None
+    ) -> None:
         if not options.dir:
             raise ConfigError("record.dir: expected a directory to record into, got an empty string")
         self.options = options
@@ -112,7 +132,9 @@ class Recorder:
             self._rotate()
         except OSError as e:
             self._close_segment()
-            raise RecordingError(f"record.dir {options.dir}: cannot write the recording {self.path}: {e.strerror or e}") from e
+            raise RecordingError(
+                f"record.dir {options.dir}: cannot write the recording {self.path}: {e.strerror or e}"
+            ) from e
         self._thread = threading.Thread(target=self._writer, name="mavvo-recorder", daemon=True)
         self._thread.start()
         log.info("recording into %s", self.path)
@@ -198,7 +220,11 @@ class Recorder:
             self.counters["dropped_frames"] += 1
             return
         name = f"{frame.seq:09d}.{self.options.frames}"
-        params = [cv2.IMWRITE_PNG_COMPRESSION, 1] if self.options.frames == "png" else [cv2.IMWRITE_JPEG_QUALITY, self.options.jpeg_quality]
+        params = (
+            [cv2.IMWRITE_PNG_COMPRESSION, 1]
+            if self.options.frames == "png"
+            else [cv2.IMWRITE_JPEG_QUALITY, self.options.jpeg_quality]
+        )
         try:
             ok, buf = cv2.imencode(f".{self.options.frames}", frame.image, params)
             if not ok:
@@ -209,10 +235,21 @@ class Recorder:
             if self.counters["write_errors"] <= 3:
                 log.warning("recording: frame %d not written: %s", frame.seq, e)
             return
-        self._csv.writerow([
-            frame.seq, repr(frame.t_exposure_s), repr(t_paired_s), p.fc_version, p.status,
-            _float(p.roll_rad), _float(p.pitch_rad), _float(p.yaw_rad), _float(p.range_m), _float(p.height_m), name,
-        ])
+        self._csv.writerow(
+            [
+                frame.seq,
+                repr(frame.t_exposure_s),
+                repr(t_paired_s),
+                p.fc_version,
+                p.status,
+                _float(p.roll_rad),
+                _float(p.pitch_rad),
+                _float(p.yaw_rad),
+                _float(p.range_m),
+                _float(p.height_m),
+                name,
+            ]
+        )
         self.counters["frames"] += 1
         self._account(len(buf))
 
@@ -237,7 +274,9 @@ class Recorder:
                 self._stop(f"cannot check the disk: {e.strerror or e}")
                 return False
             if free_mb < self.options.min_free_mb:
-                self._stop(f"{free_mb:.0f} MB free on the disk, below record.min_free_mb = {self.options.min_free_mb:g}")
+                self._stop(
+                    f"{free_mb:.0f} MB free on the disk, below record.min_free_mb = {self.options.min_free_mb:g}"
+                )
                 return False
         return True
 
@@ -282,15 +321,25 @@ class Recorder:
             self._write_meta()
         except OSError as e:
             log.warning("recording: closing %s: %s", self.path, e.strerror or e)
-        log.info("recording closed: %s (%d frames, %d messages, %.1f MB)", self.path, self.counters["frames"],
-                 self.counters["messages"], self.counters["bytes"] / _MB)
+        log.info(
+            "recording closed: %s (%d frames, %d messages, %.1f MB)",
+            self.path,
+            self.counters["frames"],
+            self.counters["messages"],
+            self.counters["bytes"] / _MB,
+        )
 
     def _write_meta(self) -> None:
         meta = {
-            "format": "mavvo-recording", "version": FORMAT_VERSION, "mavvo": __version__,
-            "unix_minus_host_us": self._unix_minus_host_us, "mavvo_component_id": COMPONENT_ID,
-            "frames_format": self.options.frames, "complete": self._closing.is_set() and not self.stopped_reason,
-            "stopped_reason": self.stopped_reason, "counters": dict(self.counters),
+            "format": "mavvo-recording",
+            "version": FORMAT_VERSION,
+            "mavvo": __version__,
+            "unix_minus_host_us": self._unix_minus_host_us,
+            "mavvo_component_id": COMPONENT_ID,
+            "frames_format": self.options.frames,
+            "complete": self._closing.is_set() and not self.stopped_reason,
+            "stopped_reason": self.stopped_reason,
+            "counters": dict(self.counters),
         }
         _write_private(self.path / "meta.json", (json.dumps(meta, indent=2) + "\n").encode("utf-8"))
 

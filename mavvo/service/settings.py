@@ -30,7 +30,16 @@ from mavvo.service.recorder import RecordOptions
 from mavvo.service.timing import TimingOptions
 from mavvo.service.yaml_loader import build, load_yaml
 
-__all__ = ["MountingOptions", "OutputOptions", "ServiceOptions", "ServiceConfig", "load_config", "parse_config", "config_yaml", "default_yaml"]
+__all__ = [
+    "MountingOptions",
+    "OutputOptions",
+    "ServiceOptions",
+    "ServiceConfig",
+    "load_config",
+    "parse_config",
+    "config_yaml",
+    "default_yaml",
+]
 
 Matrix3 = tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
 
@@ -44,13 +53,25 @@ def as_matrix3(R: np.ndarray) -> Matrix3:
 class MountingOptions:
     """Where the camera sits on the vehicle."""
 
-    R_body_cam: Matrix3 = bounded(as_matrix3(R_BODY_CAM_NADIR), "rotation taking camera vectors (x right, y down, z forward) into the body frame (FRD), rows; default: nadir, image top forward", ge=-1, le=1)
-    lever_arm_m: tuple[float, float, float] = bounded((0.0, 0.0, 0.0), "camera centre in the body frame (FRD), metres: set VISO_POS_X/Y/Z (ArduPilot) or EKF2_EV_POS_X/Y/Z (PX4) to it", ge=-10, le=10)
+    R_body_cam: Matrix3 = bounded(
+        as_matrix3(R_BODY_CAM_NADIR),
+        "rotation taking camera vectors (x right, y down, z forward) into the body frame (FRD), rows; default: nadir, image top forward",
+        ge=-1,
+        le=1,
+    )
+    lever_arm_m: tuple[float, float, float] = bounded(
+        (0.0, 0.0, 0.0),
+        "camera centre in the body frame (FRD), metres: set VISO_POS_X/Y/Z (ArduPilot) or EKF2_EV_POS_X/Y/Z (PX4) to it",
+        ge=-10,
+        le=10,
+    )
 
     def __post_init__(self) -> None:
         R = np.asarray(self.R_body_cam, dtype=float)
         if not (np.allclose(R @ R.T, np.eye(3), atol=1e-3) and np.linalg.det(R) > 0):
-            raise ValueError(f"R_body_cam: expected a rotation matrix (orthonormal rows, determinant +1), got {self.R_body_cam}")
+            raise ValueError(
+                f"R_body_cam: expected a rotation matrix (orthonormal rows, determinant +1), got {self.R_body_cam}"
+            )
 
     def rotation(self) -> np.ndarray:
         """R_body_cam, re-orthonormalised (YAML holds a few decimals)."""
@@ -62,14 +83,35 @@ class MountingOptions:
 class OutputOptions:
     """What goes to the flight controller."""
 
-    max_rate_hz: float = bounded(30.0, "most VISION_POSITION_ESTIMATEs per second (ArduPilot ignores faster than 50 Hz)", gt=0, le=50)
+    max_rate_hz: float = bounded(
+        30.0, "most VISION_POSITION_ESTIMATEs per second (ArduPilot ignores faster than 50 Hz)", gt=0, le=50
+    )
     speed_estimate: bool = bounded(True, "also send VISION_SPEED_ESTIMATE")
-    odometry: bool = bounded(False, "also send ODOMETRY (child BODY_FRD, body-frame velocity, quality; -1 once when vision fails)")
-    autopilot: Autopilot = bounded("auto", "auto (from the flight controller's HEARTBEAT), ardupilot (ODOMETRY frame LOCAL_FRD) or px4 (LOCAL_NED)")
+    odometry: bool = bounded(
+        False, "also send ODOMETRY (child BODY_FRD, body-frame velocity, quality; -1 once when vision fails)"
+    )
+    autopilot: Autopilot = bounded(
+        "auto", "auto (from the flight controller's HEARTBEAT), ardupilot (ODOMETRY frame LOCAL_FRD) or px4 (LOCAL_NED)"
+    )
     estimator_type: Literal["vision", "vio"] = bounded("vision", "ODOMETRY estimator_type: vision (2) or vio (3)")
-    statustext_min_interval_s: float = bounded(2.0, "at most one STATUSTEXT on state changes per this interval (merged: the latest state, and a worse one before it)", ge=0, le=60)
-    max_age_s: float = bounded(0.5, "an estimate the link could not send within this long of its exposure is dropped, never sent late", gt=0, le=5)
-    health_rate_hz: float = bounded(1.0, "NAMED_VALUE_FLOAT health values (VO_QUAL, VO_INLIER, VO_LAT_MS, VO_STATE, VO_DRIFT) per second", gt=0, le=5)
+    statustext_min_interval_s: float = bounded(
+        2.0,
+        "at most one STATUSTEXT on state changes per this interval (merged: the latest state, and a worse one before it)",
+        ge=0,
+        le=60,
+    )
+    max_age_s: float = bounded(
+        0.5,
+        "an estimate the link could not send within this long of its exposure is dropped, never sent late",
+        gt=0,
+        le=5,
+    )
+    health_rate_hz: float = bounded(
+        1.0,
+        "NAMED_VALUE_FLOAT health values (VO_QUAL, VO_INLIER, VO_LAT_MS, VO_STATE, VO_DRIFT) per second",
+        gt=0,
+        le=5,
+    )
 
 
 @dataclass(frozen=True)
@@ -77,10 +119,23 @@ class ServiceOptions:
     """The daemon itself."""
 
     health_log_interval_s: float = bounded(5.0, "health counters in the log every this many seconds", gt=0, le=3600)
-    shutdown_drain_s: float = bounded(2.0, "on stop, wait at most this long for the current frame and the queued messages", gt=0, le=60)
-    state_file: str = bounded("/var/lib/mavvo/state.json", "where the last reset_counter is kept, so a restarted service starts with one the flight controller has not seen (empty: derived from the clock)")
-    heading_wait_max_s: float = bounded(30.0, "wait at most this long for the flight controller's yaw to settle before the first estimate (0: do not wait)", ge=0, le=600)
-    track_ahead: bool = bounded(True, "track the next frame on a second thread while the current one is estimated, when frames queue up (the same estimates; faster on two or more cores)")
+    shutdown_drain_s: float = bounded(
+        2.0, "on stop, wait at most this long for the current frame and the queued messages", gt=0, le=60
+    )
+    state_file: str = bounded(
+        "/var/lib/mavvo/state.json",
+        "where the last reset_counter is kept, so a restarted service starts with one the flight controller has not seen (empty: derived from the clock)",
+    )
+    heading_wait_max_s: float = bounded(
+        30.0,
+        "wait at most this long for the flight controller's yaw to settle before the first estimate (0: do not wait)",
+        ge=0,
+        le=600,
+    )
+    track_ahead: bool = bounded(
+        True,
+        "track the next frame on a second thread while the current one is estimated, when frames queue up (the same estimates; faster on two or more cores)",
+    )
 
 
 @dataclass(frozen=True)
@@ -173,9 +228,11 @@ def config_yaml(config: ServiceConfig | None = None, header: tuple[str, ...] = (
 
 def default_yaml() -> str:
     """Every key of :class:`ServiceConfig` with its default and help: ``config/default.yaml``."""
-    return config_yaml(header=(
-        "# mavvo configuration: every key, its default and what it means. Units are in the key names",
-        "# (_px pixels, _m metres, _s seconds, _ms milliseconds, _hz per second, _deg degrees).",
-        "# Any key may be left out and takes the default shown. Check a file with: mavvo check-config FILE",
-        "# (this file is written by mavvo.service.settings.default_yaml; a test keeps it current).",
-    ))
+    return config_yaml(
+        header=(
+            "# mavvo configuration: every key, its default and what it means. Units are in the key names",
+            "# (_px pixels, _m metres, _s seconds, _ms milliseconds, _hz per second, _deg degrees).",
+            "# Any key may be left out and takes the default shown. Check a file with: mavvo check-config FILE",
+            "# (this file is written by mavvo.service.settings.default_yaml; a test keeps it current).",
+        )
+    )

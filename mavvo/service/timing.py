@@ -43,7 +43,13 @@ from mavvo.geometry.frames import interpolate_euler321
 from mavvo.options import bounded
 
 __all__ = [
-    "Clock", "MonotonicClock", "TimingOptions", "ClockSync", "Pairing", "FlightControllerState", "wait_for_pairing",
+    "Clock",
+    "MonotonicClock",
+    "TimingOptions",
+    "ClockSync",
+    "Pairing",
+    "FlightControllerState",
+    "wait_for_pairing",
 ]
 
 
@@ -70,18 +76,50 @@ class MonotonicClock:
 class TimingOptions:
     """Pairing frames with the flight controller's attitude."""
 
-    max_attitude_gap_s: float = bounded(0.05, "longest gap between the two ATTITUDE samples around an exposure (inclusive)", gt=0, le=1)
-    attitude_accel_rad_s2: float = bounded(1.0, "angular acceleration assumed between two ATTITUDE samples: sizes the uncertainty of roll/pitch interpolated between them (at the middle of a 0.5 s gap: 1.8 deg)", gt=0, le=100)
-    attitude_wait_s: float = bounded(0.1, "how long after an exposure to wait for the ATTITUDE that follows it", gt=0, le=1)
-    range_max_age_s: float = bounded(0.2, "the rangefinder reading nearest the exposure is used if it is at most this far from it", gt=0, le=10)
-    height_max_age_s: float = bounded(0.5, "the height reading nearest the exposure is used if it is at most this far from it", gt=0, le=10)
+    max_attitude_gap_s: float = bounded(
+        0.05, "longest gap between the two ATTITUDE samples around an exposure (inclusive)", gt=0, le=1
+    )
+    attitude_accel_rad_s2: float = bounded(
+        1.0,
+        "angular acceleration assumed between two ATTITUDE samples: sizes the uncertainty of roll/pitch interpolated between them (at the middle of a 0.5 s gap: 1.8 deg)",
+        gt=0,
+        le=100,
+    )
+    attitude_wait_s: float = bounded(
+        0.1, "how long after an exposure to wait for the ATTITUDE that follows it", gt=0, le=1
+    )
+    range_max_age_s: float = bounded(
+        0.2, "the rangefinder reading nearest the exposure is used if it is at most this far from it", gt=0, le=10
+    )
+    height_max_age_s: float = bounded(
+        0.5, "the height reading nearest the exposure is used if it is at most this far from it", gt=0, le=10
+    )
     sync_window_s: float = bounded(30.0, "window of the clock-offset filters (tracks clock drift)", gt=0, le=3600)
-    clock_step_max_s: float = bounded(0.005, "an ATTITUDE stamped this much ahead of every earlier one is used only if the next one agrees (a single forged or broken stamp is refused)", gt=0, le=1)
-    sync_warmup_samples: int = bounded(50, "ATTITUDE arrivals that set the clock bound before the step check starts", ge=1, le=10000)
+    clock_step_max_s: float = bounded(
+        0.005,
+        "an ATTITUDE stamped this much ahead of every earlier one is used only if the next one agrees (a single forged or broken stamp is refused)",
+        gt=0,
+        le=1,
+    )
+    sync_warmup_samples: int = bounded(
+        50, "ATTITUDE arrivals that set the clock bound before the step check starts", ge=1, le=10000
+    )
     history_s: float = bounded(2.0, "ATTITUDE history kept for pairing", gt=0, le=60)
-    local_position_max_age_s: float = bounded(0.5, "the flight controller's LOCAL_POSITION_NED older than this at the exposure is not used to anchor", gt=0, le=10)
-    yaw_settle_window_s: float = bounded(1.5, "the flight controller's yaw counts as settled once, over this long, ...", gt=0, le=60)
-    yaw_settle_rate_deg_s: float = bounded(0.1, "... it has moved against its own gyro (yaw minus integrated yaw rate, fitted slope) slower than this; an EKF's yaw converging after boot moves faster", gt=0, le=10)
+    local_position_max_age_s: float = bounded(
+        0.5,
+        "the flight controller's LOCAL_POSITION_NED older than this at the exposure is not used to anchor",
+        gt=0,
+        le=10,
+    )
+    yaw_settle_window_s: float = bounded(
+        1.5, "the flight controller's yaw counts as settled once, over this long, ...", gt=0, le=60
+    )
+    yaw_settle_rate_deg_s: float = bounded(
+        0.1,
+        "... it has moved against its own gyro (yaw minus integrated yaw rate, fitted slope) slower than this; an EKF's yaw converging after boot moves faster",
+        gt=0,
+        le=10,
+    )
 
 
 def _euler_yaw_rate(roll_rad: float, pitch_rad: float, body_rates_rad_s: tuple[float, float, float] | None) -> float:
@@ -137,7 +175,9 @@ class ClockSync:
         self.step_max_s = step_max_s
         self.warmup_samples = warmup_samples
         self._arrivals = 0
-        self._suspect: tuple[float, float] | None = None  # (t_arrival, t_fc - t_arrival) of a message ahead of the bound
+        self._suspect: tuple[float, float] | None = (
+            None  # (t_arrival, t_fc - t_arrival) of a message ahead of the bound
+        )
 
     def add_arrival(self, t_fc_s: float, t_arrival_host_s: float) -> bool:
         """A message measured at ``t_fc_s`` arrived at ``t_arrival_host_s``. False (and not used) for a
@@ -164,7 +204,9 @@ class ClockSync:
         offset = t_fc_s - (t_sent_host_s + 0.5 * rtt)
         bound = self._arrival_bound.best()
         # The true offset is at least the bound and at most the bound plus the fastest message's latency.
-        if bound is not None and not (bound[0] - 0.5 * rtt - self.step_max_s <= offset <= bound[0] + 0.5 * rtt + _MAX_LATENCY_S):
+        if bound is not None and not (
+            bound[0] - 0.5 * rtt - self.step_max_s <= offset <= bound[0] + 0.5 * rtt + _MAX_LATENCY_S
+        ):
             return False
         self._round_trips.push(t_arrival_host_s, rtt, offset)
         return True
@@ -245,7 +287,9 @@ class FlightControllerState:
         self._height: deque[tuple[float, float | None]] = deque(maxlen=_READINGS_KEPT)
         # LOCAL_POSITION_NED samples (t_fc_s, p, v): a frame is anchored on the last one at or before its
         # exposure, moved on by its velocity, whatever arrived since (the same on every run of a recording).
-        self._local: deque[tuple[float, tuple[float, float, float], tuple[float, float, float]]] = deque(maxlen=_READINGS_KEPT)
+        self._local: deque[tuple[float, tuple[float, float, float], tuple[float, float, float]]] = deque(
+            maxlen=_READINGS_KEPT
+        )
         self._yaw_drift: deque[tuple[float, float]] = deque()  # (t_fc_s, unwrapped yaw minus integrated yawspeed)
         self._yaw_prev: tuple[float, float, float] | None = None  # (t_fc_s, unwrapped yaw, yawspeed)
         self._yaw_samples = 0
@@ -306,7 +350,9 @@ class FlightControllerState:
         else:
             t0, y0, w0 = prev
             unwrapped = y0 + math.remainder(yaw - y0, math.tau)
-            drift = self._yaw_drift[-1][1] + (unwrapped - y0) - 0.5 * (w0 + yawspeed) * (t - t0)  # d = yaw - int(w dt), trapezoid
+            drift = (
+                self._yaw_drift[-1][1] + (unwrapped - y0) - 0.5 * (w0 + yawspeed) * (t - t0)
+            )  # d = yaw - int(w dt), trapezoid
         self._yaw_prev = (t, unwrapped, yawspeed)
         self._yaw_drift.append((t, drift))
         window = self.options.yaw_settle_window_s
@@ -322,7 +368,11 @@ class FlightControllerState:
                 self._settled_at_fc_s = t
 
     def on_local_position(
-        self, t_fc_ms: int, p_ned_m: tuple[float, float, float], v_ned_m_s: tuple[float, float, float], t_arrival_host_s: float | None = None
+        self,
+        t_fc_ms: int,
+        p_ned_m: tuple[float, float, float],
+        v_ned_m_s: tuple[float, float, float],
+        t_arrival_host_s: float | None = None,
     ) -> None:
         """LOCAL_POSITION_NED: the flight controller's own estimate of its position and velocity."""
         with self._lock:
@@ -394,7 +444,9 @@ class FlightControllerState:
             t0, t1 = self._t_fc[i - 1], self._t_fc[i]
             (r0, p0, y0), (r1, p1, y1) = self._rpy[i - 1], self._rpy[i]
             known_yaw = math.isfinite(y0) and math.isfinite(y1)  # else roll/pitch as if yaw stood still
-            roll, pitch, yaw = interpolate_euler321((r0, p0, y0 if known_yaw else 0.0), (r1, p1, y1 if known_yaw else 0.0), (t - t0) / (t1 - t0))
+            roll, pitch, yaw = interpolate_euler321(
+                (r0, p0, y0 if known_yaw else 0.0), (r1, p1, y1 if known_yaw else 0.0), (t - t0) / (t1 - t0)
+            )
             yaw = yaw if known_yaw else math.nan
             gap_s = t1 - t0
             # Error of interpolating at constant rate when the rate changes at up to a: a/2 (t - t0)(t1 - t).
@@ -413,7 +465,11 @@ class FlightControllerState:
             local = r
         if local is not None and abs(t - local[0]) <= self.options.local_position_max_age_s:
             t_l, p_l, v_l = local
-            fc_p = (p_l[0] + v_l[0] * (t - t_l), p_l[1] + v_l[1] * (t - t_l), p_l[2] + v_l[2] * (t - t_l))  # moved on to the exposure
+            fc_p = (
+                p_l[0] + v_l[0] * (t - t_l),
+                p_l[1] + v_l[1] * (t - t_l),
+                p_l[2] + v_l[2] * (t - t_l),
+            )  # moved on to the exposure
         # Settled as of the exposure, not of whatever has arrived by now: the same on every run.
         settled = self._settled_at_fc_s is not None and self._settled_at_fc_s <= t
         return Pairing("paired", v, roll, pitch, yaw, range_m, height_m, fc_p, settled, gap_s, sigma_rad)
@@ -461,7 +517,9 @@ def _nearest(readings: deque[tuple[float, float | None]], t: float, max_age_s: f
     return best[1] if best is not None and abs(best[0] - t) <= max_age_s else None
 
 
-def wait_for_pairing(state: FlightControllerState, t_exposure_host_s: float, ended: Callable[[], bool] = lambda: False) -> Pairing:
+def wait_for_pairing(
+    state: FlightControllerState, t_exposure_host_s: float, ended: Callable[[], bool] = lambda: False
+) -> Pairing:
     """Pair an exposure, waiting for the ATTITUDE that follows it until ``attitude_wait_s`` after the
     exposure on the host clock, or until ``ended()`` says no more input will come (the service stops;
     on a lockstep clock, the frames ended); a frame still waiting then is ``stale``.

@@ -54,12 +54,14 @@ def read_tlog(path: str | Path) -> Iterator[tuple[int, bytes]]:
         if len(data) - i < _STAMP.size + 3:
             raise ConfigError(f"{p}: truncated: {len(data) - i} stray bytes at offset {i} (the log was cut off)")
         (t_us,) = _STAMP.unpack_from(data, i)
-        n = frame_length(data[i + 8:i + 11])
+        n = frame_length(data[i + 8 : i + 11])
         if n is None:
             raise ConfigError(f"{p}: not a .tlog: no MAVLink frame at offset {i + 8} (byte 0x{data[i + 8]:02x})")
         if i + 8 + n > len(data):
-            raise ConfigError(f"{p}: truncated: the record at offset {i} needs {n} bytes, {len(data) - i - 8} left (the log was cut off)")
-        yield t_us, data[i + 8:i + 8 + n]
+            raise ConfigError(
+                f"{p}: truncated: the record at offset {i} needs {n} bytes, {len(data) - i - 8} left (the log was cut off)"
+            )
+        yield t_us, data[i + 8 : i + 8 + n]
         i += 8 + n
 
 
@@ -77,4 +79,4 @@ def payload(frame: bytes) -> bytes:
     """The payload of a MAVLink 1 or 2 frame as sent (MAVLink 2 trims trailing zero bytes): what two
     equal messages share whatever their sequence numbers and signatures."""
     start = 10 if frame[0] == 0xFD else 6
-    return frame[start:start + frame[1]]
+    return frame[start : start + frame[1]]

@@ -48,7 +48,9 @@ class _StrictLoader(yaml.SafeLoader):
     def compose_node(self, parent: Any, index: Any) -> Any:
         if self.check_event(yaml.AliasEvent):
             event = self.peek_event()
-            raise yaml.constructor.ConstructorError(None, None, "aliases (*name) are not allowed in a settings file", event.start_mark)
+            raise yaml.constructor.ConstructorError(
+                None, None, "aliases (*name) are not allowed in a settings file", event.start_mark
+            )
         return super().compose_node(parent, index)
 
     def construct_mapping(self, node: Any, deep: bool = False) -> Any:
@@ -196,4 +198,3 @@ def _convert(tp: Any, value: Any, source: str, path: str) -> Any:
             raise _fail(source, path, "a string", value)
         return value
     raise TypeError(f"config: unsupported field type {tp!r} at {path}")
-

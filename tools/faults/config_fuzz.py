@@ -20,7 +20,24 @@ __all__ = ["KINDS", "default_config", "mutated_config"]
 
 KINDS = ("value", "delete", "unknown_key", "section_type", "duplicate_section", "alias", "bytes", "truncate")
 _ODD_VALUES: tuple[Any, ...] = (
-    1e30, -1e30, float("nan"), float("inf"), 0, -1, 2**63, 1e-300, True, None, "", "x" * 5000, [], {}, [1, 2], {"a": 1}, "1e3", "\n\n",
+    1e30,
+    -1e30,
+    float("nan"),
+    float("inf"),
+    0,
+    -1,
+    2**63,
+    1e-300,
+    True,
+    None,
+    "",
+    "x" * 5000,
+    [],
+    {},
+    [1, 2],
+    {"a": 1},
+    "1e3",
+    "\n\n",
 )
 _ALIAS_BOMB = b'a: &a ["x","x","x","x","x","x","x","x","x"]\nb: &b [*a,*a,*a,*a,*a,*a,*a,*a,*a]\nc: &c [*b,*b,*b,*b,*b,*b,*b,*b,*b]\n'
 

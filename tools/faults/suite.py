@@ -102,12 +102,20 @@ def _attitude(mav, boot_ms: int, roll: float = 0.0) -> bytes:
 
 def _heartbeat(mav) -> bytes:
     m = mavutil().mavlink
-    return bytes(m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, m.MAV_STATE_ACTIVE, 3).pack(mav))
+    return bytes(
+        m.MAVLink_heartbeat_message(
+            m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, m.MAV_STATE_ACTIVE, 3
+        ).pack(mav)
+    )
 
 
 def _mavvo(*args: str, preexec: Callable[[], None] | None = None) -> subprocess.Popen[str]:
     return subprocess.Popen(
-        [sys.executable, "-m", "mavvo", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=preexec,
+        [sys.executable, "-m", "mavvo", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=preexec,
     )
 
 
@@ -188,8 +196,13 @@ def undistortable_corners(tmp: Path) -> FaultRow:
     run = run_daemon_in_sim(sc)
     gap = _gaps(run)
     c = run.daemon.counters
-    return FaultRow("lens with undistortable corners (k1 0.3, k2 -0.8)", _flow_outcome(run, gap), gap,
-                    _lost(c, "odometry_errors", "bad_frames"), f"{len(run.vision_messages)} estimates, ATE {run.evaluation.ate_se3_m['rmse']:.2f} m" if run.evaluation else "")
+    return FaultRow(
+        "lens with undistortable corners (k1 0.3, k2 -0.8)",
+        _flow_outcome(run, gap),
+        gap,
+        _lost(c, "odometry_errors", "bad_frames"),
+        f"{len(run.vision_messages)} estimates, ATE {run.evaluation.ate_se3_m['rmse']:.2f} m" if run.evaluation else "",
+    )
 
 
 def pymavlink_imported_first(tmp: Path) -> FaultRow:
@@ -204,8 +217,13 @@ def pymavlink_imported_first(tmp: Path) -> FaultRow:
         return FaultRow("pymavlink imported before mavvo", Outcome.FAILED, float("nan"), "?", proc.stderr[-300:])
     s = json.loads(proc.stdout)
     ok = s["estimates_received"] > 20 and s["received"].get("VISION_POSITION_ESTIMATE", 0) == s["estimates_received"]
-    return FaultRow("pymavlink imported before mavvo", Outcome.SURVIVED if ok else Outcome.FAILED, float("nan"),
-                    _lost(s["counters"], "errors", "link_send_dropped"), f"{s['estimates_received']} estimates received as MAVLink 2")
+    return FaultRow(
+        "pymavlink imported before mavvo",
+        Outcome.SURVIVED if ok else Outcome.FAILED,
+        float("nan"),
+        _lost(s["counters"], "errors", "link_send_dropped"),
+        f"{s['estimates_received']} estimates received as MAVLink 2",
+    )
 
 
 def udp_flood(tmp: Path) -> FaultRow:
@@ -232,13 +250,18 @@ def udp_flood(tmp: Path) -> FaultRow:
     run = run_daemon_in_sim(_hover(20.0), realtime=True, service_listens=True, during=flood)
     gap = _gaps(run)
     c = run.daemon.counters
-    return FaultRow("20k garbage datagrams/s for 10 s on the service's UDP port", _flow_outcome(run, gap), gap,
-                    _lost(c, "link_stale_dropped", "skipped_attitude_stale", "skipped_attitude_missing"),
-                    f"{sent['datagrams']} sent, {c.get('link_bad_data', 0)} read as bad data, {run.received.get('HEARTBEAT', 0)} HEARTBEATs sent")
+    return FaultRow(
+        "20k garbage datagrams/s for 10 s on the service's UDP port",
+        _flow_outcome(run, gap),
+        gap,
+        _lost(c, "link_stale_dropped", "skipped_attitude_stale", "skipped_attitude_missing"),
+        f"{sent['datagrams']} sent, {c.get('link_bad_data', 0)} read as bad data, {run.received.get('HEARTBEAT', 0)} HEARTBEATs sent",
+    )
 
 
 def forged_clock(tmp: Path) -> FaultRow:
     """A forged TIMESYNC answer, an ATTITUDE stamped 1 s ahead and one 5 ms ahead, from another sender."""
+
     def forge(daemon: Daemon, address: tuple[str, int]) -> None:
         m = mavutil().mavlink
         mav = m.MAVLink(None, srcSystem=1, srcComponent=1)
@@ -254,9 +277,13 @@ def forged_clock(tmp: Path) -> FaultRow:
     run = run_daemon_in_sim(_hover(16.0), realtime=True, service_listens=True, during=forge)
     gap = _gaps(run)
     c = run.daemon.counters
-    return FaultRow("forged TIMESYNC answer; ATTITUDE stamped 1 s and 5 ms ahead", _flow_outcome(run, gap), gap,
-                    _lost(c, "fc_attitude_implausible", "fc_timesync_implausible", "skipped_attitude_wait"),
-                    "dropped by the sender filter (the flight controller's address is pinned); the plausibility checks behind it are tested alone")
+    return FaultRow(
+        "forged TIMESYNC answer; ATTITUDE stamped 1 s and 5 ms ahead",
+        _flow_outcome(run, gap),
+        gap,
+        _lost(c, "fc_attitude_implausible", "fc_timesync_implausible", "skipped_attitude_wait"),
+        "dropped by the sender filter (the flight controller's address is pinned); the plausibility checks behind it are tested alone",
+    )
 
 
 def impostor_heartbeat(tmp: Path) -> FaultRow:
@@ -280,9 +307,13 @@ def impostor_heartbeat(tmp: Path) -> FaultRow:
     gap = _gaps(run)
     c = run.daemon.counters
     ok = _flow_outcome(run, gap) is Outcome.SURVIVED and seen.get("system") == 1 and (seen.get("sent") or 0) > 0
-    return FaultRow("HEARTBEATs from another system id before the flight controller's", Outcome.SURVIVED if ok else Outcome.FAILED, gap,
-                    _lost(c, "skipped_attitude_missing"),
-                    f"{seen.get('sent')} impostor HEARTBEATs; followed system {seen.get('system')}; {c.get('fc_attitude', 0)} ATTITUDE accepted")
+    return FaultRow(
+        "HEARTBEATs from another system id before the flight controller's",
+        Outcome.SURVIVED if ok else Outcome.FAILED,
+        gap,
+        _lost(c, "skipped_attitude_missing"),
+        f"{seen.get('sent')} impostor HEARTBEATs; followed system {seen.get('system')}; {c.get('fc_attitude', 0)} ATTITUDE accepted",
+    )
 
 
 def foreign_sender_udpout(tmp: Path) -> FaultRow:
@@ -302,10 +333,19 @@ def foreign_sender_udpout(tmp: Path) -> FaultRow:
     run = run_daemon_in_sim(_hover(10.0), during=stranger)
     gap = _gaps(run)
     c = run.daemon.counters
-    ok = _flow_outcome(run, gap) is Outcome.SURVIVED and c.get("link_bad_data", 0) == 0 and seen.get("bound_to") == "127.0.0.1" and seen.get("sent") == 2000
-    return FaultRow("udpout: 2000 datagrams from a stranger", Outcome.SURVIVED if ok else Outcome.FAILED, gap,
-                    _lost(c, "link_bad_data", "fc_attitude_implausible"),
-                    f"{seen.get('sent')} sent to {seen.get('bound_to')}, none read (the socket is connected to the flight controller)")
+    ok = (
+        _flow_outcome(run, gap) is Outcome.SURVIVED
+        and c.get("link_bad_data", 0) == 0
+        and seen.get("bound_to") == "127.0.0.1"
+        and seen.get("sent") == 2000
+    )
+    return FaultRow(
+        "udpout: 2000 datagrams from a stranger",
+        Outcome.SURVIVED if ok else Outcome.FAILED,
+        gap,
+        _lost(c, "link_bad_data", "fc_attitude_implausible"),
+        f"{seen.get('sent')} sent to {seen.get('bound_to')}, none read (the socket is connected to the flight controller)",
+    )
 
 
 def signing_forgery_and_replay(tmp: Path) -> FaultRow:
@@ -328,14 +368,23 @@ def signing_forgery_and_replay(tmp: Path) -> FaultRow:
         def __getattr__(self, name):
             return lambda *a, **k: None
 
-    link = Link(LinkOptions(url=f"udpin:127.0.0.1:{port}", signing_key_file=str(key_file), fc_system_id=1), MonotonicClock(), Listener())
+    link = Link(
+        LinkOptions(url=f"udpin:127.0.0.1:{port}", signing_key_file=str(key_file), fc_system_id=1),
+        MonotonicClock(),
+        Listener(),
+    )
     stop = threading.Event()
     t = threading.Thread(target=link.run, args=(stop,), daemon=True)
     t.start()
 
     def signer(link_id: int, timestamp: int):
         mav = mavutil().mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
-        mav.signing.secret_key, mav.signing.sign_outgoing, mav.signing.link_id, mav.signing.timestamp = key, True, link_id, timestamp
+        mav.signing.secret_key, mav.signing.sign_outgoing, mav.signing.link_id, mav.signing.timestamp = (
+            key,
+            True,
+            link_id,
+            timestamp,
+        )
         return mav
 
     fc = signer(0, int((time.time() - _SIGNING_EPOCH_UNIX_S) * 100_000))
@@ -366,8 +415,13 @@ def signing_forgery_and_replay(tmp: Path) -> FaultRow:
         t.join(10)
     c = link.counters
     ok = len(got) == genuine and c["signature_bad"] == 1 and c["signature_replayed"] == 1 and c["reboots"] == 0
-    return FaultRow("signing: a forged frame with a huge timestamp; a replay from another link id", Outcome.SURVIVED if ok else Outcome.FAILED,
-                    float("nan"), f"{genuine - len(got)} of {genuine} genuine frames", f"signature_bad {c['signature_bad']}, signature_replayed {c['signature_replayed']}, reboots {c['reboots']}")
+    return FaultRow(
+        "signing: a forged frame with a huge timestamp; a replay from another link id",
+        Outcome.SURVIVED if ok else Outcome.FAILED,
+        float("nan"),
+        f"{genuine - len(got)} of {genuine} genuine frames",
+        f"signature_bad {c['signature_bad']}, signature_replayed {c['signature_replayed']}, reboots {c['reboots']}",
+    )
 
 
 def full_disk_and_sighup(tmp: Path) -> FaultRow:
@@ -381,13 +435,16 @@ def full_disk_and_sighup(tmp: Path) -> FaultRow:
     rec = tmp / "rec"
     sc = load_scenario("hover")
     cam = sc.camera
-    cfg = _run_config(tmp, (
-        f"camera: {{source: 'sim:hover', rate_hz: {cam.rate_hz}, width_px: {cam.width_px}, height_px: {cam.height_px}, fx_px: {cam.fx_px}, "
-        f"fy_px: {cam.fy_px}, cx_px: {cam.cx_px}, cy_px: {cam.cy_px}}}\n"
-        f"mounting: {{R_body_cam: {[[float(x) for x in r] for r in cam.R_body_cam()]}}}\n"
-        f"link: {{url: 'udpout:127.0.0.1:{port}'}}\nservice: {{state_file: '', health_log_interval_s: 1.0}}\n"
-        f"record: {{dir: '{rec}', frames: jpg, jpeg_quality: 50, min_free_mb: 0}}\n"  # frames well under the limit; the .tlog reaches it
-    ))
+    cfg = _run_config(
+        tmp,
+        (
+            f"camera: {{source: 'sim:hover', rate_hz: {cam.rate_hz}, width_px: {cam.width_px}, height_px: {cam.height_px}, fx_px: {cam.fx_px}, "
+            f"fy_px: {cam.fy_px}, cx_px: {cam.cx_px}, cy_px: {cam.cy_px}}}\n"
+            f"mounting: {{R_body_cam: {[[float(x) for x in r] for r in cam.R_body_cam()]}}}\n"
+            f"link: {{url: 'udpout:127.0.0.1:{port}'}}\nservice: {{state_file: '', health_log_interval_s: 1.0}}\n"
+            f"record: {{dir: '{rec}', frames: jpg, jpeg_quality: 50, min_free_mb: 0}}\n"  # frames well under the limit; the .tlog reaches it
+        ),
+    )
 
     def limit() -> None:
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
@@ -411,12 +468,27 @@ def full_disk_and_sighup(tmp: Path) -> FaultRow:
         fc.finish(60)
     sent = _estimates_sent(err.splitlines())
     folders = list(rec.iterdir()) if rec.is_dir() else []
-    readable = sum(1 for p in (folders[0] / "frames").glob("*.jpg") if cv2.imread(str(p), cv2.IMREAD_UNCHANGED) is not None) if folders else 0
-    ok = code == 0 and hup and stopped and "files reopened (segment 1)" in err and readable > 0 and sent > sent_at_stop > 0
-    return FaultRow("a full disk while recording; SIGHUP; SIGTERM", Outcome.SURVIVED if ok else Outcome.FAILED, float("nan"),
-                    "frames after the disk filled (recording stopped; vision went on)",
-                    f"exit {code}; {readable} recorded frames readable; estimates sent {sent_at_stop} when recording stopped, {sent} at the end"
-                    + ("" if ok else f"; last line: {err.strip().splitlines()[-1][:160] if err.strip() else ''}"))
+    readable = (
+        sum(1 for p in (folders[0] / "frames").glob("*.jpg") if cv2.imread(str(p), cv2.IMREAD_UNCHANGED) is not None)
+        if folders
+        else 0
+    )
+    ok = (
+        code == 0
+        and hup
+        and stopped
+        and "files reopened (segment 1)" in err
+        and readable > 0
+        and sent > sent_at_stop > 0
+    )
+    return FaultRow(
+        "a full disk while recording; SIGHUP; SIGTERM",
+        Outcome.SURVIVED if ok else Outcome.FAILED,
+        float("nan"),
+        "frames after the disk filled (recording stopped; vision went on)",
+        f"exit {code}; {readable} recorded frames readable; estimates sent {sent_at_stop} when recording stopped, {sent} at the end"
+        + ("" if ok else f"; last line: {err.strip().splitlines()[-1][:160] if err.strip() else ''}"),
+    )
 
 
 def _estimates_sent(lines: Sequence[str]) -> int:
@@ -432,7 +504,9 @@ def huge_images(tmp: Path) -> FaultRow:
     estimates for 11 s)."""
     folder = tmp / "frames"
     _image_folder(folder, 40, 0.1, huge=(10, 20, 30))
-    cfg = _run_config(tmp, f"camera: {{source: '{folder}'}}\nlink: {{url: 'udpout:127.0.0.1:9'}}\nservice: {{state_file: ''}}\n")
+    cfg = _run_config(
+        tmp, f"camera: {{source: '{folder}'}}\nlink: {{url: 'udpout:127.0.0.1:9'}}\nservice: {{state_file: ''}}\n"
+    )
     lines = _Lines(_mavvo("run", "--config", str(cfg)))
     code, _, err = lines.finish(120)
     peak_mb = lines.peak_rss_mb
@@ -440,16 +514,24 @@ def huge_images(tmp: Path) -> FaultRow:
     counts = {k: int(v) for k, v in re.findall(r"(\w+) (\d+)", final[0])} if final else {}
     frames = counts.get("frames", 0) + counts.get("frames_dropped", 0)
     ok = code == 0 and frames == 37 and peak_mb < 600 and "refused" in err
-    return FaultRow("three 20000x20000 images in an image-folder source", Outcome.SURVIVED if ok else Outcome.FAILED, float("nan"),
-                    "the 3 oversized frames (refused from their headers)", f"{frames} of 37 other frames processed; peak memory of the process {peak_mb:.0f} MB")
+    return FaultRow(
+        "three 20000x20000 images in an image-folder source",
+        Outcome.SURVIVED if ok else Outcome.FAILED,
+        float("nan"),
+        "the 3 oversized frames (refused from their headers)",
+        f"{frames} of 37 other frames processed; peak memory of the process {peak_mb:.0f} MB",
+    )
 
 
 def folder_vanishes(tmp: Path) -> FaultRow:
     """The image folder disappears mid-run (before: the service exited 0; systemd did not restart it)."""
     folder = tmp / "frames"
     _image_folder(folder, 60, 0.1)
-    cfg = _run_config(tmp, f"camera: {{source: '{folder}', lost_after_s: 2.0, reconnect_max_s: 0.5}}\nlink: {{url: 'udpout:127.0.0.1:9'}}\n"
-                           "service: {health_log_interval_s: 0.2, state_file: ''}\n")
+    cfg = _run_config(
+        tmp,
+        f"camera: {{source: '{folder}', lost_after_s: 2.0, reconnect_max_s: 0.5}}\nlink: {{url: 'udpout:127.0.0.1:9'}}\n"
+        "service: {health_log_interval_s: 0.2, state_file: ''}\n",
+    )
     lines = _Lines(_mavvo("run", "--config", str(cfg)))
     started = lines.wait_for("skipped_attitude_missing 3", 60)
     for p in folder.iterdir():
@@ -457,8 +539,13 @@ def folder_vanishes(tmp: Path) -> FaultRow:
     folder.rmdir()
     code, _, err = lines.finish(60)
     ok = started and code == 1 and "camera.lost_after_s" in err
-    return FaultRow("the image folder disappears mid-run", Outcome.RESTARTED if ok else Outcome.FAILED, float("nan"), "nothing (no frames left to read)",
-                    f"exit {code} after camera.lost_after_s = 2 s of retries")
+    return FaultRow(
+        "the image folder disappears mid-run",
+        Outcome.RESTARTED if ok else Outcome.FAILED,
+        float("nan"),
+        "nothing (no frames left to read)",
+        f"exit {code} after camera.lost_after_s = 2 s of retries",
+    )
 
 
 def port_in_use(tmp: Path) -> FaultRow:
@@ -468,7 +555,9 @@ def port_in_use(tmp: Path) -> FaultRow:
         port = probe.getsockname()[1]
     folder = tmp / "frames"
     _image_folder(folder, 300, 0.1)
-    cfg = _run_config(tmp, f"camera: {{source: '{folder}'}}\nlink: {{url: 'udpin:127.0.0.1:{port}'}}\nservice: {{state_file: ''}}\n")
+    cfg = _run_config(
+        tmp, f"camera: {{source: '{folder}'}}\nlink: {{url: 'udpin:127.0.0.1:{port}'}}\nservice: {{state_file: ''}}\n"
+    )
     first = _Lines(_mavvo("run", "--config", str(cfg)))
     try:
         first.wait_for("mavvo running", 60)
@@ -477,8 +566,13 @@ def port_in_use(tmp: Path) -> FaultRow:
         first.proc.send_signal(signal.SIGTERM)
         first.finish(60)
     ok = code == 1 and "cannot listen on 127.0.0.1" in err
-    return FaultRow("a second process on the same UDP port", Outcome.REFUSED if ok else Outcome.FAILED, float("nan"), "nothing",
-                    err.strip().splitlines()[-1][:200] if err.strip() else f"exit {code}")
+    return FaultRow(
+        "a second process on the same UDP port",
+        Outcome.REFUSED if ok else Outcome.FAILED,
+        float("nan"),
+        "nothing",
+        err.strip().splitlines()[-1][:200] if err.strip() else f"exit {code}",
+    )
 
 
 def send_after_stop(tmp: Path) -> FaultRow:
@@ -499,8 +593,13 @@ def send_after_stop(tmp: Path) -> FaultRow:
         os.close(r)
         os.close(w)
     ok = leaked == b"" and link.counters["sent_after_stop"] == 1
-    return FaultRow("send() after the link stopped", Outcome.SURVIVED if ok else Outcome.FAILED, float("nan"), "the late message (by design)",
-                    f"sent_after_stop {link.counters['sent_after_stop']}; nothing written to a reused descriptor")
+    return FaultRow(
+        "send() after the link stopped",
+        Outcome.SURVIVED if ok else Outcome.FAILED,
+        float("nan"),
+        "the late message (by design)",
+        f"sent_after_stop {link.counters['sent_after_stop']}; nothing written to a reused descriptor",
+    )
 
 
 def config_fuzz(tmp: Path, cases: int = 1200) -> FaultRow:
@@ -523,8 +622,13 @@ def config_fuzz(tmp: Path, cases: int = 1200) -> FaultRow:
             tally["other"] += 1
             bad.append(f"seed {seed} ({kind}): exit {code}: {err[:200]!r}")
     ok = tally["other"] == 0
-    return FaultRow(f"config fuzzing, {cases} mutated files", Outcome.SURVIVED if ok else Outcome.FAILED, float("nan"), "-",
-                    ", ".join(f"{k} {v}" for k, v in sorted(tally.items())) + (f"; first bad: {bad[0]}" if bad else ""))
+    return FaultRow(
+        f"config fuzzing, {cases} mutated files",
+        Outcome.SURVIVED if ok else Outcome.FAILED,
+        float("nan"),
+        "-",
+        ", ".join(f"{k} {v}" for k, v in sorted(tally.items())) + (f"; first bad: {bad[0]}" if bad else ""),
+    )
 
 
 CASES: dict[str, Callable[[Path], FaultRow]] = {
@@ -568,9 +672,18 @@ _BEGIN, _END = "<!-- faults:begin -->", "<!-- faults:end -->"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m tools.faults.suite", description="Run the fault suite against the service on 127.0.0.1 and print the table.")
+    p = argparse.ArgumentParser(
+        prog="python -m tools.faults.suite",
+        description="Run the fault suite against the service on 127.0.0.1 and print the table.",
+    )
     p.add_argument("cases", nargs="*", metavar="CASE", help=f"cases to run (default: all): {', '.join(CASES)}")
-    p.add_argument("--markdown", type=Path, default=None, metavar="FILE", help=f"also write the table into FILE between {_BEGIN} and {_END}")
+    p.add_argument(
+        "--markdown",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help=f"also write the table into FILE between {_BEGIN} and {_END}",
+    )
     args = p.parse_args(argv)
     unknown = [c for c in args.cases if c not in CASES]
     if unknown:

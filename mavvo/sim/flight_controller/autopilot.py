@@ -92,7 +92,9 @@ class SimFlightController:
         if not url.startswith(SOCKET_SCHEMES):
             raise LinkError(f"{url}: expected a socket connection string starting with {', '.join(SOCKET_SCHEMES)}")
         try:
-            self._conn = self._mavutil.mavlink_connection(url, source_system=spec.system_id, source_component=1, autoreconnect=True)
+            self._conn = self._mavutil.mavlink_connection(
+                url, source_system=spec.system_id, source_component=1, autoreconnect=True
+            )
         except (OSError, ValueError, OverflowError) as e:  # socket errors; a bad host or port number
             raise LinkError(f"{url}: cannot open: {getattr(e, 'strerror', None) or e}") from e
         self.received: list[Received] = []
@@ -100,8 +102,13 @@ class SimFlightController:
         # Lockstep: called with each send (a function of no arguments, one datagram) so the driver can
         # hold the clock until the service has read it, and stamps it with the time it was sent.
         self.deliver: Callable[[Callable[[], None]], None] | None = None
-        self.client_clock_s: list[float] = []  # per TIMESYNC request heard: simulation time at arrival minus the request's ts1
-        self.params: dict[str, float] = {**VISION_READY_PARAMS[spec.autopilot], **{name: float(v) for name, v in spec.params}}
+        self.client_clock_s: list[
+            float
+        ] = []  # per TIMESYNC request heard: simulation time at arrival minus the request's ts1
+        self.params: dict[str, float] = {
+            **VISION_READY_PARAMS[spec.autopilot],
+            **{name: float(v) for name, v in spec.params},
+        }
         # Like an autopilot's forwarding to its ground-station port: what others send it, re-sent there.
         self._forward_to: tuple[str, int] | None = None
         self._forward_sock: socket.socket | None = None
@@ -230,12 +237,17 @@ class SimFlightController:
                     self._propagate(now)
                     self.estimator.fuse_vision(now, msg.x, msg.y, msg.reset_counter)
             elif kind == "TIMESYNC" and msg.tc1 == 0:
-                self.client_clock_s.append(self.clock.now_s() - msg.ts1 * 1e-9)  # simulation time minus the client's, plus transit
+                self.client_clock_s.append(
+                    self.clock.now_s() - msg.ts1 * 1e-9
+                )  # simulation time minus the client's, plus transit
                 tc1 = int(self._boot_time_s(self.clock.now_s()) * 1e9)
                 self._send(self._mav.MAVLink_timesync_message(tc1, msg.ts1))
             elif kind == "COMMAND_LONG" and msg.target_system in (0, self.spec.system_id):
                 self._command(msg)
-            elif kind in ("PARAM_REQUEST_READ", "PARAM_REQUEST_LIST", "PARAM_SET") and msg.target_system in (0, self.spec.system_id):
+            elif kind in ("PARAM_REQUEST_READ", "PARAM_REQUEST_LIST", "PARAM_SET") and msg.target_system in (
+                0,
+                self.spec.system_id,
+            ):
                 self._param(msg, kind)
 
     def _param(self, msg: Any, kind: str) -> None:
@@ -255,9 +267,15 @@ class SimFlightController:
                 self.params[name] = float(msg.param_value)
             todo = [name]
         for name in todo:
-            self._send(self._mav.MAVLink_param_value_message(
-                name.encode(), self.params[name], self._mav.MAV_PARAM_TYPE_REAL32, len(names), names.index(name),
-            ))
+            self._send(
+                self._mav.MAVLink_param_value_message(
+                    name.encode(),
+                    self.params[name],
+                    self._mav.MAV_PARAM_TYPE_REAL32,
+                    len(names),
+                    names.index(name),
+                )
+            )
 
     def _command(self, msg: Any) -> None:
         mav = self._mav
@@ -270,7 +288,11 @@ class SimFlightController:
                 self._streams.pop(msg_id, None)
                 self._next_due.pop(msg_id, None)
             else:
-                default_hz = self.spec.attitude_default_rate_hz if msg_id == mav.MAVLINK_MSG_ID_ATTITUDE else self.spec.stream_default_rate_hz
+                default_hz = (
+                    self.spec.attitude_default_rate_hz
+                    if msg_id == mav.MAVLINK_MSG_ID_ATTITUDE
+                    else self.spec.stream_default_rate_hz
+                )
                 interval_s = interval_us * 1e-6 if interval_us > 0 else 1.0 / default_hz
                 self._streams[msg_id] = interval_s
                 self._next_due[msg_id] = self._t_s + interval_s
@@ -279,14 +301,18 @@ class SimFlightController:
             reply = self._senders[msg_id](self._t_s) if msg_id in self._senders else None
             if msg_id == mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN and self.spec.ekf_origin:
                 sp = self.spec
-                reply = mav.MAVLink_gps_global_origin_message(int(sp.home_lat_deg * 1e7), int(sp.home_lon_deg * 1e7), int(sp.home_alt_m * 1000))
+                reply = mav.MAVLink_gps_global_origin_message(
+                    int(sp.home_lat_deg * 1e7), int(sp.home_lon_deg * 1e7), int(sp.home_alt_m * 1000)
+                )
             if reply is not None:
                 self._send(reply)
             else:
                 result = mav.MAV_RESULT_DENIED
         else:
             result = mav.MAV_RESULT_UNSUPPORTED
-        self._send(mav.MAVLink_command_ack_message(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
+        self._send(
+            mav.MAVLink_command_ack_message(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
+        )
 
     def _send(self, msg: Any) -> None:
         t = self._t_s
@@ -317,8 +343,12 @@ class SimFlightController:
         armed = mav.MAV_MODE_FLAG_SAFETY_ARMED if self.spec.armed else 0
         autopilot = mav.MAV_AUTOPILOT_PX4 if self.spec.autopilot == "px4" else mav.MAV_AUTOPILOT_ARDUPILOTMEGA
         return mav.MAVLink_heartbeat_message(
-            mav.MAV_TYPE_QUADROTOR, autopilot, mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | armed | mav.MAV_MODE_FLAG_STABILIZE_ENABLED,
-            5, mav.MAV_STATE_ACTIVE if self.spec.armed else mav.MAV_STATE_STANDBY, 3,  # custom mode 5: LOITER
+            mav.MAV_TYPE_QUADROTOR,
+            autopilot,
+            mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | armed | mav.MAV_MODE_FLAG_STABILIZE_ENABLED,
+            5,
+            mav.MAV_STATE_ACTIVE if self.spec.armed else mav.MAV_STATE_STANDBY,
+            3,  # custom mode 5: LOITER
         )
 
     def _attitude(self, t_s: float) -> Any:
@@ -340,8 +370,14 @@ class SimFlightController:
         cm = int(round(r * 100)) if r is not None else max_cm + 1
         mav = self._mav
         return mav.MAVLink_distance_sensor_message(
-            self.boot_time_ms(t_s), int(round(sp.rangefinder_min_m * 100)), max_cm, cm,
-            mav.MAV_DISTANCE_SENSOR_LASER, 0, mav.MAV_SENSOR_ROTATION_PITCH_270, 255,
+            self.boot_time_ms(t_s),
+            int(round(sp.rangefinder_min_m * 100)),
+            max_cm,
+            cm,
+            mav.MAV_DISTANCE_SENSOR_LASER,
+            0,
+            mav.MAV_SENSOR_ROTATION_PITCH_270,
+            255,
         )
 
     def _baro_height_m(self, t_s: float) -> float:
@@ -355,7 +391,13 @@ class SimFlightController:
             return None
         p, v = self.estimator.position_ne_m, self.estimator.velocity_ne_m_s(s.v_ned_m_s)
         return self._mav.MAVLink_local_position_ned_message(
-            self.boot_time_ms(t_s), float(p[0]), float(p[1]), -self._baro_height_m(t_s), float(v[0]), float(v[1]), float(s.v_ned_m_s[2])
+            self.boot_time_ms(t_s),
+            float(p[0]),
+            float(p[1]),
+            -self._baro_height_m(t_s),
+            float(v[0]),
+            float(v[1]),
+            float(s.v_ned_m_s[2]),
         )
 
     def _global_position(self, t_s: float) -> Any:
@@ -364,8 +406,15 @@ class SimFlightController:
         h = self._baro_height_m(t_s)
         hdg = int(round(np.degrees(s.yaw_rad) % 360 * 100)) % 36000
         return self._mav.MAVLink_global_position_int_message(
-            self.boot_time_ms(t_s), int(round(sp.home_lat_deg * 1e7)), int(round(sp.home_lon_deg * 1e7)),
-            int(round((sp.home_alt_m + h) * 1000)), int(round(h * 1000)), 0, 0, int(round(s.v_ned_m_s[2] * 100)), hdg,
+            self.boot_time_ms(t_s),
+            int(round(sp.home_lat_deg * 1e7)),
+            int(round(sp.home_lon_deg * 1e7)),
+            int(round((sp.home_alt_m + h) * 1000)),
+            int(round(h * 1000)),
+            0,
+            0,
+            int(round(s.v_ned_m_s[2] * 100)),
+            hdg,
         )
 
     def _ekf_status(self, t_s: float) -> Any:

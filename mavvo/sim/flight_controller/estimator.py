@@ -38,10 +38,16 @@ _VISION_TIMEOUT_S = 0.3  # ArduPilot calls external navigation unhealthy after t
 class EstimatorSpec:
     """The simulated EKF (a scenario's ``flight_controller.estimator`` keys)."""
 
-    imu_drift_m_s_per_sqrt_s: float = bounded(0.05, "random walk of the dead-reckoned velocity's error, m/s per sqrt(s)", ge=0, le=10)
+    imu_drift_m_s_per_sqrt_s: float = bounded(
+        0.05, "random walk of the dead-reckoned velocity's error, m/s per sqrt(s)", ge=0, le=10
+    )
     position_gain: float = bounded(0.3, "fraction of a vision sample's position innovation taken at once", gt=0, le=1)
-    velocity_gain_per_s: float = bounded(1.0, "velocity correction learnt per metre of innovation and second", ge=0, le=100)
-    yaw_initial_error_deg: float = bounded(-10.0, "the EKF's yaw error at boot (what it reports in ATTITUDE)", ge=-180, le=180)
+    velocity_gain_per_s: float = bounded(
+        1.0, "velocity correction learnt per metre of innovation and second", ge=0, le=100
+    )
+    yaw_initial_error_deg: float = bounded(
+        -10.0, "the EKF's yaw error at boot (what it reports in ATTITUDE)", ge=-180, le=180
+    )
     yaw_settle_time_s: float = bounded(5.0, "time constant with which that yaw error decays", gt=0, le=600)
 
 
@@ -128,4 +134,6 @@ class SimEstimator:
 
     def yaw_error_rad(self, t_boot_s: float) -> float:
         """The reported yaw minus the true yaw, ``t_boot_s`` after boot."""
-        return math.radians(self.spec.yaw_initial_error_deg) * math.exp(-max(t_boot_s, 0.0) / self.spec.yaw_settle_time_s)
+        return math.radians(self.spec.yaw_initial_error_deg) * math.exp(
+            -max(t_boot_s, 0.0) / self.spec.yaw_settle_time_s
+        )

@@ -12,7 +12,9 @@ from mavvo.sim.flight_controller.spec import FlightControllerSpec
 from mavvo.sim.world.trajectories import Trajectory
 
 
-def attitude_sample(trajectory: Trajectory, t_s: float, spec: FlightControllerSpec, rng: np.random.Generator) -> tuple[float, float, float, np.ndarray]:
+def attitude_sample(
+    trajectory: Trajectory, t_s: float, spec: FlightControllerSpec, rng: np.random.Generator
+) -> tuple[float, float, float, np.ndarray]:
     """(roll_rad, pitch_rad, yaw_rad, omega_body_rad_s) measured at ``t_s``: the truth plus Gaussian
     noise and the roll/pitch bias; yaw wrapped to [-pi, pi)."""
     s = trajectory.state(t_s)
@@ -25,7 +27,9 @@ def attitude_sample(trajectory: Trajectory, t_s: float, spec: FlightControllerSp
     return roll, pitch, yaw, s.omega_body_rad_s
 
 
-def range_sample(trajectory: Trajectory, t_s: float, spec: FlightControllerSpec, rng: np.random.Generator) -> float | None:
+def range_sample(
+    trajectory: Trajectory, t_s: float, spec: FlightControllerSpec, rng: np.random.Generator
+) -> float | None:
     """A downward laser's distance along the body z axis to the ground plane (boxes are not seen), with
     noise; None when out of the sensor's range or tilted beyond ~84 deg."""
     p, R = trajectory.pose(t_s)
@@ -36,7 +40,9 @@ def range_sample(trajectory: Trajectory, t_s: float, spec: FlightControllerSpec,
     return r if spec.rangefinder_min_m <= r <= spec.rangefinder_max_m else None
 
 
-def baro_height_sample(trajectory: Trajectory, t_s: float, spec: FlightControllerSpec, bias_m: float, rng: np.random.Generator) -> float:
+def baro_height_sample(
+    trajectory: Trajectory, t_s: float, spec: FlightControllerSpec, bias_m: float, rng: np.random.Generator
+) -> float:
     """Barometric height above the start's ground, metres: truth plus a fixed bias plus noise."""
     p, _ = trajectory.pose(t_s)
     return float(-p[2] + bias_m + rng.normal(0.0, spec.baro_noise_m))

@@ -32,20 +32,38 @@ class FlightControllerSpec:
     home_lon_deg: float = bounded(8.545594, "home longitude", ge=-180, le=180)
     home_alt_m: float = bounded(488.0, "home altitude above mean sea level")
     estimator: EstimatorSpec = field(default_factory=EstimatorSpec)
-    autopilot: Literal["ardupilot", "px4"] = bounded("ardupilot", "which autopilot it says it is (HEARTBEAT) and whose parameters it serves")
+    autopilot: Literal["ardupilot", "px4"] = bounded(
+        "ardupilot", "which autopilot it says it is (HEARTBEAT) and whose parameters it serves"
+    )
     armed: bool = bounded(True, "HEARTBEAT says armed (mavvo preflight --fix refuses to write parameters then)")
-    params: tuple[tuple[str, float], ...] = bounded((), "parameters that differ from the vision-ready defaults of its autopilot, as [NAME, value] pairs")
+    params: tuple[tuple[str, float], ...] = bounded(
+        (), "parameters that differ from the vision-ready defaults of its autopilot, as [NAME, value] pairs"
+    )
     ekf_origin: bool = bounded(True, "the EKF has an origin (GPS_GLOBAL_ORIGIN answers a request)")
 
 
 # Parameters a flight controller set up for mavvo holds (what docs/service.md and preflight ask for).
 VISION_READY_PARAMS: dict[str, dict[str, float]] = {
     "ardupilot": {
-        "AHRS_EKF_TYPE": 3, "VISO_TYPE": 1, "VISO_DELAY_MS": 30, "VISO_POS_X": 0.0, "VISO_POS_Y": 0.0, "VISO_POS_Z": 0.0,
-        "EK3_SRC1_POSXY": 6, "EK3_SRC1_VELXY": 6, "EK3_SRC1_POSZ": 1, "EK3_SRC1_YAW": 1, "SERIAL2_PROTOCOL": 2,
+        "AHRS_EKF_TYPE": 3,
+        "VISO_TYPE": 1,
+        "VISO_DELAY_MS": 30,
+        "VISO_POS_X": 0.0,
+        "VISO_POS_Y": 0.0,
+        "VISO_POS_Z": 0.0,
+        "EK3_SRC1_POSXY": 6,
+        "EK3_SRC1_VELXY": 6,
+        "EK3_SRC1_POSZ": 1,
+        "EK3_SRC1_YAW": 1,
+        "SERIAL2_PROTOCOL": 2,
     },
     "px4": {
-        "EKF2_EV_CTRL": 11, "EKF2_EV_DELAY": 30, "EKF2_HGT_REF": 1, "EKF2_EV_POS_X": 0.0, "EKF2_EV_POS_Y": 0.0, "EKF2_EV_POS_Z": 0.0,
+        "EKF2_EV_CTRL": 11,
+        "EKF2_EV_DELAY": 30,
+        "EKF2_HGT_REF": 1,
+        "EKF2_EV_POS_X": 0.0,
+        "EKF2_EV_POS_Y": 0.0,
+        "EKF2_EV_POS_Z": 0.0,
         "MAV_1_CONFIG": 102,
     },
 }

@@ -100,11 +100,18 @@ def report(draws: Mapping[str, Mapping[str, Summary]], date: str) -> str:
     if own:
         lines += [
             f"Each shipped scenario with its own seed (`mavvo sim --scenario S --json`, lockstep, {date}; the `vehicle` block: "
-            "the simulated EKF fusing what mavvo sent, against the truth, without any alignment):", "", *own_seed_table(own), "",
+            "the simulated EKF fusing what mavvo sent, against the truth, without any alignment):",
+            "",
+            *own_seed_table(own),
+            "",
         ]
     lines += [
         f"The same over {len(seeds)} draws of the noise (seeds: {', '.join(seeds)}; `own` is the scenario's), median and range "
-        "(`python -m mavvo.sim.scenarios.draws`, `make draws`):", "", *draws_table({n: list(f.values()) for n, f in draws.items()}), "", END,
+        "(`python -m mavvo.sim.scenarios.draws`, `make draws`):",
+        "",
+        *draws_table({n: list(f.values()) for n, f in draws.items()}),
+        "",
+        END,
     ]
     return "\n".join(lines)
 
@@ -122,10 +129,20 @@ def write_section(path: Path, section: str) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     names = scenario_names()
-    parser.add_argument("--scenarios", default=",".join(names), help=f"comma-separated scenario names (default: all shipped: {', '.join(names)})")
-    parser.add_argument("--seeds", default=",".join(DEFAULT_SEEDS), help=f"comma-separated seeds, '{OWN}' for the scenario's own (default {','.join(DEFAULT_SEEDS)})")
+    parser.add_argument(
+        "--scenarios",
+        default=",".join(names),
+        help=f"comma-separated scenario names (default: all shipped: {', '.join(names)})",
+    )
+    parser.add_argument(
+        "--seeds",
+        default=",".join(DEFAULT_SEEDS),
+        help=f"comma-separated seeds, '{OWN}' for the scenario's own (default {','.join(DEFAULT_SEEDS)})",
+    )
     parser.add_argument("--jobs", type=int, default=2, help="flights at a time (default 2; each takes about a core)")
-    parser.add_argument("--markdown", type=Path, help="rewrite this section of this markdown file (between the draws markers)")
+    parser.add_argument(
+        "--markdown", type=Path, help="rewrite this section of this markdown file (between the draws markers)"
+    )
     args = parser.parse_args(argv)
     scenarios = [s for s in args.scenarios.split(",") if s]
     seeds = [s for s in args.seeds.split(",") if s]

@@ -42,7 +42,13 @@ class Simulation:
     forwards a companion's messages to its ground-station port."""
 
     def __init__(
-        self, scenario: Scenario, mavlink_url: str, *, realtime: bool = False, duration_s: float | None = None, forward_url: str | None = None,
+        self,
+        scenario: Scenario,
+        mavlink_url: str,
+        *,
+        realtime: bool = False,
+        duration_s: float | None = None,
+        forward_url: str | None = None,
     ) -> None:
         self.scenario = scenario
         self.clock = RealClock() if realtime else LockstepClock()
@@ -51,14 +57,25 @@ class Simulation:
         self.faults = FaultSchedule(scenario.faults)
         seeds = np.random.SeedSequence(scenario.seed).spawn(2)
         self.fc = SimFlightController(
-            mavlink_url, self.trajectory, self.clock, scenario.flight_controller, self.faults, seed=int(seeds[0].generate_state(1)[0]),
+            mavlink_url,
+            self.trajectory,
+            self.clock,
+            scenario.flight_controller,
+            self.faults,
+            seed=int(seeds[0].generate_state(1)[0]),
             forward_url=forward_url,
         )
         self.hold: Callable[[], None] | None = None
         self.world = World.build(scenario.world)
         self.camera = SimCamera(
-            scenario.camera, self.world, self.trajectory, self.clock, faults=self.faults,
-            seed=int(seeds[1].generate_state(1)[0]), advance=None if realtime else self.advance_to, duration_s=self.duration_s,
+            scenario.camera,
+            self.world,
+            self.trajectory,
+            self.clock,
+            faults=self.faults,
+            seed=int(seeds[1].generate_state(1)[0]),
+            advance=None if realtime else self.advance_to,
+            duration_s=self.duration_s,
         )
 
     def advance_to(self, t_s: float) -> None:
@@ -90,7 +107,9 @@ class Simulation:
         self.fc.close()
 
 
-def scenario_camera(name_or_path: str, host_clock: HostClock, fc: FlightControllerState | None = None) -> HostTimedCamera | FlightSyncedCamera:
+def scenario_camera(
+    name_or_path: str, host_clock: HostClock, fc: FlightControllerState | None = None
+) -> HostTimedCamera | FlightSyncedCamera:
     """The camera of a scenario in real time, frames stamped on ``host_clock`` (``camera.source:
     sim:SCENARIO`` in ``mavvo run``). With ``fc`` (the service's view of the flight controller), it flies
     the scenario on the simulated flight controller's clock (``mavvo sim --fc-only``), so both fly the
@@ -100,14 +119,26 @@ def scenario_camera(name_or_path: str, host_clock: HostClock, fc: FlightControll
     trajectory = make_trajectory(scenario.trajectory)
     if fc is not None:
         clock = _FlightClock(host_clock)
-        camera = SimCamera(scenario.camera, World.build(scenario.world), trajectory, clock,  # type: ignore[arg-type]
-                           faults=FaultSchedule(scenario.faults), seed=scenario.seed, duration_s=scenario.duration_s)
+        camera = SimCamera(
+            scenario.camera,
+            World.build(scenario.world),
+            trajectory,
+            clock,  # type: ignore[arg-type]
+            faults=FaultSchedule(scenario.faults),
+            seed=scenario.seed,
+            duration_s=scenario.duration_s,
+        )
         return FlightSyncedCamera(camera, clock, fc, scenario)
     real = RealClock()
     offset = host_clock.now_s() - real.now_s()
     camera = SimCamera(
-        scenario.camera, World.build(scenario.world), trajectory, real,
-        faults=FaultSchedule(scenario.faults), seed=scenario.seed, duration_s=scenario.duration_s,
+        scenario.camera,
+        World.build(scenario.world),
+        trajectory,
+        real,
+        faults=FaultSchedule(scenario.faults),
+        seed=scenario.seed,
+        duration_s=scenario.duration_s,
     )
     return HostTimedCamera(camera, offset)
 
@@ -161,7 +192,11 @@ class FlightSyncedCamera:
         if not self._synced:
             self._synced = True
             self.camera.skip_to(self.clock.now_s())
-            log.info("simulated camera: flying %s on the flight controller's clock, from t = %.1f s", self.scenario.name, self.clock.now_s())
+            log.info(
+                "simulated camera: flying %s on the flight controller's clock, from t = %.1f s",
+                self.scenario.name,
+                self.clock.now_s(),
+            )
         f = self.camera.read(timeout_s)
         if f is None:
             return None
@@ -175,7 +210,10 @@ class FlightSyncedCamera:
             return
         R = self.camera.trajectory.pose(t_sim_s)[1]
         roll, pitch, yaw = euler321_from_R(R)
-        diff = max(abs(math.degrees(math.remainder(a - b, math.tau))) for a, b in ((p.roll_rad, roll), (p.pitch_rad, pitch), (p.yaw_rad, yaw)))
+        diff = max(
+            abs(math.degrees(math.remainder(a - b, math.tau)))
+            for a, b in ((p.roll_rad, roll), (p.pitch_rad, pitch), (p.yaw_rad, yaw))
+        )
         self.mismatch_deg = diff
         if diff <= _MISMATCH_DEG:
             self._mismatch_since = None
@@ -185,7 +223,11 @@ class FlightSyncedCamera:
             self._told_at = t_sim_s
             log.error(
                 "camera sim:%s: the flight controller's attitude is %.0f deg off this scenario's for %.0f s: is it flying another "
-                "scenario? (mavvo sim --fc-only --scenario %s)", self.scenario.name, diff, t_sim_s - self._mismatch_since, self.scenario.name,
+                "scenario? (mavvo sim --fc-only --scenario %s)",
+                self.scenario.name,
+                diff,
+                t_sim_s - self._mismatch_since,
+                self.scenario.name,
             )
 
     def close(self) -> None:

@@ -55,7 +55,9 @@ def scenario_path(name_or_path: str | Path) -> Path:
         return p
     shipped = SCENARIO_DIR / f"{name_or_path}.yaml"
     if not shipped.is_file():
-        raise ConfigError(f"scenario {str(name_or_path)!r}: not found; expected one of {', '.join(scenario_names())} or a .yaml path")
+        raise ConfigError(
+            f"scenario {str(name_or_path)!r}: not found; expected one of {', '.join(scenario_names())} or a .yaml path"
+        )
     return shipped
 
 

@@ -37,8 +37,14 @@ class PairedSequence:
         # The same seed split as the MAVLink simulation: the camera's noise matches frame for frame.
         seeds = np.random.SeedSequence(scenario.seed).spawn(2)
         self.camera = SimCamera(
-            scenario.camera, World.build(scenario.world), self.trajectory, clock, faults=self.faults,
-            seed=int(seeds[1].generate_state(1)[0]), advance=clock.advance_to, duration_s=self.duration_s,
+            scenario.camera,
+            World.build(scenario.world),
+            self.trajectory,
+            clock,
+            faults=self.faults,
+            seed=int(seeds[1].generate_state(1)[0]),
+            advance=clock.advance_to,
+            duration_s=self.duration_s,
         )
         self._rng = np.random.default_rng(seeds[0])
         self._baro_bias_m = float(self._rng.normal(0.0, 0.5))

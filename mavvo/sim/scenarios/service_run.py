@@ -139,14 +139,18 @@ class _Lockstep:
         now = self.sim.clock.now_s()
         first, self._started = not self._started, True
         self.daemon.tick()
-        self._wait(lambda p: p.idle_after(p.frames_queued) and p.link_tick_s >= now and (p.messages_sent > 0 or not first))
+        self._wait(
+            lambda p: p.idle_after(p.frames_queued) and p.link_tick_s >= now and (p.messages_sent > 0 or not first)
+        )
 
     def _wait(self, done: Callable[[LockstepProgress], bool]) -> None:
         if not self.daemon.wait_progress(done, _LOCKSTEP_WAIT_S) and not self.daemon.stop_event.is_set():
             self.waits_expired += 1
             log.warning(
                 "lockstep: the service did not catch up within %.0f s; this run may not repeat exactly (at %.3f s: %s)",
-                _LOCKSTEP_WAIT_S, self.sim.clock.now_s(), self.daemon.progress(),
+                _LOCKSTEP_WAIT_S,
+                self.sim.clock.now_s(),
+                self.daemon.progress(),
             )
 
 
@@ -177,10 +181,18 @@ def run_daemon_in_sim(
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
             probe.bind(("127.0.0.1", 0))
             service_address = probe.getsockname()[:2]
-        sim = Simulation(scenario, f"udpout:127.0.0.1:{service_address[1]}", realtime=realtime, duration_s=duration_s, forward_url=forward_url)
+        sim = Simulation(
+            scenario,
+            f"udpout:127.0.0.1:{service_address[1]}",
+            realtime=realtime,
+            duration_s=duration_s,
+            forward_url=forward_url,
+        )
         url = f"udpin:127.0.0.1:{service_address[1]}"
     else:
-        sim = Simulation(scenario, "udpin:127.0.0.1:0", realtime=realtime, duration_s=duration_s, forward_url=forward_url)
+        sim = Simulation(
+            scenario, "udpin:127.0.0.1:0", realtime=realtime, duration_s=duration_s, forward_url=forward_url
+        )
         host, port = sim.fc.address
         url = f"udpout:{host}:{port}"
     config = config_for(scenario, base or ServiceConfig(), url)
@@ -193,12 +205,15 @@ def run_daemon_in_sim(
         if lockstep is not None:
             sim.fc.deliver, sim.hold = lockstep.deliver, lockstep.hold
         if during is not None:
+
             def attack(d: Daemon = daemon) -> None:  # the udpout socket exists once the link has connected
                 during(d, service_address if service_listens else daemon_address(d))
 
             threading.Thread(target=attack, name="sim-during", daemon=True).start()
         if realtime:
-            fc_thread = threading.Thread(target=sim.serve, args=(stop_fc,), kwargs={"until_s": float("inf")}, name="sim-fc", daemon=True)
+            fc_thread = threading.Thread(
+                target=sim.serve, args=(stop_fc,), kwargs={"until_s": float("inf")}, name="sim-fc", daemon=True
+            )
             fc_thread.start()
         summary = daemon.run()
     finally:
@@ -231,10 +246,21 @@ def run_daemon_in_sim(
     for r in sim.fc.received:
         received[r.type] = received.get(r.type, 0) + 1
     return SimRun(
-        scenario.name, realtime, sim.clock.now_s(), wall, summary, dict(sorted(received.items())), est, truth, ev,
-        int(np.count_nonzero(np.diff(counters))) if len(counters) else 0, [r.msg for r in vpe],
+        scenario.name,
+        realtime,
+        sim.clock.now_s(),
+        wall,
+        summary,
+        dict(sorted(received.items())),
+        est,
+        truth,
+        ev,
+        int(np.count_nonzero(np.diff(counters))) if len(counters) else 0,
+        [r.msg for r in vpe],
         [(r.t_s, r.msg.text) for r in sim.fc.received if r.type == "STATUSTEXT"],
-        [(r.t_s, r.msg.system_status) for r in sim.fc.received if r.type == "HEARTBEAT"], safety, recording,
+        [(r.t_s, r.msg.system_status) for r in sim.fc.received if r.type == "HEARTBEAT"],
+        safety,
+        recording,
         0 if lockstep is None else lockstep.waits_expired,
     )
 

@@ -67,7 +67,9 @@ def tracked_pairs(
         raise ValueError(f"variant: expected 0 (the scenario as shipped) or a positive texture number, got {variant}")
     sc = load_scenario(name)
     if variant:
-        sc = dataclasses.replace(sc, seed=sc.seed + 100 * variant, world=dataclasses.replace(sc.world, texture_seed=variant))
+        sc = dataclasses.replace(
+            sc, seed=sc.seed + 100 * variant, world=dataclasses.replace(sc.world, texture_seed=variant)
+        )
     seq = PairedSequence(sc, duration_s=duration_s)
     model = sc.camera.camera_model()
     pinhole = CameraModel(model.width_px, model.height_px, model.fx_px, model.fy_px, model.cx_px, model.cy_px)
@@ -78,10 +80,19 @@ def tracked_pairs(
     for pf in seq:
         tracks = frontend.process(pf.image)
         st = seq.trajectory.state(pf.t_exposure_s)
-        views.append((tracks, (st.roll_rad, st.pitch_rad, st.yaw_rad), st.R_ned_body @ R_body_cam, st.p_ned_m + st.R_ned_body @ lever))
+        views.append(
+            (
+                tracks,
+                (st.roll_rad, st.pitch_rad, st.yaw_rad),
+                st.R_ned_body @ R_body_cam,
+                st.p_ned_m + st.R_ned_body @ lever,
+            )
+        )
 
     def pixels(f: np.ndarray) -> np.ndarray:
-        return np.column_stack([model.fx_px * f[:, 0] / f[:, 2] + model.cx_px, model.fy_px * f[:, 1] / f[:, 2] + model.cy_px])
+        return np.column_stack(
+            [model.fx_px * f[:, 0] / f[:, 2] + model.cx_px, model.fy_px * f[:, 1] / f[:, 2] + model.cy_px]
+        )
 
     pairs = []
     for k in range(0, len(views) - gap, every):
@@ -91,5 +102,17 @@ def tracked_pairs(
             continue
         t = Rb.T @ (ca - cb)
         yaw = math.remainder(rpa[2] - rpb[2], math.tau)
-        pairs.append(TrackedPair(name, pixels(ta.f_cam[ia]), pixels(tb.f_cam[ib]), rpa[:2], rpb[:2], yaw, R_body_cam, Rb.T @ Ra, t / np.linalg.norm(t)))
+        pairs.append(
+            TrackedPair(
+                name,
+                pixels(ta.f_cam[ia]),
+                pixels(tb.f_cam[ib]),
+                rpa[:2],
+                rpb[:2],
+                yaw,
+                R_body_cam,
+                Rb.T @ Ra,
+                t / np.linalg.norm(t),
+            )
+        )
     return pairs, pinhole

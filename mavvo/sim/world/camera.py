@@ -31,6 +31,7 @@ _DARK_GAIN = 0.05
 class HostClock(Protocol):
     def now_s(self) -> float: ...
 
+
 _TEXTURELESS_LEVEL = 120
 
 
@@ -38,7 +39,9 @@ _TEXTURELESS_LEVEL = 120
 class CameraSpec(CameraIntrinsics):
     """The simulated camera: intrinsics (:class:`CameraIntrinsics`), mounting, timing and image effects."""
 
-    mount: Literal["nadir", "forward", "oblique"] = bounded("nadir", "nadir: down, image top forward; forward: along the nose; oblique: forward, pitched down")
+    mount: Literal["nadir", "forward", "oblique"] = bounded(
+        "nadir", "nadir: down, image top forward; forward: along the nose; oblique: forward, pitched down"
+    )
     oblique_depression_deg: float = bounded(45.0, "oblique mount: angle below the horizon", ge=0, le=90)
     lever_arm_m: tuple[float, float, float] = bounded((0.0, 0.0, 0.0), "camera centre in the body frame (FRD)")
     rate_hz: float = bounded(20.0, "frames per second", gt=0, le=240)

@@ -16,8 +16,14 @@ from typing import Literal
 from mavvo.options import bounded
 
 FaultKind = Literal[
-    "link_silence", "reboot", "nan_attitude", "stale_attitude", "corrupt_bytes",
-    "frames_missing", "dark_frames", "textureless_frames",
+    "link_silence",
+    "reboot",
+    "nan_attitude",
+    "stale_attitude",
+    "corrupt_bytes",
+    "frames_missing",
+    "dark_frames",
+    "textureless_frames",
 ]
 
 
@@ -50,4 +56,6 @@ class FaultSchedule:
 
     def reboots_ending(self, after_s: float, until_s: float) -> list[FaultSpec]:
         """Reboots whose down time ends in (after_s, until_s], in time order."""
-        return sorted((f for f in self._faults if f.kind == "reboot" and after_s < f.end_s <= until_s), key=lambda f: f.end_s)
+        return sorted(
+            (f for f in self._faults if f.kind == "reboot" and after_s < f.end_s <= until_s), key=lambda f: f.end_s
+        )

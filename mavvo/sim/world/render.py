@@ -47,7 +47,9 @@ class Renderer:
         else:
             self._K, self._size, self._maps = camera.K, (camera.width_px, camera.height_px), None
         w, h = self._size
-        gu, gv = np.meshgrid(np.arange(0, w + _GRID_PX, _GRID_PX, dtype=float), np.arange(0, h + _GRID_PX, _GRID_PX, dtype=float))
+        gu, gv = np.meshgrid(
+            np.arange(0, w + _GRID_PX, _GRID_PX, dtype=float), np.arange(0, h + _GRID_PX, _GRID_PX, dtype=float)
+        )
         rays = np.stack([gu.ravel(), gv.ravel(), np.ones(gu.size)], axis=1) @ np.linalg.inv(self._K).T
         self._grid_rays_cam = rays / np.linalg.norm(rays, axis=1, keepdims=True)
         self._grid_shape = gu.shape
@@ -66,7 +68,9 @@ class Renderer:
         if self.world.boxes:
             self._boxes(img, R, p)
         if self._maps is not None:
-            img = cv2.remap(img, self._maps[0], self._maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            img = cv2.remap(
+                img, self._maps[0], self._maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+            )
         return img
 
     def _ground(self, R: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -74,7 +78,8 @@ class Renderer:
         weights, sky = self._layer_weights(R, p)
         images = [
             (self._warp_layer(layer.tile, self._H_img_tile(R, p, layer.tile.shape[0], layer.m_per_px), wgrid), wgrid)
-            for layer, wgrid in zip(self.world.layers, weights) if wgrid.max() > 0.0
+            for layer, wgrid in zip(self.world.layers, weights)
+            if wgrid.max() > 0.0
         ]
         if sky.max() > 0.0:
             images.append((np.full((h, w), SKY_LEVEL, np.uint8), sky))
@@ -101,7 +106,9 @@ class Renderer:
         mosaic = self._mosaics.get(id(tile))
         if mosaic is None:  # made on first use: the coarse layers of a world are often never seen
             mosaic = self._mosaics[id(tile)] = np.tile(tile, (2, 2))
-        roi = cv2.warpPerspective(mosaic, shift @ H_img_tile, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        roi = cv2.warpPerspective(
+            mosaic, shift @ H_img_tile, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP
+        )
         if (x0, y0, x1, y1) == (0, 0, w, h):
             return roi
         out = np.zeros((h, w), np.uint8)
@@ -167,7 +174,9 @@ class Renderer:
             s = tex.shape[0] - 1
             src = np.array([[0, 0], [s, 0], [s, s], [0, s]], np.float32)
             H = cv2.getPerspectiveTransform(src, (uv - [x0, y0]).astype(np.float32))
-            patch = cv2.warpPerspective(tex, H, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            patch = cv2.warpPerspective(
+                tex, H, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+            )
             mask = np.zeros_like(patch)
             cv2.fillConvexPoly(mask, np.round((uv - [x0, y0]) * 16).astype(np.int32), 255, lineType=cv2.LINE_8, shift=4)
             roi = img[y0:y1, x0:x1]
@@ -231,7 +240,14 @@ def apply_effects(
         kernel = np.zeros((n, n), np.float32)
         c = n // 2
         d = np.asarray(blur_px) / length * (length / 2)
-        cv2.line(kernel, (int(round(c - d[0])), int(round(c - d[1]))), (int(round(c + d[0])), int(round(c + d[1]))), 1.0, 1, cv2.LINE_AA)
+        cv2.line(
+            kernel,
+            (int(round(c - d[0])), int(round(c - d[1]))),
+            (int(round(c + d[0])), int(round(c + d[1]))),
+            1.0,
+            1,
+            cv2.LINE_AA,
+        )
         out = cv2.filter2D(out, -1, kernel / kernel.sum(), borderType=cv2.BORDER_REFLECT)
     if gain != 1.0:
         out *= gain

@@ -40,7 +40,9 @@ class BoxSpec:
 class WorldSpec:
     """What the ground looks like and what stands on it."""
 
-    texture: TextureKind = bounded("corners", "corners: multi-scale corners; checker: a checkerboard; flat: featureless grey")
+    texture: TextureKind = bounded(
+        "corners", "corners: multi-scale corners; checker: a checkerboard; flat: featureless grey"
+    )
     texture_seed: int = bounded(0, "seed of the procedural texture", ge=0)
     finest_m_per_px: float = bounded(0.004, "ground size of one texel of the finest layer", gt=0)
     layers: int = bounded(5, "number of texture layers, each 8x coarser", ge=1, le=8)
@@ -68,7 +70,13 @@ class Box:
     corners_ned: np.ndarray
     texture: np.ndarray
 
-    faces: tuple[tuple[int, int, int, int], ...] = ((4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7))
+    faces: tuple[tuple[int, int, int, int], ...] = (
+        (4, 5, 6, 7),
+        (0, 1, 5, 4),
+        (1, 2, 6, 5),
+        (2, 3, 7, 6),
+        (3, 0, 4, 7),
+    )
 
 
 @dataclass(frozen=True)
@@ -89,7 +97,8 @@ class World:
             layers = (TextureLayer(np.full((8, 8), 128, np.uint8), spec.finest_m_per_px),)
         else:
             layers = tuple(
-                TextureLayer(corner_tile(_TILE_PX, rng), spec.finest_m_per_px * _LAYER_RATIO**k) for k in range(spec.layers)
+                TextureLayer(corner_tile(_TILE_PX, rng), spec.finest_m_per_px * _LAYER_RATIO**k)
+                for k in range(spec.layers)
             )
         boxes = tuple(_build_box(b, np.random.default_rng([spec.texture_seed, i])) for i, b in enumerate(spec.boxes))
         return cls(layers, boxes, spec)

@@ -77,7 +77,9 @@ class Trajectory(ABC):
         roll, pitch, yaw_ = euler321_from_R(R)
         return TruthState(t, p, v, a, R, roll, pitch, yaw_, omega)
 
-    def truth_series(self, times_s: np.ndarray, lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> PoseSeries:
+    def truth_series(
+        self, times_s: np.ndarray, lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    ) -> PoseSeries:
         """Positions of the point ``lever_arm_m`` (body FRD, metres; the camera centre) and the body's
         orientations at ``times_s``: what a vision estimate estimates."""
         times = np.asarray(times_s, dtype=float)
@@ -256,6 +258,7 @@ class PhaseTrajectory(Trajectory):
 
 # ---------------------------------------------------------------------------------------- specs
 
+
 @dataclass(frozen=True)
 class HoverSpec:
     """Hover over the origin, drifting slowly as a position-holding drone does."""
@@ -407,15 +410,25 @@ def make_trajectory(spec: TrajectorySpec) -> Trajectory:
             s, c = np.sin(ph), np.cos(ph)
             return np.array([r * s, r * (1 - c), z]), np.array([r * c, r * s, 0.0]), np.array([-r * s, r * c, 0.0])
 
-        return PhaseTrajectory(circle, _Phase(2 * np.pi * spec.laps, spec.speed_m_s / r, spec.ramp_s), spec.yaw, spec.yaw_deg)
+        return PhaseTrajectory(
+            circle, _Phase(2 * np.pi * spec.laps, spec.speed_m_s / r, spec.ramp_s), spec.yaw, spec.yaw_deg
+        )
     if isinstance(spec, YawSpinSpec):
         z = -spec.altitude_m
 
         def still(ph: float):
             return np.array([0.0, 0.0, z]), np.zeros(3), np.zeros(3)
 
-        spin = PhaseTrajectory(still, _Phase(2 * np.pi * spec.turns, np.radians(spec.rate_deg_s), spec.ramp_s), yaw=lambda ph: (_wrap(ph), 1.0))
-        return _Drifting(spin, _Drift(np.zeros(3), spec.drift_m, spec.drift_period_s, spec.seed)) if spec.drift_m > 0 else spin
+        spin = PhaseTrajectory(
+            still,
+            _Phase(2 * np.pi * spec.turns, np.radians(spec.rate_deg_s), spec.ramp_s),
+            yaw=lambda ph: (_wrap(ph), 1.0),
+        )
+        return (
+            _Drifting(spin, _Drift(np.zeros(3), spec.drift_m, spec.drift_period_s, spec.seed))
+            if spec.drift_m > 0
+            else spin
+        )
     raise TypeError(f"make_trajectory: unknown spec {type(spec).__name__}")
 
 
@@ -434,7 +447,11 @@ class _Drift:
         """(p_ned_m, v_ned_m_s, a_ned_m_s2) at ``t_s``."""
         arg = self._w * t_s + self._phases
         A, w = self._amps, self._w
-        return self._base + (A * np.sin(arg)).sum(axis=1), (A * w * np.cos(arg)).sum(axis=1), -(A * w * w * np.sin(arg)).sum(axis=1)
+        return (
+            self._base + (A * np.sin(arg)).sum(axis=1),
+            (A * w * np.cos(arg)).sum(axis=1),
+            -(A * w * w * np.sin(arg)).sum(axis=1),
+        )
 
 
 class HoverTrajectory(Trajectory):

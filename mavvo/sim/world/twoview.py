@@ -124,7 +124,9 @@ def make_scene(
         scene = _draw(rng, n_points, **kwargs)
         if scene is not None:
             return scene
-    raise ValueError(f"no scene with every point in front of both cameras for {structure!r} seen from a {mount!r} camera")
+    raise ValueError(
+        f"no scene with every point in front of both cameras for {structure!r} seen from a {mount!r} camera"
+    )
 
 
 def _draw(
@@ -146,7 +148,10 @@ def _draw(
 ) -> TwoViewScene | None:
     """One attempt of :func:`make_scene`; None when a point falls behind a camera."""
     R_body_cam = mount_rotation(mount)
-    att = [(rng.uniform(-max_tilt_rad, max_tilt_rad), rng.uniform(-max_tilt_rad, max_tilt_rad), rng.uniform(-np.pi, np.pi)) for _ in range(2)]
+    att = [
+        (rng.uniform(-max_tilt_rad, max_tilt_rad), rng.uniform(-max_tilt_rad, max_tilt_rad), rng.uniform(-np.pi, np.pi))
+        for _ in range(2)
+    ]
     R_ned_cam1 = R_from_euler321(*att[0]) @ R_body_cam
     axis1 = R_ned_cam1[:, 2]
     baseline_m = baseline_fraction * distance_m
@@ -204,7 +209,10 @@ def _draw(
     f1_cam = _noisy_bearings(_unit(x1), rng, pixel_noise_px, focal_px)
     f2_cam = _noisy_bearings(_unit(x2), rng, pixel_noise_px, focal_px)
 
-    reported = [(r + rng.normal(0, imu_noise_rad), p + rng.normal(0, imu_noise_rad)) if imu_noise_rad > 0 else (r, p) for r, p, _ in att]
+    reported = [
+        (r + rng.normal(0, imu_noise_rad), p + rng.normal(0, imu_noise_rad)) if imu_noise_rad > 0 else (r, p)
+        for r, p, _ in att
+    ]
     R_lc1 = R_lvl_cam(*reported[0], R_body_cam)
     R_lc2 = R_lvl_cam(*reported[1], R_body_cam)
 
