@@ -6,7 +6,14 @@ import os
 import socket
 import time
 
+import matplotlib
 import pytest
+
+# matplotlib before any test loads GStreamer: with the distribution's PyGObject and GStreamer loaded
+# first, importing matplotlib's mathtext tables crashed the interpreter (SIGSEGV, pyenv's Python 3.11 with
+# Debian's gi), which ended the whole test run; in this order both load.
+matplotlib.use("Agg")
+import matplotlib.pyplot  # noqa: E402, F401
 
 
 def wait_for(done, timeout_s: float = 60.0) -> bool:
