@@ -338,6 +338,7 @@ class Daemon:
             self.stop_event.set()
             deadline = self._wall.now_s() + self.config.service.shutdown_drain_s
             self._join(threads[1:], deadline)
+            self._send_state_text(self.clock.now_s(), force=True)
             link_stop.set()  # after the worker: its last messages go out in the link's drain
             self._join(threads[:1], max(deadline, self._wall.now_s() + 0.1))
             self.source.close()
@@ -707,6 +708,20 @@ class Daemon:
             self.state = state
             self._pending_states.append((state, reason))
 
+    def _send_state_text(self, now: float, *, force: bool = False) -> None:
+        """The state changes not yet told, merged into one STATUSTEXT: at most one per
+        ``output.statustext_min_interval_s``, or now when ``force`` (at shutdown, so that the ground
+        station learns the last state even when it came within the interval)."""
+        with self._state_lock:
+            text = None
+            if self._pending_states and (
+                force or now - self._last_text_s >= self.config.output.statustext_min_interval_s
+            ):
+                text = messages.statustext_merged(self._pending_states)
+                self._pending_states, self._last_text_s = [], now
+        if text is not None:
+            self.link.send("STATUSTEXT", text)
+
     def _report(self, now: float) -> None:
         """From the supervisor: notice when estimates stop coming, send the pending STATUSTEXT (rate
         limited) and the health values."""
@@ -720,13 +735,7 @@ class Daemon:
                 StateReason.NO_ATTITUDE if skipped > self._skipped_at_last_report else StateReason.NO_FRAMES,
             )
         self._skipped_at_last_report = skipped
-        with self._state_lock:
-            text = None
-            if self._pending_states and now - self._last_text_s >= self.config.output.statustext_min_interval_s:
-                text = messages.statustext_merged(self._pending_states)
-                self._pending_states, self._last_text_s = [], now
-        if text is not None:
-            self.link.send("STATUSTEXT", text)
+        self._send_state_text(now)
         while self._pending_texts:  # from other threads (the recorder's): sent here, in order
             self.link.send("STATUSTEXT", self._pending_texts.popleft())
         if now >= self._next_health_s:
