@@ -7,16 +7,19 @@ the venv); where it is missing the tests say so and skip."""
 
 from __future__ import annotations
 
+import json
 import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from conftest import free_port, wait_for
 
 from mavvo.errors import CameraEnded, CameraError
 from mavvo.service.camera import open_source
@@ -27,7 +30,7 @@ from mavvo.service.timing import MonotonicClock
 pytestmark = pytest.mark.skipif(
     not gst_available(),
     reason="GStreamer's Python bindings are not importable: sudo apt-get install python3-gi python3-gst-1.0 "
-    "gir1.2-gst-plugins-base-1.0 gstreamer1.0-plugins-base gstreamer1.0-plugins-good; then make setup",
+    "gir1.2-gst-plugins-base-1.0 gstreamer1.0-plugins-base gstreamer1.0-plugins-good; then .venv/bin/python tools/link_system_gi.py",
 )
 
 CAPS = "video/x-raw,width=160,height=120,framerate=30/1"
@@ -53,31 +56,40 @@ def _read_all(src, limit: int = 500, timeout_s: float = 2.0) -> tuple[list, str 
 
 def test_a_live_pipeline_gives_grey_frames_stamped_on_the_monotonic_clock() -> None:
     t_before = time.monotonic()
-    src = open_source(CameraOptions(source=f"gst:{live(15)}", rate_hz=30.0), MonotonicClock())
+    # Room for every frame (no drops however slowly this test reads), and a backlog made on purpose:
+    # after the first frame the reader pauses for 9 frame periods, so grab times would bunch up while
+    # the capture times must not.
+    src = open_source(CameraOptions(source=f"gst:{live(15)}", rate_hz=30.0, queue_size=64), MonotonicClock())
     try:
+        first = src.read(2.0)
+        time.sleep(0.3)
         frames, ended = _read_all(src)
     finally:
         src.close()
     t_after = time.monotonic()
+    frames = [first, *frames]
     assert len(frames) == 15 and ended is not None and "end of stream after 15 frames" in ended
     assert all(f.image.shape == (120, 160) and f.image.dtype == np.uint8 for f in frames)
     assert [f.seq for f in frames] == list(range(15))
     stamps = np.array([f.t_exposure_s for f in frames])
     # On the host's monotonic clock: inside the run, never in the future of the moment it was read.
     assert t_before <= stamps[0] and stamps[-1] <= t_after
-    # From the buffers' PTS, not the grab time: a live source's frames stand 1/30 s apart, as produced.
-    np.testing.assert_allclose(np.diff(stamps), 1 / 30, atol=2e-3)
+    # From the buffers' PTS, not the grab time: 1/30 s apart as produced, also across the backlog. Each
+    # stamp is off by the gap between two back-to-back clock reads; 5 ms allows for a preempted one.
+    np.testing.assert_allclose(np.diff(stamps), 1 / 30, atol=5e-3)
 
 
 def test_a_grab_stamp_is_the_grab_time_minus_the_latency() -> None:
     clock = MonotonicClock()
     src = open_source(CameraOptions(source=f"gst:{live(5)}", timestamps="grab", latency_ms=40.0), clock)
     try:
+        assert src.read(2.0) is not None  # the pipeline runs
+        t_before = clock.now_s()
         f = src.read(2.0)
         t_after = clock.now_s()
     finally:
         src.close()
-    assert f is not None and 0.0 <= t_after - (f.t_exposure_s + 0.040) < 0.05
+    assert f is not None and t_before - 0.040 <= f.t_exposure_s <= t_after - 0.040
 
 
 def test_a_video_file_through_decodebin_plays_to_its_end(tmp_path: Path) -> None:
@@ -155,62 +167,58 @@ def test_mavvo_camera_lists_and_measures_a_gstreamer_test_source() -> None:
         timeout=60,
     )
     assert out.returncode == 0, out.stderr
-    import json
-
     m = json.loads(out.stdout)
-    assert m["frames"] >= 30 and m["width_px"] == 160 and m["height_px"] == 120 and m["dropped"] == 0
-    assert 25.0 < m["rate_hz"] < 35.0 and m["age_median_ms"] > 0
+    assert m["width_px"] == 160 and m["height_px"] == 120 and m["age_median_ms"] > 0
+    # The source makes 30 frames a second; a loaded machine may take fewer (the appsink keeps the newest
+    # two), and what it misses is counted as lost: delivered and lost together cover most of the 2 s.
+    assert m["frames"] >= 10 and m["frames"] + m["dropped"] >= 40 and m["rate_hz"] <= 31.0
     assert any("auto-exposure" in a for a in m["advice"])
 
 
 def test_mavvo_run_flies_on_a_gstreamer_camera_against_the_simulated_flight_controller(tmp_path: Path) -> None:
-    from conftest import free_port
-
+    """Runs until the service's own health line reports paired frames (an event, not a time window),
+    then stops it as systemd would and reads its final line."""
     port = free_port()
     cfg = tmp_path / "run.yaml"
     cfg.write_text(
         "camera: {source: 'gst:videotestsrc is-live=true pattern=ball ! video/x-raw,width=640,height=480,framerate=20/1', rate_hz: 20.0}\n"
         f"link: {{url: 'udpout:127.0.0.1:{port}'}}\nservice: {{state_file: ''}}\n"
     )
+    fc_cmd = ["--fc-only", "--scenario", "hover", "--mavlink", f"udpin:127.0.0.1:{port}", "--out", str(tmp_path / "fc")]
     fc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "mavvo",
-            "sim",
-            "--fc-only",
-            "--scenario",
-            "hover",
-            "--mavlink",
-            f"udpin:127.0.0.1:{port}",
-            "--out",
-            str(tmp_path / "fc"),
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
+        [sys.executable, "-m", "mavvo", "sim", *fc_cmd], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
     )
+    run = None
+    lines: list[str] = []
     try:
-        time.sleep(1.0)
         run = subprocess.Popen(
-            [sys.executable, "-m", "mavvo", "run", "--config", str(cfg)],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
+            [sys.executable, "-m", "mavvo", "run", "--config", str(cfg)], stderr=subprocess.PIPE, text=True
         )
-        try:
-            time.sleep(8.0)
-        finally:
-            run.send_signal(signal.SIGTERM)
-            _, run_err = run.communicate(timeout=60)
-        fc.send_signal(signal.SIGTERM)
-        fc.communicate(timeout=120)
+        reader = threading.Thread(target=lambda: lines.extend(run.stderr), daemon=True)
+        reader.start()
+
+        def paired_in_health() -> bool:
+            return any(
+                int(m.group(1)) >= 20
+                for m in map(re.compile(r"health: state \w+;.* paired (\d+)").search, list(lines))
+                if m
+            )
+
+        assert wait_for(paired_in_health, timeout_s=120.0), "".join(lines)
+        run.send_signal(signal.SIGTERM)
+        assert run.wait(timeout=60) == 0, "".join(lines)
+        reader.join(timeout=10)
     finally:
-        if fc.poll() is None:
-            fc.kill()
-    assert run.returncode == 0, run_err
-    final = re.search(r"final: state \w+.*?frames (\d+), paired (\d+)", run_err)
-    assert final is not None, run_err
+        for p in (run, fc):
+            if p is not None and p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+                try:
+                    p.wait(timeout=60)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+    log = "".join(lines)
+    final = re.search(r"final: state \w+.*?frames (\d+), paired (\d+)", log)
+    assert final is not None, log
     # Frames came from the pipeline and were paired with the flight controller's attitude at their stamps.
-    assert int(final.group(1)) > 40 and int(final.group(2)) > 20, final.group(0)
-    assert "camera gst:videotestsrc" in run_err and "Traceback" not in run_err
+    assert int(final.group(1)) >= int(final.group(2)) >= 20, final.group(0)
+    assert "camera gst:videotestsrc" in log and "Traceback" not in log

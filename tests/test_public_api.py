@@ -8,6 +8,8 @@ import importlib
 import numpy as np
 import pytest
 
+from mavvo.sim.world.twoview import make_scene
+
 
 def test_entry_points_import_from_their_packages() -> None:
     from mavvo.estimation import RelposeOptions, estimate_relpose_known_gravity, estimate_upright_relpose
@@ -28,20 +30,11 @@ def test_old_names_are_gone(old: str) -> None:
         importlib.import_module(old)
 
 
-def _bearings(seed: int, n: int = 60) -> tuple[np.ndarray, np.ndarray]:
-    """Points 2-6 m below a camera that moved 0.3 m sideways and turned 10 deg about the vertical."""
-    rng = np.random.default_rng(seed)
-    X1 = np.column_stack([rng.uniform(-3, 3, n), rng.uniform(-3, 3, n), rng.uniform(2, 6, n)])
-    yaw = np.radians(10.0)
-    R = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
-    X2 = X1 @ R.T + np.array([0.3, 0.0, 0.0])
-    return X1 / np.linalg.norm(X1, axis=1)[:, None], X2 / np.linalg.norm(X2, axis=1)[:, None]
-
-
 def test_the_old_confidence_keyword_is_taken_with_a_warning_naming_its_replacement() -> None:
     from mavvo.estimation import RelposeOptions, estimate_upright_relpose
 
-    f1, f2 = _bearings(5)
+    scene = make_scene(np.random.default_rng(5), 60, motion="sideways")
+    f1, f2 = scene.f1_lvl, scene.f2_lvl
     with pytest.warns(DeprecationWarning, match=r"options=RelposeOptions\(confidence=\.\.\.\)"):
         old = estimate_upright_relpose(f1, f2, max_err_rad=1e-3, confidence=0.999)
     new = estimate_upright_relpose(f1, f2, max_err_rad=1e-3, options=RelposeOptions(confidence=0.999))

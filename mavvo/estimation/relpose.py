@@ -456,9 +456,7 @@ def estimate_upright_relpose(
             DeprecationWarning,
             stacklevel=2,
         )
-        if not 0 < confidence < 1:
-            raise ValueError(f"confidence: expected a probability in (0, 1), got {confidence}")
-        opt = dataclasses.replace(opt, confidence=confidence)
+        opt = dataclasses.replace(opt, confidence=confidence)  # checked where the option is declared
     f1, f2 = as_bearing_pair(f1_lvl, f2_lvl, names=("f1_lvl", "f2_lvl"))
     if not (np.isfinite(max_err_rad) and max_err_rad > 0):
         raise ValueError(f"max_err_rad: expected a positive angle, got {max_err_rad}")

@@ -15,6 +15,7 @@ registers ``sim:SCENARIO``, the simulator's rendered camera). Devices are reopen
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import queue
@@ -462,14 +463,14 @@ def open_source(
             ("exposure_us", "gain", "readout_ms"),
             "a gst: source takes its controls in the pipeline description (e.g. v4l2src extra-controls=...)",
         )
-        device = lambda: GstSource(arg, options, clock)  # noqa: E731
+        device = functools.partial(GstSource, arg, options, clock)
     elif sep and scheme == "picamera2":
         from mavvo.service.camera_picamera2 import Picamera2Source
 
-        device = lambda: Picamera2Source(arg, options, clock)  # noqa: E731
+        device = functools.partial(Picamera2Source, arg, options, clock)
     elif spec.startswith("/dev/video"):
         _refuse_controls(options, ("readout_ms",), "a V4L2 frame is stamped as the driver stamps it")
-        device = lambda: V4L2Source(spec, options, clock)  # noqa: E731
+        device = functools.partial(V4L2Source, spec, options, clock)
     if device is not None:
         return ReconnectingSource(
             device, clock, reconnect_max_s=options.reconnect_max_s, lost_after_s=options.lost_after_s, name=spec

@@ -46,20 +46,21 @@ _MAX_AGE_S = 1.0
 _NS = 1e-9
 
 
-def import_gst() -> tuple[Any, Any]:
-    """The ``Gst`` module, initialised, and ``GLib`` (for its error type); CameraError saying what to
-    install when they cannot be imported."""
+def import_gst() -> tuple[Any, Any, Any]:
+    """The ``Gst`` module, initialised, ``GLib`` (for its error type) and ``GstVideo`` (plane layouts);
+    CameraError saying what to install when they cannot be imported."""
     try:
         import gi
 
         gi.require_version("Gst", "1.0")
         gi.require_version("GstApp", "1.0")
-        from gi.repository import GLib, Gst, GstApp  # noqa: F401  (GstApp registers the appsink's methods)
+        gi.require_version("GstVideo", "1.0")
+        from gi.repository import GLib, Gst, GstApp, GstVideo  # noqa: F401  (GstApp registers the appsink's methods)
     except (ImportError, ValueError) as e:
         raise CameraError(f"{INSTALL_HINT} ({type(e).__name__}: {e})") from None
     if not Gst.is_initialized():
         Gst.init(None)
-    return Gst, GLib
+    return Gst, GLib, GstVideo
 
 
 def gst_available() -> bool:
@@ -79,31 +80,38 @@ def sink_description(pipeline: str) -> str:
     return text if "appsink" in text else f"{text} ! {_GREY_TAIL}"
 
 
-def _grey_from_sample(Gst: Any, sample: Any, name: str) -> np.ndarray:
-    """(H, W) uint8 from a GRAY8 sample, or the luma plane of an I420/NV12 one (the first H rows)."""
-    caps = sample.get_caps().get_structure(0)
-    fmt = caps.get_value("format")
-    ok_w, width = caps.get_int("width")
-    ok_h, height = caps.get_int("height")
-    if not (ok_w and ok_h) or fmt not in ("GRAY8", "I420", "NV12", "YV12", "NV21"):
+def _grey_from_sample(Gst: Any, GstVideo: Any, sample: Any, name: str) -> np.ndarray:
+    """(H, W) uint8 from a GRAY8 sample, or the luma plane of an I420/NV12 one. The plane's offset and
+    row stride come from the buffer's video meta where the element set one (hardware buffers), else
+    from the caps' default layout (rows padded to 4 bytes)."""
+    caps = sample.get_caps()
+    info = GstVideo.VideoInfo.new_from_caps(caps)
+    fmt = info.finfo.format if info is not None else None
+    grey_first = (
+        GstVideo.VideoFormat.GRAY8,
+        GstVideo.VideoFormat.I420,
+        GstVideo.VideoFormat.YV12,
+        GstVideo.VideoFormat.NV12,
+        GstVideo.VideoFormat.NV21,
+    )
+    if fmt not in grey_first:
         raise CameraError(
             f"camera.source {name}: the appsink gets {caps.to_string()}; expected video/x-raw with format GRAY8 (or I420/NV12)"
         )
     buf = sample.get_buffer()
-    ok, info = buf.map(Gst.MapFlags.READ)
+    meta = GstVideo.buffer_get_video_meta(buf)
+    offset, stride = (meta.offset[0], meta.stride[0]) if meta is not None else (info.offset[0], info.stride[0])
+    width, height = info.width, info.height
+    ok, mapped = buf.map(Gst.MapFlags.READ)
     if not ok:
         raise CameraError(f"camera.source {name}: cannot map a buffer")
     try:
-        data = np.frombuffer(info.data, dtype=np.uint8)
-        # Rows are padded to 4 bytes in GStreamer's default video layout.
-        stride = (width + 3) & ~3
-        if data.size < stride * (height - 1) + width:
-            raise CameraError(
-                f"camera.source {name}: a {width}x{height} {fmt} buffer of {data.size} bytes is too short"
-            )
-        return np.lib.stride_tricks.as_strided(data, (height, width), (stride, 1)).copy()
+        data = np.frombuffer(mapped.data, dtype=np.uint8)
+        if data.size < offset + stride * (height - 1) + width:
+            raise CameraError(f"camera.source {name}: a {width}x{height} buffer of {data.size} bytes is too short")
+        return np.lib.stride_tricks.as_strided(data[offset:], (height, width), (stride, 1)).copy()
     finally:
-        buf.unmap(info)
+        buf.unmap(mapped)
 
 
 class GstSource:
@@ -112,7 +120,7 @@ class GstSource:
     def __init__(self, pipeline: str, options: CameraOptions, clock: Clock) -> None:
         self.options, self.clock = options, clock
         self.name = f"gst:{pipeline}"
-        Gst, GLib = import_gst()
+        Gst, GLib, self._GstVideo = import_gst()
         self._Gst = Gst
         description = sink_description(pipeline)
         try:
@@ -169,9 +177,7 @@ class GstSource:
         the end of the stream, CameraError when the pipeline failed."""
         if self._closed:
             raise CameraError(f"camera.source {self.name}: read after close")
-        Gst = self._Gst
         sample = self._sink.try_pull_sample(int(max(timeout_s, 0.0) / _NS))
-        t_grab = self.clock.now_s()
         if sample is None:
             reason = self._bus_error()
             if reason is not None:
@@ -179,22 +185,22 @@ class GstSource:
             if self._sink.is_eos():
                 raise CameraEnded(f"camera.source {self.name}: end of stream after {self._seq} frames")
             return None
-        image = _grey_from_sample(Gst, sample, self.name)
-        buf = sample.get_buffer()
-        frame = Frame(image, self._exposure_time_s(buf.pts, t_grab), self._seq)
+        image = _grey_from_sample(self._Gst, self._GstVideo, sample, self.name)
+        frame = Frame(image, self._exposure_time_s(sample.get_buffer().pts), self._seq)
         self._seq += 1
         return frame
 
-    def _exposure_time_s(self, pts: int, t_grab_s: float) -> float:
+    def _exposure_time_s(self, pts: int) -> float:
         """The capture time on the host clock: PTS + base time, carried over by its age on the pipeline
         clock; grab time minus latency where there is no usable PTS (or the config says grab)."""
-        fallback = t_grab_s - self.options.latency_ms * 1e-3
-        if self.options.timestamps == "grab" or pts == self._Gst.CLOCK_TIME_NONE:
-            return fallback
         clock = self._pipeline.get_clock()
-        if clock is None:
+        # Both clocks read back to back: the age carried over is off by no more than the gap between them.
+        t_grab_s = self.clock.now_s()
+        t_pipeline_ns = clock.get_time() if clock is not None else None
+        fallback = t_grab_s - self.options.latency_ms * 1e-3
+        if self.options.timestamps == "grab" or pts == self._Gst.CLOCK_TIME_NONE or t_pipeline_ns is None:
             return fallback
-        age_s = (clock.get_time() - (self._pipeline.get_base_time() + pts)) * _NS
+        age_s = (t_pipeline_ns - (self._pipeline.get_base_time() + pts)) * _NS
         if self.options.timestamps == "auto" and not 0.0 <= age_s < _MAX_AGE_S:
             return fallback
         return t_grab_s - age_s

@@ -111,7 +111,7 @@ class Picamera2Source:
             raise CameraError(f"camera.source {self.name}: read after close")
         try:
             request = self._cam.capture_request()
-        except (RuntimeError, OSError, TimeoutError) as e:
+        except (RuntimeError, OSError) as e:  # a timeout is an OSError
             raise CameraError(f"camera.source {self.name}: no frame: {e}") from None
         t_grab = self.clock.now_s()
         try:

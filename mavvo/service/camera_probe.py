@@ -41,7 +41,7 @@ class CameraMeasurement:
     width_px: int
     height_px: int
     rate_hz: float  # frames over the span of their stamps
-    dropped: int  # gaps in the source's sequence numbers
+    dropped: int  # frames lost before mavvo: gaps in the sequence numbers or in the stamps
     age_median_ms: float  # grab time minus the frame's stamp
     age_spread_ms: float  # 5th to 95th percentile of that age
     brightness_min: float  # mean grey level of the darkest and brightest frame, 0-255
@@ -81,7 +81,7 @@ def list_cameras() -> list[CameraListing]:
     except CameraError:
         out.append(CameraListing("picamera2:INDEX", "libcamera", f"not available: {PICAMERA2_HINT}"))
     try:
-        Gst, _ = import_gst()
+        Gst, _, _ = import_gst()
         out.append(
             CameraListing(
                 "gst:PIPELINE", "gstreamer", f"{Gst.version_string()}: any pipeline, e.g. gst:videotestsrc is-live=true"
@@ -95,6 +95,22 @@ def list_cameras() -> list[CameraListing]:
 def _percentile(xs: list[float], q: float) -> float:
     s = sorted(xs)
     return s[min(len(s) - 1, max(0, round(q * (len(s) - 1))))]
+
+
+def _seq_gaps(seqs: list[int]) -> int:
+    """Frames missing from the source's sequence numbers."""
+    return sum(max(0, b - a - 1) for a, b in zip(seqs, seqs[1:]))
+
+
+def _stamp_gaps(stamps: list[float]) -> int:
+    """Frames missing from the stamps: a gap of k median periods (k >= 2, rounded) lost k - 1 frames.
+    Sources that number their own deliveries (GStreamer's appsink dropping the oldest, a V4L2 read
+    that skips) show their losses here only."""
+    if len(stamps) < 3:
+        return 0
+    gaps = [b - a for a, b in zip(stamps, stamps[1:])]
+    period = statistics.median(gaps)
+    return sum(round(g / period) - 1 for g in gaps if g > 1.5 * period) if period > 0 else 0
 
 
 def measure(source: FrameSource, clock: Clock, seconds: float, name: str) -> CameraMeasurement:
@@ -122,7 +138,7 @@ def measure(source: FrameSource, clock: Clock, seconds: float, name: str) -> Cam
         shape = frame.image.shape[:2]
     n = len(stamps)
     span = stamps[-1] - stamps[0] if n >= 2 else 0.0
-    dropped = sum(max(0, b - a - 1) for a, b in zip(seqs, seqs[1:]))
+    dropped = max(_seq_gaps(seqs), _stamp_gaps(stamps))
     nan = float("nan")
     return CameraMeasurement(
         source=name,
@@ -150,7 +166,9 @@ def advice(m: CameraMeasurement, options: CameraOptions) -> list[str]:
             f"frame rate {m.rate_hz:.1f} Hz is below camera.rate_hz {options.rate_hz:g}: lower camera.rate_hz, or the exposure time or resolution"
         )
     if m.dropped:
-        out.append(f"{m.dropped} frames lost before mavvo (gaps in the sequence): a slow consumer or a busy bus")
+        out.append(
+            f"{m.dropped} frames lost before mavvo (gaps in the sequence or the stamps): a slow consumer or a busy bus"
+        )
     if (m.width_px, m.height_px) != (options.width_px, options.height_px):
         out.append(
             f"frames are {m.width_px}x{m.height_px} px but camera.width_px x height_px is {options.width_px}x{options.height_px}: the intrinsics must be of the delivered size"
