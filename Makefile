@@ -27,7 +27,7 @@ moved-venv:
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test,bench]'
+	$(BIN)/python -m pip install --quiet -e '.[test]'
 	@# The distribution's PyGObject, for the gst: camera (says what to install where it is missing).
 	$(BIN)/python tools/link_system_gi.py
 	$(BIN)/python -m mavvo.estimation.warmup

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from typing import Sequence
 
@@ -56,6 +57,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"mavvo: {_one_line(e)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:  # Ctrl-C before the service installed its handler
+        return 0
+    except BrokenPipeError:  # the reader went away (`mavvo sim --list | head -1`): nothing to tell it
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # so that the interpreter's own flush at exit is silent too
         return 0
     except Exception as e:  # a bug: one line for the operator, the traceback for the developer
         log.debug("unexpected error", exc_info=True)

@@ -205,3 +205,14 @@ def test_two_terminal_simulation_flies_the_flight_controllers_flight(tmp_path):
 def test_two_terminal_simulation_warns_when_the_scenarios_differ(tmp_path):
     _, run_err = _two_terminals(tmp_path, "figure_eight", "hover", 12.0)
     assert "is it flying another scenario? (mavvo sim --fc-only --scenario hover)" in run_err, run_err
+
+
+def test_a_reader_that_goes_away_is_no_error():
+    """`mavvo sim --list | head -1`: the pipe closes before mavvo writes; it ends quietly with 0, not
+    with "unexpected BrokenPipeError"."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mavvo", "sim", "--list"], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
+    proc.stdout.close()  # before the interpreter has even started: every write meets a closed pipe
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == 0 and err == "", err

@@ -223,3 +223,43 @@ def test_only_mavvo_is_installed() -> None:
     packages = find_packages(where=str(ROOT), include=patterns)
     assert "mavvo" in packages and "mavvo.sim.scenarios" in packages and "mavvo.offline" in packages
     assert [p for p in packages if p.split(".")[0] != "mavvo"] == []
+
+
+# What an import of the package needs from outside, by import name -> the distribution pyproject.toml
+# must list. PyGObject (gi) and Picamera2 come from the distribution and are imported only by the camera
+# source that needs them, which says what to install when they are missing.
+DISTRIBUTION_OF = {
+    "numpy": "numpy",
+    "cv2": "opencv-python-headless",
+    "pymavlink": "pymavlink",
+    "serial": "pyserial",
+    "yaml": "pyyaml",
+    "pyulog": "pyulog",
+    "numba": "numba",
+    "scipy": "scipy",
+    "matplotlib": "matplotlib",
+}
+FROM_THE_SYSTEM = {"gi", "picamera2"}
+
+
+def test_every_outside_import_of_the_package_is_a_declared_dependency() -> None:
+    """An installed copy (no test or bench extras) runs every command: each library the package imports
+    is in [project].dependencies (matplotlib was only in an extra, and `mavvo sim` ended in an error)."""
+    import re
+    import sys
+
+    text = (ROOT / "pyproject.toml").read_text(encoding="utf-8")
+    block = re.search(r"^dependencies = \[(.*?)^\]", text, re.M | re.S)
+    assert block is not None, "pyproject.toml: [project] dependencies not found"
+    declared = set(re.findall(r'^\s*"([A-Za-z0-9_.-]+)', block.group(1), re.M))
+    outside = set()
+    for name, path in all_modules().items():
+        if not name.startswith("mavvo"):
+            continue
+        for e in imports_of(path.read_text(encoding="utf-8"), name, path.name == "__init__.py"):
+            top = e.imported.split(".")[0]
+            if top and top != "mavvo" and top not in sys.stdlib_module_names and top not in FROM_THE_SYSTEM:
+                outside.add(top)
+    unknown = sorted(outside - DISTRIBUTION_OF.keys())
+    assert unknown == [], f"imported by mavvo, not in DISTRIBUTION_OF: {unknown}"
+    assert sorted(m for m in outside if DISTRIBUTION_OF[m] not in declared) == []
