@@ -104,6 +104,8 @@ class PairedFrame:
             one fell on the exposure).
         interpolation_sigma_rad: roll/pitch error the interpolation may add, 1 sigma, radians; above
             the flight controller's own (``odometry.attitude_sigma_deg``) the estimate is degraded.
+        fc_armed: whether the flight controller said it was armed at the exposure (its HEARTBEAT), None
+            when not heard: its yaw is a clean compass's only while disarmed (motors off).
     """
 
     image: np.ndarray
@@ -117,6 +119,7 @@ class PairedFrame:
     fc_position_ned_m: np.ndarray | None = None
     attitude_gap_s: float = 0.0
     interpolation_sigma_rad: float = 0.0
+    fc_armed: bool | None = None
 
 
 @dataclass(frozen=True)

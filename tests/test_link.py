@@ -52,6 +52,12 @@ class Recorder:
     def on_reboot(self):
         self.reboots += 1
 
+    def on_armed(self, armed, t_arrival_host_s=None):
+        self.armed = armed
+
+    def wants_timesync(self):
+        return False
+
 
 class Running:
     """A real-time simulated flight controller on a UDP port and a Link to it, each in a thread."""

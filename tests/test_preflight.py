@@ -64,6 +64,20 @@ def test_checks_name_what_is_wrong_and_what_to_set():
     assert by_name["EK3_SRC1_POSXY"].set_to == 6 and by_name["EKF origin"].verdict is Verdict.BLOCK
     assert by_name["VISO_DELAY_MS"].verdict is Verdict.WARN and by_name["VISO_DELAY_MS"].set_to == 45
     assert by_name["VISO_POS_X"].set_to == pytest.approx(0.1) and by_name["VISO_POS_Y"].verdict is Verdict.OK
+    # No GPS: GPS sources for velocity or yaw block (before: warnings, and --fix left them).
+    gps = {**ready, "EK3_SRC1_VELXY": 3, "EK3_SRC1_YAW": 2}
+    no_gps = {c.name: c for c in checks("ardupilot", gps, cfg)}
+    assert no_gps["EK3_SRC1_VELXY"].verdict is Verdict.BLOCK and no_gps["EK3_SRC1_VELXY"].set_to == 6
+    assert no_gps["EK3_SRC1_YAW"].verdict is Verdict.BLOCK and no_gps["EK3_SRC1_YAW"].set_to == 1
+    with_gps = {c.name: c for c in checks("ardupilot", {**gps, "GPS1_TYPE": 1}, cfg)}
+    assert with_gps["EK3_SRC1_VELXY"].verdict is with_gps["EK3_SRC1_YAW"].verdict is Verdict.WARN
+    before_4_6 = {k: v for k, v in gps.items() if k != "GPS1_TYPE"} | {"GPS_TYPE": 0}
+    old_name = {c.name: c for c in checks("ardupilot", before_4_6, cfg)}
+    assert old_name["EK3_SRC1_YAW"].verdict is Verdict.BLOCK  # GPS_TYPE before ArduPilot 4.6
+    # The heading policy decides the yaw source --fix sets: mavvo's own heading wants the EKF on it.
+    own = replace(cfg, odometry=replace(cfg.odometry, heading_source="vision"))
+    by_policy = {c.name: c for c in checks("ardupilot", ready, own)}["EK3_SRC1_YAW"]
+    assert by_policy.verdict is Verdict.WARN and by_policy.set_to == 6
     ekf = {c.name: c for c in checks("ardupilot", ready, cfg, ekf_flags=0x1 | 0x80)}["EKF status"]
     assert ekf.verdict is Verdict.WARN and "no horizontal position" in ekf.advice
     px4 = {c.name: c for c in checks("px4", {**VISION_READY_PARAMS["px4"], "EKF2_EV_CTRL": 2}, cfg)}
@@ -73,18 +87,21 @@ def test_checks_name_what_is_wrong_and_what_to_set():
 
 
 def test_preflight_names_each_wrong_parameter_and_fix_makes_it_pass(fc_only, capsys):
-    fc = fc_only(armed=False, params=(("VISO_TYPE", 0.0), ("EK3_SRC1_POSXY", 3.0), ("VISO_POS_Z", 0.2)))
+    fc = fc_only(
+        armed=False,
+        params=(("VISO_TYPE", 0.0), ("EK3_SRC1_POSXY", 3.0), ("VISO_POS_Z", 0.2), ("EK3_SRC1_YAW", 3.0)),
+    )
     url = f"udpout:127.0.0.1:{fc.port}"
     assert main(["preflight", "--mavlink", url, "--latency-ms", "30"]) == 1
     out = capsys.readouterr().out
     assert "flight controller: ardupilot" in out
     assert any(line.startswith("EKF status") and " ok " in line for line in out.splitlines()), out
-    for name in ("VISO_TYPE", "EK3_SRC1_POSXY", "VISO_POS_Z"):
+    for name in ("VISO_TYPE", "EK3_SRC1_POSXY", "VISO_POS_Z", "EK3_SRC1_YAW"):
         assert any(line.startswith(name) and ("BLOCK" in line or "WARN" in line) for line in out.splitlines()), (
             name,
             out,
         )
-    assert "would set: VISO_TYPE = 1, EK3_SRC1_POSXY = 6, VISO_POS_Z = 0" in out
+    assert "would set: VISO_TYPE = 1, EK3_SRC1_POSXY = 6, EK3_SRC1_YAW = 1, VISO_POS_Z = 0" in out
     assert main(["preflight", "--mavlink", url, "--latency-ms", "30", "--fix"]) == 0
     out = capsys.readouterr().out
     assert "set VISO_TYPE = 1: confirmed" in out and "reboots" in out
@@ -92,6 +109,7 @@ def test_preflight_names_each_wrong_parameter_and_fix_makes_it_pass(fc_only, cap
         fc.sim.fc.params["VISO_TYPE"] == 1
         and fc.sim.fc.params["EK3_SRC1_POSXY"] == 6
         and fc.sim.fc.params["VISO_POS_Z"] == 0
+        and fc.sim.fc.params["EK3_SRC1_YAW"] == 1
     )
     assert main(["preflight", "--mavlink", url, "--latency-ms", "30"]) == 0
 

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from mavvo.geometry.frames import R_from_euler321, euler321_from_R
-from mavvo.service.timing import ClockSync, FlightControllerState, TimingOptions, wait_for_pairing
+from mavvo.service.clock_sync import ClockSync, Evidence
+from mavvo.service.timing import FlightControllerState, TimingOptions, wait_for_pairing
 
 OFFSET_S = 30.0  # boot clock minus host clock
 
@@ -259,10 +260,11 @@ def test_a_forged_timesync_answer_does_not_move_the_offset():
     sync = ClockSync(window_s=30.0)
     for t in np.arange(0.0, 2.0, 0.01):
         sync.add_arrival(t + OFFSET_S, t + 0.004)
-    assert sync.add_timesync(1.0, 1.0005 + OFFSET_S, 1.001)  # genuine: 1 ms round trip
+    assert sync.add_timesync(1.0, 1.0005 + OFFSET_S, 1.001) is Evidence.USED  # genuine: 1 ms round trip
     before = sync.offset_s()
-    assert not sync.add_timesync(1.5, 1.5 + OFFSET_S + 0.8, 1.5001)  # forged: 0.1 ms "round trip", 0.8 s off
-    assert not sync.add_timesync(1.6, 1.6 + OFFSET_S - 0.5, 1.6001)  # forged the other way
+    forged_ahead = sync.add_timesync(1.5, 1.5 + OFFSET_S + 0.8, 1.5001)  # 0.1 ms "round trip", 0.8 s off
+    forged_behind = sync.add_timesync(1.6, 1.6 + OFFSET_S - 0.5, 1.6001)  # the other way
+    assert forged_ahead is forged_behind is Evidence.REFUSED
     assert sync.offset_s() == before and sync.round_trip_s() == pytest.approx(0.001)
 
 
@@ -295,3 +297,129 @@ def test_a_frame_paired_late_takes_the_rangefinder_and_height_nearest_its_exposu
     assert state.pair(0.42).range_m == pytest.approx(3.45)
     state.on_range(int(round((0.46 + OFFSET_S) * 1000)), None)  # out of range now
     assert state.pair(0.47).range_m is None and state.pair(0.36).range_m == pytest.approx(3.3)
+
+
+# ---------------------------------------------------------------- a clock that follows the autopilot
+
+
+def _fly_clock(
+    state: FlightControllerState,
+    duration_s: float,
+    fc_clock,
+    *,
+    latency_s=lambda t: 0.004,
+    timesync: str | None = "px4",
+    rng: np.random.Generator | None = None,
+    step_s: float = 0.01,
+    paused: tuple[float, float] | None = None,
+):
+    """ATTITUDE at 100 Hz measured at host time t and stamped ``fc_clock(t)``, arriving ``latency_s(t)``
+    later (with up to 2 ms of jitter), and a TIMESYNC request each second answered as ``timesync`` does
+    ("px4": stamped when handled, "ardupilot": the request's arrival estimated 5-12 ms early as its
+    UART's receive-time estimate does; None: not answered). While ``paused`` (host start, end) the
+    autopilot does nothing: no samples, and a request waits for the end. Returns, per TIMESYNC answer,
+    whether it was accepted."""
+    rng = rng or np.random.default_rng(0)
+    events = []
+    for t in np.arange(0.0, duration_s, step_s):
+        if paused is not None and paused[0] <= t < paused[1]:
+            continue
+        arrive = t + latency_s(t) + rng.uniform(0, 0.002)
+        events.append((arrive, "att", int(math.floor(fc_clock(t) * 1000)), 0.1 * math.sin(t)))
+    if timesync is not None:
+        for sent in np.arange(0.3, duration_s, 1.0):
+            handled = sent + 0.001 + latency_s(sent)
+            if paused is not None and paused[0] <= handled < paused[1]:
+                handled = paused[1]
+            early = rng.uniform(0.005, 0.012) if timesync == "ardupilot" else 0.0
+            events.append((handled + latency_s(handled) + 0.001, "sync", sent, fc_clock(handled) - early))
+    evidence = []
+    for arrive, kind, a, b in sorted(events):
+        state.clock.t = arrive
+        if kind == "att":
+            state.on_attitude(a, b, 0.0, 0.0)
+        else:
+            before = state.counters["timesync_implausible"]
+            state.on_timesync(a, b)
+            evidence.append(state.counters["timesync_implausible"] == before)
+    return evidence
+
+
+@pytest.mark.parametrize("flavour", ["ardupilot", "px4"])
+def test_genuine_timesync_answers_of_ardupilot_and_px4_are_accepted(flavour):
+    """ArduPilot stamps a TIMESYNC answer with its estimate of when the request's first byte arrived,
+    5-12 ms early on a software autopilot; before, 125 of 130 such answers were refused."""
+    state = FlightControllerState(FakeClock())
+    accepted = _fly_clock(state, 60.0, lambda t: t + OFFSET_S, timesync=flavour)
+    assert len(accepted) == 60 and np.mean(accepted) >= 0.95
+    assert state.clock_offset_s() == pytest.approx(OFFSET_S, abs=0.005)
+
+
+def _paired_roll_error(state: FlightControllerState, t_host: float) -> float:
+    p = state.pair(t_host)
+    assert p.status == "paired", (t_host, p.status)
+    return abs(p.roll_rad - 0.1 * math.sin(t_host))
+
+
+@pytest.mark.parametrize("timesync", ["ardupilot", "px4", None])
+def test_a_clock_that_falls_behind_is_followed_within_a_second_or_two(timesync):
+    """The autopilot's process stops for 0.9 s and its clock stands still meanwhile: from then on it is
+    0.9 s behind. Before, the offset stayed on the old value for the whole window (30 s): every frame
+    was skipped as stale, for good. Now a TIMESYNC answer that rules the old offset out confirms the
+    step at once; without TIMESYNC the arrivals do after clock_step_confirm_s."""
+    clock = FakeClock()
+    state = FlightControllerState(clock)
+    pause = (20.0, 20.9)
+
+    def fc_clock(t):
+        return t + OFFSET_S - (min(max(t - pause[0], 0.0), pause[1] - pause[0]))
+
+    _fly_clock(state, 25.0, fc_clock, timesync=timesync, paused=pause)
+    steps = state.take_clock_steps()
+    assert len(steps) == 1 and steps[0].step_s == pytest.approx(-0.9, abs=0.01)
+    assert steps[0].t_host_s < pause[1] + (1.3 if timesync else 1.1)  # re-synchronised within about a second
+    assert steps[0].evidence == ("timesync" if timesync else "arrivals")
+    assert state.take_clock_steps() == []  # told once
+    assert state.clock_offset_s() == pytest.approx(OFFSET_S - 0.9, abs=0.005)
+    # Frames after the step pair with the attitude of their own moment (roll 0.1 sin(t): 1 ms is 1e-4 rad).
+    assert max(_paired_roll_error(state, t) for t in np.arange(23.2, 24.9, 0.037)) < 5e-4
+
+
+def test_a_frame_from_the_pause_is_not_paired_with_the_attitude_from_before_it():
+    """Mapped with the new offset, an exposure inside the pause lands on samples measured before it,
+    0.9 s earlier: those are dropped with the step."""
+    state = FlightControllerState(FakeClock())
+    _fly_clock(state, 22.0, lambda t: t + OFFSET_S - min(max(t - 20.0, 0.0), 0.9), paused=(20.0, 20.9))
+    assert state.counters["clock_steps"] == 1
+    assert [state.pair(t).status for t in (20.3, 20.6, 20.85)] == ["stale"] * 3
+    assert state.pair(21.5).status == "paired"
+
+
+def test_a_slower_link_is_not_taken_for_a_clock_step():
+    """For 4 s every message takes 80 ms longer: arrivals alone look just like the clock falling 80 ms
+    behind, but the TIMESYNC round trips grow with the link's delay, so none rules the old offset out,
+    and frames still pair with the attitude of their own moment."""
+    state = FlightControllerState(FakeClock())
+    _fly_clock(state, 24.0, lambda t: t + OFFSET_S, latency_s=lambda t: 0.084 if 20.0 <= t < 24.0 else 0.004)
+    assert state.counters["clock_steps"] == 0 and state.take_clock_steps() == []
+    assert state.clock_offset_s() == pytest.approx(OFFSET_S, abs=0.005)  # TIMESYNC: the truth, within a few ms
+    assert max(_paired_roll_error(state, t) for t in np.arange(22.5, 23.8, 0.037)) < 5e-4
+
+
+def test_the_offset_follows_a_clock_that_runs_slow():
+    """A software autopilot under load loses time steadily (here 400 ppm). Before, the window's maximum
+    lagged the truth by the drift over the window (12 ms over 30 s); the fitted rate follows it."""
+    state = FlightControllerState(FakeClock())
+    _fly_clock(state, 140.0, lambda t: OFFSET_S + t * (1 - 400e-6), timesync="ardupilot")
+    truth = OFFSET_S - 400e-6 * state.clock.t
+    assert state.clock_offset_s() == pytest.approx(truth - 0.004, abs=0.002)
+
+
+def test_old_timesync_answers_leave_the_window_by_age():
+    """An accepted answer used to stay until a newer one was accepted: one from before a step held the
+    offset there for good."""
+    sync = ClockSync(window_s=5.0)
+    assert sync.add_timesync(0.0, OFFSET_S + 0.0005, 0.001) is Evidence.USED
+    for t in np.arange(0.01, 10.0, 0.01):
+        sync.add_arrival(t + OFFSET_S - 0.2, t + 0.004)  # the arrivals' bound, 0.2 s lower
+    assert sync.round_trip_s() is None and sync.offset_s() == pytest.approx(OFFSET_S - 0.204, abs=1e-6)

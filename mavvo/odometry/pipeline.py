@@ -16,9 +16,13 @@ that baseline, unless it is degraded for another reason than a scale that is not
 World frame: the flight controller's local NED frame, so that what is sent needs no alignment. The
 first keyframe is placed where the flight controller believes the vehicle is
 (``PairedFrame.fc_position_ned_m``; the origin when it says nothing) with its yaw (0 when it sends
-none); afterwards vision carries position and heading in the short term and the heading is pulled
-toward the flight controller's yaw with the time constant ``heading_correction_time_s`` (vision's yaw
-drifts; a compass or an EKF's yaw does not).
+none); afterwards vision carries position and heading. Vision's yaw drifts slowly; a compass's does not
+but is disturbed in flight (the motors' current, the EKF's in-flight yaw alignment), and then vision's is
+the better of the two. So the heading is pulled toward the flight controller's yaw (time constant
+``heading_correction_time_s``) only when ``heading_source`` says that yaw is clean: by default while
+the flight controller is disarmed, which takes north on the ground before take-off, and in flight only
+while its yaw agrees with vision's within ``heading_gate_deg`` (a compass the motors turn by degrees
+is left alone; an undisturbed one keeps vision's slow drift in check).
 
 States: ``initialising`` (a keyframe was just made: the pose is the anchor), ``tracking``,
 ``degraded`` (a pose, trusted less: pure rotation, no metric scale source, few inliers; quality at most
@@ -46,6 +50,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
@@ -116,9 +121,19 @@ class OdometryOptions:
     attitude_sigma_deg: float = bounded(0.2, "roll/pitch uncertainty reported in the covariance", gt=0, le=90)
     heading_correction_time_s: float = bounded(
         10.0,
-        "pull the vision heading toward the flight controller's yaw with this time constant (0: vision's heading alone)",
+        "pull the vision heading toward the flight controller's yaw with this time constant (0: vision's heading alone) ...",
         ge=0,
         le=3600,
+    )
+    heading_source: Literal["ground", "follow", "vision"] = bounded(
+        "ground",
+        "... when: ground: while the flight controller is disarmed (motors off, the compass clean), and in flight only while its yaw agrees with vision's within heading_gate_deg; follow: always (a GPS or other trustworthy yaw); vision: never after north is taken (EK3_SRC1_YAW 6: its yaw is mavvo's own)",
+    )
+    heading_gate_deg: float = bounded(
+        1.0,
+        "heading_source ground, armed: a flight controller's yaw further than this from vision's is a disturbed compass and is left alone",
+        ge=0,
+        le=180,
     )
     degraded_quality_max: int = bounded(50, "quality cap while degraded", ge=1, le=100)
     anchor_sigma_m: float = bounded(
@@ -233,6 +248,7 @@ class Odometry:
         self.reset_counter = reset_counter
         self._drift = _Drift()
         self._heading_sigma_rad = math.radians(opt.heading_sigma_deg)
+        self._heading_gate_rad = math.radians(opt.heading_gate_deg)
         self._good: _Good | None = None
         self._failed_in_row = 0
         self._metric_interval = False  # a trusted scale has been carried into the current keyframe
@@ -328,6 +344,15 @@ class Odometry:
             state=VisionState.INITIALISING, reason=StateReason.NEW_KEYFRAME, tracks=len(tracks.ids), keyframe=True
         )
         return self._estimate(frame, diag, quality=1)
+
+    def _fc_yaw_steers(self, frame: PairedFrame, innovation_rad: float) -> bool:
+        """Whether the flight controller's yaw, ``innovation_rad`` from vision's heading, may pull the
+        heading at this frame (``heading_source``)."""
+        source = self.options.heading_source
+        if source == "ground":
+            # Disarmed, or not known (a log without HEARTBEAT); armed, only a compass that agrees.
+            return frame.fc_armed is not True or abs(innovation_rad) <= self._heading_gate_rad
+        return source == "follow"
 
     def _anchor(self, t_s: float, fc_p: np.ndarray | None) -> tuple[np.ndarray, float, str]:
         """Where re-initialised tracking starts, its 1-sigma uncertainty, and what it came from."""
@@ -526,7 +551,7 @@ class Odometry:
         )
         yaw = wrap_angle(m.yaw_rad)
         tau = self.options.heading_correction_time_s
-        if tau > 0 and math.isfinite(frame.yaw_rad):
+        if tau > 0 and math.isfinite(frame.yaw_rad) and self._fc_yaw_steers(frame, wrap_angle(frame.yaw_rad - yaw)):
             nudge = min(1.0, (frame.t_exposure_s - kf.t_s) / tau) * wrap_angle(frame.yaw_rad - yaw)
             yaw = wrap_angle(yaw + nudge)
             self.filter.shift_yaw(nudge)  # a correction of the frame's heading, not a measurement to gate

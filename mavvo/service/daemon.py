@@ -544,6 +544,7 @@ class Daemon:
             fc_p,
             p.attitude_gap_s,
             p.interpolation_sigma_rad,
+            p.fc_armed,
         )
         try:
             est = self.odometry.step(paired, self._tracks(frame))
@@ -728,6 +729,10 @@ class Daemon:
         est = self.last_estimate
         counters = _snapshot(self.counters)
         skipped = sum(v for k, v in counters.items() if k.startswith("skipped_attitude"))
+        for step in self.fc.take_clock_steps():
+            log.warning("flight controller clock stepped %+.3f s (%s); re-synchronised", step.step_s, step.evidence)
+            text = f"mavvo: FC clock stepped {step.step_s:+.2f} s; re-synced"
+            self.link.send("STATUSTEXT", messages.statustext_line(text, severity=messages.MAV_SEVERITY_WARNING))
         self._tell_why_unpaired(now, counters)
         if est is not None and self.state != VisionState.FAILED and now - est.t_exposure_s > _NO_ESTIMATE_S:
             self._set_state(

@@ -77,6 +77,7 @@ _MAX_REQUEST_BACKOFF_S = 30.0
 # then measures our clock whoever asked. (No dictionary of requests: a replayed answer must count as it
 # did in flight, and pymavlink's TIMESYNC has no target fields to tell requesters apart.)
 _TIMESYNC_MAX_RTT_S = 1.0
+_TIMESYNC_PROMPT_S = 0.1  # a TIMESYNC request the clock asks for goes out at least this long after the last
 _READ_BUDGET = 200  # messages read per loop turn at most: sending keeps its rate under any input flood
 _WAIT_SLICE_S = 0.25  # long back-off waits are cut into slices, each a turn of the loop (see ``turns``)
 
@@ -149,6 +150,8 @@ class LinkListener(Protocol):
     def on_height(self, t_fc_ms: int, height_m: float, t_arrival_host_s: float | None = None) -> None: ...
     def on_timesync(self, t_sent_host_s: float, t_fc_s: float, t_arrival_host_s: float | None = None) -> None: ...
     def on_reboot(self) -> None: ...
+    def on_armed(self, armed: bool, t_arrival_host_s: float | None = None) -> None: ...
+    def wants_timesync(self) -> bool: ...
 
 
 Tap = Callable[[int, bytes], None]
@@ -598,7 +601,11 @@ class Link:
         )
         if not targets:
             return  # requests go to a flight controller we have heard
-        if self.fc_component_id is not None and now >= self._next_timesync_s:
+        # Also soon after the clock has come to doubt the offset: an answer settles whether it stepped.
+        prompt = now >= self._next_timesync_s - self.options.timesync_interval_s + _TIMESYNC_PROMPT_S
+        if self.fc_component_id is not None and (
+            now >= self._next_timesync_s or (prompt and self.listener.wants_timesync())
+        ):
             self._next_timesync_s = now + self.options.timesync_interval_s
             self._write("TIMESYNC", {"tc1": 0, "ts1": stamp_us(self.clock) * 1000})  # whole microseconds, like arrivals
         for s in self._streams:
@@ -650,6 +657,8 @@ class Link:
         if kind == "HEARTBEAT":
             if msg.autopilot != self._mav.MAV_AUTOPILOT_INVALID:  # ground stations and companions say INVALID
                 self._autopilot_heartbeat(src_sys, src_comp, int(msg.autopilot), now)
+                if (src_sys, src_comp) == (self.fc_system_id, self.fc_component_id):
+                    self.listener.on_armed(bool(msg.base_mode & self._mav.MAV_MODE_FLAG_SAFETY_ARMED), now)
             return
         if src_sys != self.fc_system_id or src_comp != self.fc_component_id:
             c = self._candidates.get((src_sys, src_comp))

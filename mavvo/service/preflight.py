@@ -56,6 +56,8 @@ def params_to_read(autopilot: str) -> tuple[str, ...]:
         "EK3_SRC1_VELXY",
         "EK3_SRC1_POSZ",
         "EK3_SRC1_YAW",
+        "GPS1_TYPE",  # ArduPilot 4.6 on; GPS_TYPE before
+        "GPS_TYPE",
     )
 
 
@@ -121,6 +123,60 @@ def _delay(name: str, params: Mapping[str, float], advised_ms: float | None) -> 
     )
 
 
+_EK3_SRC_GPS = 3  # EK3_SRC1_VELXY: GPS
+_EK3_YAW_GPS = (2, 3)  # EK3_SRC1_YAW: GPS, GPS with compass fallback
+_EK3_YAW_COMPASS, _EK3_SRC_EXTNAV = 1, 6
+
+
+def _has_gps(params: Mapping[str, float]) -> bool | None:
+    """Whether a GPS is configured (GPS1_TYPE, or GPS_TYPE before ArduPilot 4.6, not 0); None: not read."""
+    v = params.get("GPS1_TYPE", params.get("GPS_TYPE"))
+    return None if v is None else v != 0
+
+
+def _yaw_source(params: Mapping[str, float], config: ServiceConfig, has_gps: bool | None) -> Check:
+    """EK3_SRC1_YAW against mavvo's heading policy: with ``odometry.heading_source`` vision mavvo never
+    follows the flight controller's yaw, so the EKF takes mavvo's (6); otherwise the compass (1) or 6.
+    A GPS yaw on a vehicle with no GPS leaves the EKF without a heading: BLOCK."""
+    v = params.get("EK3_SRC1_YAW")
+    vision = config.odometry.heading_source == "vision"
+    allowed = (_EK3_SRC_EXTNAV,) if vision else (_EK3_YAW_COMPASS, _EK3_SRC_EXTNAV)
+    want = _EK3_SRC_EXTNAV if vision else _EK3_YAW_COMPASS
+    ok = v is not None and any(abs(v - a) < 1e-6 for a in allowed)
+    gps_without_gps = v is not None and has_gps is False and int(v) in _EK3_YAW_GPS
+    expected = " or ".join(f"{a:g}" for a in allowed) + f" (odometry.heading_source {config.odometry.heading_source})"
+    if ok:
+        return Check("EK3_SRC1_YAW", _fmt(v), expected, Verdict.OK)
+    advice = (
+        "a GPS yaw on a vehicle with no GPS: the EKF has no heading"
+        if gps_without_gps
+        else "1 (compass; mavvo takes north from it on the ground) or 6 (ExternalNav: mavvo's heading)"
+    )
+    return Check(
+        "EK3_SRC1_YAW",
+        _fmt(v),
+        expected,
+        Verdict.BLOCK if gps_without_gps else Verdict.WARN,
+        advice,
+        None if v is None else float(want),
+    )
+
+
+def _velocity_source(params: Mapping[str, float], has_gps: bool | None) -> Check:
+    """EK3_SRC1_VELXY: 6 (ExternalNav) or 0; GPS (3) on a vehicle with no GPS is a BLOCK (fixed to 6)."""
+    v = params.get("EK3_SRC1_VELXY")
+    if v is not None and has_gps is False and int(v) == _EK3_SRC_GPS:
+        return Check(
+            "EK3_SRC1_VELXY",
+            _fmt(v),
+            "6 or 0",
+            Verdict.BLOCK,
+            "a GPS velocity on a vehicle with no GPS: the EKF waits for it",
+            float(_EK3_SRC_EXTNAV),
+        )
+    return _one_of("EK3_SRC1_VELXY", params, (6, 0), "6 (ExternalNav) or 0")
+
+
 _EKF_POS_HORIZ_REL = 0x8  # EKF_STATUS_REPORT flags (ArduPilot)
 _EKF_CONST_POS_MODE = 0x80
 
@@ -170,9 +226,10 @@ def checks(
         )
     )
     out.append(_equal("EK3_SRC1_POSXY", params, 6, "6 (ExternalNav): the EKF takes horizontal position from vision"))
-    out.append(_one_of("EK3_SRC1_VELXY", params, (6, 0), "6 (ExternalNav) or 0"))
+    has_gps = _has_gps(params)
+    out.append(_velocity_source(params, has_gps))
     out.append(_one_of("EK3_SRC1_POSZ", params, (1, 6), "1 (baro) or 6 (ExternalNav)"))
-    out.append(_one_of("EK3_SRC1_YAW", params, (1, 6), "1 (compass) or 6 (ExternalNav)"))
+    out.append(_yaw_source(params, config, has_gps))
     out.append(_delay("VISO_DELAY_MS", params, advised_delay_ms))
     out += _lever(("VISO_POS_X", "VISO_POS_Y", "VISO_POS_Z"), params, lever)
     if ekf_flags is not None:

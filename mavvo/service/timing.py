@@ -2,21 +2,8 @@
 
 Two clocks meet here. The host clock (``t_host_s``: ``time.monotonic`` on a drone, the simulation clock
 in the simulator) stamps camera exposures, message arrivals and every estimate mavvo sends. The flight
-controller's boot clock (``t_fc_s``, ATTITUDE.time_boot_ms / 1000) stamps its measurements. The offset
-``t_fc_s - t_host_s`` comes from two sources (:class:`ClockSync`):
-
-- TIMESYNC round trips: the reply with the smallest round trip in the window gives the offset at the
-  midpoint of its round trip (its error is at most half that round trip);
-- arrivals: a message cannot arrive before it was measured, so ``t_fc - t_arrival`` over the window is a
-  lower bound on the offset, reached by the fastest message (the minimum-latency filter). Without
-  TIMESYNC this bound is the estimate (it assumes the fastest message took no time); with TIMESYNC it
-  clamps an estimate that would put a message's arrival before its measurement.
-
-Neither moves on one say-so (an unsigned link lets anyone send a 26-byte TIMESYNC or ATTITUDE): once
-``sync_warmup_samples`` arrivals have set the bound, a message stamped more than ``clock_step_max_s``
-ahead of it is held as a suspect and used only if the next one ahead agrees with it (a real change of
-path, or a reboot, which the link handles); a TIMESYNC answer whose offset disagrees with the bound
-by more than its round trip allows is refused. Both are counted.
+controller's boot clock (``t_fc_s``, ATTITUDE.time_boot_ms / 1000) stamps its measurements; the offset
+between the two is :mod:`mavvo.service.clock_sync`'s.
 
 :class:`FlightControllerState` keeps the recent ATTITUDE samples (and the latest rangefinder and
 height) and pairs a frame with roll/pitch/yaw interpolated at its exposure time (slerp between the two
@@ -41,12 +28,12 @@ from typing import Literal, Protocol
 
 from mavvo.geometry.frames import interpolate_euler321
 from mavvo.options import bounded
+from mavvo.service.clock_sync import ClockStep, ClockSync, Evidence
 
 __all__ = [
     "Clock",
     "MonotonicClock",
     "TimingOptions",
-    "ClockSync",
     "Pairing",
     "FlightControllerState",
     "wait_for_pairing",
@@ -101,6 +88,24 @@ class TimingOptions:
         gt=0,
         le=1,
     )
+    clock_step_min_s: float = bounded(
+        0.02,
+        "every arrival this far below the clock bound: the flight controller's clock may have stepped back (a stalled autopilot), or the link slowed",
+        gt=0,
+        le=1,
+    )
+    clock_step_confirm_s: float = bounded(
+        1.0,
+        "a step back is confirmed by a TIMESYNC answer that rules out the old offset, or, from a flight controller that does not answer TIMESYNC, when it lasts this long",
+        gt=0,
+        le=10,
+    )
+    timesync_early_s: float = bounded(
+        0.02,
+        "how far before the request's arrival a TIMESYNC answer may be stamped (ArduPilot stamps the estimated arrival of its first byte from the port's baud rate)",
+        ge=0,
+        le=0.5,
+    )
     sync_warmup_samples: int = bounded(
         50, "ATTITUDE arrivals that set the clock bound before the step check starts", ge=1, le=10000
     )
@@ -131,105 +136,10 @@ def _euler_yaw_rate(roll_rad: float, pitch_rad: float, body_rates_rad_s: tuple[f
     return (q * math.sin(roll_rad) + r * math.cos(roll_rad)) / math.cos(pitch_rad)
 
 
-_MAX_LATENCY_S = 0.1  # the fastest message in a sync window took at most this long to arrive
 _READINGS_KEPT = 64  # rangefinder and height readings kept: seconds of them at usual rates
 _GAP_SLACK_S = 1e-6  # time_boot_ms / 1000 is not exact in binary: 1.05 - 1.0 > 0.05
 _WAIT_STEP_S = 0.02  # real time: the longest single wait for an ATTITUDE before looking again
 _LOCKSTEP_LOOK_S = 0.002  # lockstep: how often (real time) a waiting worker looks whether the clock moved
-
-
-class _WindowMax:
-    """Maximum (or minimum, with ``sign=-1``) of values over a sliding time window, O(1) amortised."""
-
-    def __init__(self, window_s: float, sign: float = 1.0) -> None:
-        self.window_s = window_s
-        self._sign = sign
-        self._q: deque[tuple[float, float, object]] = deque()  # (t, key, payload), keys decreasing
-
-    def push(self, t: float, value: float, payload: object = None) -> None:
-        key = self._sign * value
-        while self._q and self._q[-1][1] <= key:
-            self._q.pop()
-        self._q.append((t, key, payload))
-        while self._q[0][0] < t - self.window_s:
-            self._q.popleft()
-
-    def best(self) -> tuple[float, object] | None:
-        """(value, payload) of the best entry, or None when empty."""
-        if not self._q:
-            return None
-        _, key, payload = self._q[0]
-        return self._sign * key, payload
-
-    def clear(self) -> None:
-        self._q.clear()
-
-
-class ClockSync:
-    """The offset ``t_fc_s - t_host_s`` from TIMESYNC round trips and message arrivals (see the module
-    docstring). Not thread-safe: :class:`FlightControllerState` holds the lock."""
-
-    def __init__(self, window_s: float = 30.0, step_max_s: float = 0.005, warmup_samples: int = 50) -> None:
-        self._arrival_bound = _WindowMax(window_s)  # max of t_fc - t_arrival
-        self._round_trips = _WindowMax(window_s, sign=-1.0)  # min round trip, payload: offset
-        self.step_max_s = step_max_s
-        self.warmup_samples = warmup_samples
-        self._arrivals = 0
-        self._suspect: tuple[float, float] | None = (
-            None  # (t_arrival, t_fc - t_arrival) of a message ahead of the bound
-        )
-
-    def add_arrival(self, t_fc_s: float, t_arrival_host_s: float) -> bool:
-        """A message measured at ``t_fc_s`` arrived at ``t_arrival_host_s``. False (and not used) for a
-        single message stamped implausibly far ahead of every earlier one (see the module docstring)."""
-        value = t_fc_s - t_arrival_host_s
-        bound = self._arrival_bound.best()
-        if bound is not None and self._arrivals >= self.warmup_samples and value > bound[0] + self.step_max_s:
-            s = self._suspect
-            if s is None or t_arrival_host_s - s[0] > 1.0 or abs(value - s[1]) > self.step_max_s:
-                self._suspect = (t_arrival_host_s, value)
-                return False
-        self._suspect = None
-        self._arrivals += 1
-        self._arrival_bound.push(t_arrival_host_s, value)
-        return True
-
-    def add_timesync(self, t_sent_host_s: float, t_fc_s: float, t_arrival_host_s: float) -> bool:
-        """A TIMESYNC request sent at ``t_sent_host_s`` was answered with the flight controller's time
-        ``t_fc_s`` and the answer arrived at ``t_arrival_host_s``. False (not used) when its offset
-        disagrees with the arrivals' bound by more than the round trip and a message's latency allow."""
-        rtt = t_arrival_host_s - t_sent_host_s
-        if rtt < 0:
-            return False
-        offset = t_fc_s - (t_sent_host_s + 0.5 * rtt)
-        bound = self._arrival_bound.best()
-        # The true offset is at least the bound and at most the bound plus the fastest message's latency.
-        if bound is not None and not (
-            bound[0] - 0.5 * rtt - self.step_max_s <= offset <= bound[0] + 0.5 * rtt + _MAX_LATENCY_S
-        ):
-            return False
-        self._round_trips.push(t_arrival_host_s, rtt, offset)
-        return True
-
-    def offset_s(self) -> float | None:
-        """The current estimate, or None before any measurement."""
-        bound = self._arrival_bound.best()
-        sync = self._round_trips.best()
-        if sync is not None:
-            offset = float(sync[1])
-            return offset if bound is None else max(offset, bound[0])
-        return None if bound is None else bound[0]
-
-    def round_trip_s(self) -> float | None:
-        """The smallest TIMESYNC round trip in the window (the offset's error is at most half of it)."""
-        best = self._round_trips.best()
-        return None if best is None else best[0]
-
-    def reset(self) -> None:
-        self._arrival_bound.clear()
-        self._round_trips.clear()
-        self._arrivals = 0
-        self._suspect = None
 
 
 @dataclass(frozen=True)
@@ -252,13 +162,14 @@ class Pairing:
     yaw_settled: bool = False  # the flight controller's yaw has stopped converging (see FlightControllerState)
     attitude_gap_s: float = 0.0  # between the two ATTITUDE samples around the exposure (0: one fell on it)
     interpolation_sigma_rad: float = 0.0  # roll/pitch error the interpolation may add (see FlightControllerState.pair)
+    fc_armed: bool | None = None  # the flight controller's last HEARTBEAT before the exposure said armed (None: none)
 
 
 class FlightControllerState:
     """What the flight controller said recently, on both clocks; thread-safe (the link thread writes,
     the worker reads). Counters: ``attitude``, ``attitude_rejected`` (non-finite or not newer),
     ``attitude_implausible`` and ``timesync_implausible`` (refused by the clock's plausibility checks),
-    ``reboots``.
+    ``timesync`` (answers accepted), ``clock_steps``, ``reboots``.
 
     Its own position estimate (LOCAL_POSITION_NED, the EKF's belief) is kept to anchor the odometry
     where the flight controller thinks the vehicle is. Its yaw counts as settled once ``yaw - integral
@@ -278,7 +189,15 @@ class FlightControllerState:
         self.counters: Counter[str] = Counter()
         self._lock = threading.Lock()
         self._new_data = threading.Condition(self._lock)
-        self._sync = ClockSync(options.sync_window_s, options.clock_step_max_s, options.sync_warmup_samples)
+        self._sync = ClockSync(
+            options.sync_window_s,
+            options.clock_step_max_s,
+            options.sync_warmup_samples,
+            options.clock_step_min_s,
+            options.clock_step_confirm_s,
+            options.timesync_early_s,
+        )
+        self._steps_told = 0  # clock steps handed out by take_clock_steps
         self._t_fc: list[float] = []  # ATTITUDE times, increasing
         self._rpy: list[tuple[float, float, float]] = []
         # Recent readings, (t_fc_s, metres; None: no reading): a frame paired late (a slow ATTITUDE
@@ -294,6 +213,7 @@ class FlightControllerState:
         self._yaw_prev: tuple[float, float, float] | None = None  # (t_fc_s, unwrapped yaw, yawspeed)
         self._yaw_samples = 0
         self._settled_at_fc_s: float | None = None  # the ATTITUDE time at which the yaw was judged settled
+        self._armed: deque[tuple[float, bool]] = deque(maxlen=_READINGS_KEPT)  # (arrival, armed) changes
         self.version = 0
         self._waiting_at: int | None = None  # the version a worker found nothing new at and waits on
 
@@ -323,9 +243,12 @@ class FlightControllerState:
         t = t_fc_ms * 1e-3
         with self._new_data:
             self._updated()
-            if not self._sync.add_arrival(t, now):
+            evidence = self._sync.add_arrival(t, now)
+            if evidence is Evidence.REFUSED:
                 self.counters["attitude_implausible"] += 1
                 return
+            if evidence is Evidence.STEPPED:
+                self._clock_stepped()
             if not (math.isfinite(roll_rad) and math.isfinite(pitch_rad)) or (self._t_fc and t <= self._t_fc[-1]):
                 self.counters["attitude_rejected"] += 1
                 return
@@ -395,13 +318,44 @@ class FlightControllerState:
             if math.isfinite(height_m):
                 self._height.append((t_fc_ms * 1e-3, height_m))
 
+    def on_armed(self, armed: bool, t_arrival_host_s: float | None = None) -> None:
+        """The flight controller's HEARTBEAT: armed or not."""
+        now = self._arrival(t_arrival_host_s)
+        with self._lock:
+            self._updated()
+            if not self._armed or self._armed[-1][1] != armed:
+                self._armed.append((now, armed))
+
     def on_timesync(self, t_sent_host_s: float, t_fc_s: float, t_arrival_host_s: float | None = None) -> None:
         """The answer to a TIMESYNC request that was sent at ``t_sent_host_s``."""
         now = self._arrival(t_arrival_host_s)
         with self._lock:
             self._updated()
-            if not self._sync.add_timesync(t_sent_host_s, t_fc_s, now):
-                self.counters["timesync_implausible"] += 1
+            evidence = self._sync.add_timesync(t_sent_host_s, t_fc_s, now)
+            self.counters["timesync_implausible" if evidence is Evidence.REFUSED else "timesync"] += 1
+            if evidence is Evidence.STEPPED:
+                self._clock_stepped()
+
+    def _clock_stepped(self) -> None:
+        """Under the lock: the clock offset moved. Samples from before the step sit on the old relation:
+        an exposure mapped with the new offset must not be paired with them."""
+        self.counters["clock_steps"] += 1
+        step = self._sync.steps[-1]
+        cut = bisect.bisect_left(self._t_fc, step.t_fc_from_s)
+        if step.step_s < 0:
+            del self._t_fc[:cut], self._rpy[:cut]
+
+    def wants_timesync(self) -> bool:
+        """Whether every arrival lately says the clock may have stepped: a TIMESYNC answer would settle it."""
+        with self._lock:
+            return self._sync.doubts_offset
+
+    def take_clock_steps(self) -> list[ClockStep]:
+        """The clock steps not handed out before (for the operator)."""
+        with self._lock:
+            steps = self._sync.steps[self._steps_told :]
+            self._steps_told = len(self._sync.steps)
+            return steps
 
     def on_reboot(self) -> None:
         """The boot clock went back: the flight controller restarted; forget its old clock and samples."""
@@ -472,7 +426,9 @@ class FlightControllerState:
             )  # moved on to the exposure
         # Settled as of the exposure, not of whatever has arrived by now: the same on every run.
         settled = self._settled_at_fc_s is not None and self._settled_at_fc_s <= t
-        return Pairing("paired", v, roll, pitch, yaw, range_m, height_m, fc_p, settled, gap_s, sigma_rad)
+        # Armed as the last HEARTBEAT that arrived before the exposure said (arrivals are in order).
+        armed = next((a for t_a, a in reversed(self._armed) if t_a <= t_exposure_host_s), None)
+        return Pairing("paired", v, roll, pitch, yaw, range_m, height_m, fc_p, settled, gap_s, sigma_rad, armed)
 
     def clock_offset_s(self) -> float | None:
         """The current estimate of ``t_fc_s - t_host_s`` (None before the flight controller is heard)."""

@@ -9,7 +9,11 @@ it receives, with the arrival time, which :meth:`save_tlog` writes as a .tlog.
 Time: the simulation clock (seconds since the start) drives everything; ``advance_to(t)`` emits every
 message due up to ``t`` in time order, so in lockstep the byte stream is the same on every run with
 the same seed. The boot clock (``time_boot_ms``) runs from ``boot_offset_s`` at the start, with a
-drift in ppm, and restarts at zero after a reboot.
+drift in ppm, and restarts at zero after a reboot. TIMESYNC is answered on it as the autopilot named in
+the spec does (ArduPilot: stamped several milliseconds before the request arrived). Faults beside the
+reboot: a ``stall`` holds everything sent and lets it through at once when it ends (a buffered link);
+a ``clock_step`` stops the process: nothing is sent or read, its clock stands still and runs that much
+behind afterwards (an autopilot starved of CPU).
 
 What it sends and where it comes from:
 - ATTITUDE: the truth with Gaussian noise and a bias on roll and pitch, measured ``attitude_latency_ms``
@@ -87,6 +91,8 @@ class SimFlightController:
         self.clock = clock
         self.faults = faults or FaultSchedule()
         self._rng = np.random.default_rng(seed)
+        self._timesync_rng = np.random.default_rng([seed, 2])  # its own: answers must not shift the sensors' noise
+        self._backlog: list[Any] = []  # sent during a stall, delivered when it ends
         self.estimator = SimEstimator(spec.estimator, trajectory.pose(0.0)[0], np.random.default_rng([seed, 1]))
         self.estimates: list[tuple[float, float, float]] = []  # (t_s, north, east) of the estimator, every 50 ms
         if not url.startswith(SOCKET_SCHEMES):
@@ -161,10 +167,19 @@ class SimFlightController:
         return int(self._boot_time_s(t_s) * 1000.0)
 
     def _boot_time_s(self, t_s: float) -> float:
-        return self._boot_offset_s + (t_s - self._boot_host_s) * (1.0 + self.spec.clock_drift_ppm * 1e-6)
+        # A paused process's clock stands still: after a clock_step it runs that much behind for good.
+        paused = sum(
+            max(0.0, min(t_s, f.end_s) - max(f.start_s, self._boot_host_s))
+            for f in self.faults.faults
+            if f.kind == "clock_step"
+        )
+        return self._boot_offset_s + (t_s - self._boot_host_s - paused) * (1.0 + self.spec.clock_drift_ppm * 1e-6)
 
     def _down(self, t_s: float) -> bool:
         return self.faults.active("reboot", t_s)
+
+    def _paused(self, t_s: float) -> bool:
+        return self.faults.active("clock_step", t_s)
 
     # ------------------------------------------------------------------ the loop
 
@@ -218,6 +233,8 @@ class SimFlightController:
 
     def poll(self) -> None:
         """Read and handle every message waiting on the socket (non-blocking)."""
+        if self._paused(self.clock.now_s()):
+            return  # a stopped process reads nothing: what comes waits in the socket until it runs again
         while True:
             msg = self._conn.recv_msg()
             if msg is None:
@@ -240,8 +257,7 @@ class SimFlightController:
                 self.client_clock_s.append(
                     self.clock.now_s() - msg.ts1 * 1e-9
                 )  # simulation time minus the client's, plus transit
-                tc1 = int(self._boot_time_s(self.clock.now_s()) * 1e9)
-                self._send(self._mav.MAVLink_timesync_message(tc1, msg.ts1))
+                self._send(self._mav.MAVLink_timesync_message(self._timesync_tc1_ns(), msg.ts1))
             elif kind == "COMMAND_LONG" and msg.target_system in (0, self.spec.system_id):
                 self._command(msg)
             elif kind in ("PARAM_REQUEST_READ", "PARAM_REQUEST_LIST", "PARAM_SET") and msg.target_system in (
@@ -249,6 +265,15 @@ class SimFlightController:
                 self.spec.system_id,
             ):
                 self._param(msg, kind)
+
+    def _timesync_tc1_ns(self) -> int:
+        """The answer's time, as each autopilot stamps it: PX4 when it handles the request; ArduPilot
+        the request's arrival as its UART estimates it (the time of the read minus the packet's
+        transmission time at the port's baud rate), which comes out several milliseconds early."""
+        t_fc = self._boot_time_s(self.clock.now_s())
+        if self.spec.autopilot == "ardupilot":
+            t_fc -= 1e-3 * float(self._timesync_rng.uniform(*self.spec.timesync_early_ms))
+        return int(t_fc * 1e9)
 
     def _param(self, msg: Any, kind: str) -> None:
         """The parameter protocol: a read by name or index, the whole list, or a set (answered, as
@@ -316,8 +341,18 @@ class SimFlightController:
 
     def _send(self, msg: Any) -> None:
         t = self._t_s
-        if self._down(t) or self.faults.active("link_silence", t):
+        if self._down(t) or self._paused(t) or self.faults.active("link_silence", t):
             return
+        if self.faults.active("stall", t):  # the link holds what is sent ...
+            self._backlog.append(msg)
+            return
+        backlog, self._backlog = self._backlog, []
+        for held in backlog:  # ... and lets it all through at once when it moves again
+            self._deliver(held)
+        self._deliver(msg)
+
+    def _deliver(self, msg: Any) -> None:
+        t = self._t_s
         kind = msg.get_type()
         self.sent_counts[kind] = self.sent_counts.get(kind, 0) + 1
         if not self.faults.active("corrupt_bytes", t):
@@ -338,16 +373,21 @@ class SimFlightController:
 
     # ------------------------------------------------------------------ messages
 
+    def _armed_for_s(self, t_s: float) -> float | None:
+        """How long the vehicle has been armed at ``t_s``; None while disarmed."""
+        armed = self.spec.armed and t_s >= self.spec.arm_at_s
+        return t_s - self.spec.arm_at_s if armed else None
+
     def _heartbeat(self) -> Any:
         mav = self._mav
-        armed = mav.MAV_MODE_FLAG_SAFETY_ARMED if self.spec.armed else 0
+        armed = mav.MAV_MODE_FLAG_SAFETY_ARMED if self._armed_for_s(self._t_s) is not None else 0
         autopilot = mav.MAV_AUTOPILOT_PX4 if self.spec.autopilot == "px4" else mav.MAV_AUTOPILOT_ARDUPILOTMEGA
         return mav.MAVLink_heartbeat_message(
             mav.MAV_TYPE_QUADROTOR,
             autopilot,
             mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | armed | mav.MAV_MODE_FLAG_STABILIZE_ENABLED,
             5,
-            mav.MAV_STATE_ACTIVE if self.spec.armed else mav.MAV_STATE_STANDBY,
+            mav.MAV_STATE_ACTIVE if armed else mav.MAV_STATE_STANDBY,
             3,  # custom mode 5: LOITER
         )
 
@@ -356,7 +396,8 @@ class SimFlightController:
         if self.faults.active("stale_attitude", t_s) and self._last_attitude is not None:
             return self._last_attitude
         roll, pitch, yaw, w = attitude_sample(self.trajectory, t_meas, self.spec, self._rng)
-        yaw = math.remainder(yaw + self.estimator.yaw_error_rad(self._boot_time_s(t_meas)), math.tau)
+        error = self.estimator.yaw_error_rad(self._boot_time_s(t_meas), self._armed_for_s(t_meas))
+        yaw = math.remainder(yaw + error, math.tau)
         if self.faults.active("nan_attitude", t_s):
             roll = pitch = yaw = float("nan")
         msg = self._mav.MAVLink_attitude_message(self.boot_time_ms(t_meas), roll, pitch, yaw, w[0], w[1], w[2])

@@ -14,7 +14,9 @@ enough to judge what mavvo sends the way the vehicle would:
 - vision is unhealthy 300 ms after the last sample (ArduPilot's timeout); the estimate dead-reckons on;
 - a reboot loses the position (:meth:`SimEstimator.reboot`): none is reported until vision gives one;
 - its yaw starts ``yaw_initial_error_deg`` off at boot and settles exponentially
-  (``yaw_settle_time_s``), as an EKF's does while its yaw converges.
+  (``yaw_settle_time_s``), as an EKF's does while its yaw converges; once armed, it follows a disturbed
+  compass as real ones do: an offset from the motors' current, a jump at the in-flight yaw alignment,
+  a slow wander (all zero by default).
 
 Horizontal only (x, y); height comes from the barometer. Positions are NED in the truth's frame: the
 estimator starts at the truth's position at boot, as an EKF started at its origin would.
@@ -32,6 +34,7 @@ from mavvo.options import bounded
 __all__ = ["EstimatorSpec", "SimEstimator", "Step"]
 
 _VISION_TIMEOUT_S = 0.3  # ArduPilot calls external navigation unhealthy after this gap
+_MOTOR_RAMP_S = 2.0  # from arming to the motors' full current: the compass offset ramps in over it
 
 
 @dataclass(frozen=True)
@@ -49,6 +52,20 @@ class EstimatorSpec:
         -10.0, "the EKF's yaw error at boot (what it reports in ATTITUDE)", ge=-180, le=180
     )
     yaw_settle_time_s: float = bounded(5.0, "time constant with which that yaw error decays", gt=0, le=600)
+    compass_motor_deg: float = bounded(
+        0.0,
+        "once armed, the motors' current turns the compass, and the yaw follows it: by this much, ramping in over the first 2 s",
+        ge=-90,
+        le=90,
+    )
+    compass_alignment_jump_deg: float = bounded(
+        0.0, "the yaw jumps by this much at the EKF's in-flight yaw alignment ...", ge=-90, le=90
+    )
+    compass_alignment_after_s: float = bounded(10.0, "... this long after arming", ge=0)
+    compass_wander_deg: float = bounded(
+        0.0, "armed: the compass wanders slowly (a sinusoid of this amplitude ...)", ge=0, le=90
+    )
+    compass_wander_period_s: float = bounded(60.0, "... and this period)", gt=0)
 
 
 @dataclass(frozen=True)
@@ -132,8 +149,14 @@ class SimEstimator:
         """(2,) the velocity the estimator believes in."""
         return np.asarray(v_true_ned_m_s[:2], dtype=float) + self._v_err + self._v_corr
 
-    def yaw_error_rad(self, t_boot_s: float) -> float:
-        """The reported yaw minus the true yaw, ``t_boot_s`` after boot."""
-        return math.radians(self.spec.yaw_initial_error_deg) * math.exp(
-            -max(t_boot_s, 0.0) / self.spec.yaw_settle_time_s
-        )
+    def yaw_error_rad(self, t_boot_s: float, t_armed_s: float | None = None) -> float:
+        """The reported yaw minus the true yaw, ``t_boot_s`` after boot and ``t_armed_s`` after arming
+        (None: disarmed, the motors off and the compass clean)."""
+        sp = self.spec
+        settling = sp.yaw_initial_error_deg * math.exp(-max(t_boot_s, 0.0) / sp.yaw_settle_time_s)
+        compass = 0.0
+        if t_armed_s is not None:
+            compass = sp.compass_motor_deg * min(1.0, t_armed_s / _MOTOR_RAMP_S)
+            compass += sp.compass_alignment_jump_deg if t_armed_s >= sp.compass_alignment_after_s else 0.0
+            compass += sp.compass_wander_deg * math.sin(math.tau * t_armed_s / sp.compass_wander_period_s)
+        return math.radians(settling + compass)

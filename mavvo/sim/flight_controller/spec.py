@@ -23,6 +23,10 @@ class FlightControllerSpec:
     attitude_latency_ms: float = bounded(5.0, "from measurement to sending", ge=0)
     boot_offset_s: float = bounded(30.0, "boot clock at the start of the simulation", ge=0)
     clock_drift_ppm: float = bounded(0.0, "boot clock rate error against the host clock")
+    timesync_early_ms: tuple[float, float] = bounded(
+        (5.0, 12.0),
+        "ArduPilot only: a TIMESYNC answer is stamped this long (uniform between the two) before the request arrived, as measured on a software autopilot",
+    )
     rangefinder: bool = bounded(True, "send DISTANCE_SENSOR from a downward laser")
     rangefinder_min_m: float = bounded(0.2, "shortest range", ge=0)
     rangefinder_max_m: float = bounded(40.0, "longest range (beyond: reported as max + 1 cm)", gt=0)
@@ -35,7 +39,8 @@ class FlightControllerSpec:
     autopilot: Literal["ardupilot", "px4"] = bounded(
         "ardupilot", "which autopilot it says it is (HEARTBEAT) and whose parameters it serves"
     )
-    armed: bool = bounded(True, "HEARTBEAT says armed (mavvo preflight --fix refuses to write parameters then)")
+    armed: bool = bounded(True, "HEARTBEAT says armed (mavvo preflight --fix refuses to write parameters then) ...")
+    arm_at_s: float = bounded(0.0, "... from this simulation time on (before it: disarmed, motors off)", ge=0)
     params: tuple[tuple[str, float], ...] = bounded(
         (), "parameters that differ from the vision-ready defaults of its autopilot, as [NAME, value] pairs"
     )
@@ -55,6 +60,7 @@ VISION_READY_PARAMS: dict[str, dict[str, float]] = {
         "EK3_SRC1_VELXY": 6,
         "EK3_SRC1_POSZ": 1,
         "EK3_SRC1_YAW": 1,
+        "GPS1_TYPE": 0,  # no GPS
         "SERIAL2_PROTOCOL": 2,
     },
     "px4": {

@@ -16,7 +16,7 @@ import logging
 import socket
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
@@ -75,6 +75,8 @@ class SimRun:
     safety: FlightSafety  # what the vehicle would feel: no alignment, resets included
     recording: Path | None = None  # with record.dir: the recording (with ground_truth.tum beside it)
     lockstep_waits_expired: int = 0  # lockstep: times the service did not catch up (the run may not repeat exactly)
+    # The simulated EKF's horizontal error against the truth, every 50 ms: rows (t_s, north m, east m).
+    fc_error_ne_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     def summary(self) -> dict[str, Any]:
         """A flat JSON-ready summary (what ``mavvo sim --json`` prints)."""
@@ -234,11 +236,14 @@ def run_daemon_in_sim(
         times = np.arange(0.0, sim.clock.now_s(), 0.01)
         write_tum(recording / GROUND_TRUTH_FILE, sim.truth_at(times))
     counters = np.array([r.msg.reset_counter for r in vpe])
+    fc_estimates = np.array(sim.fc.estimates).reshape(-1, 3)
+    fc_error = fc_estimates.copy()
+    fc_error[:, 1:] -= sim.truth_at(fc_estimates[:, 0]).positions_xyz_m[:, :2] if len(fc_estimates) else 0.0
     safety = flight_safety(
         [_vision_sample(r.msg) for r in vpe],
         lambda t: sim.truth_at(t).positions_xyz_m,
         lambda t: _yaw(sim.truth_at(t).rotations),
-        np.array(sim.fc.estimates).reshape(-1, 3),
+        fc_estimates,
         [(st.t_s, st.step_m) for st in sim.fc.estimator.steps],
         [(r.t_s, r.msg.value) for r in sim.fc.received if r.type == "NAMED_VALUE_FLOAT" and r.msg.name == "VO_DRIFT"],
     )
@@ -262,6 +267,7 @@ def run_daemon_in_sim(
         safety,
         recording,
         0 if lockstep is None else lockstep.waits_expired,
+        fc_error,
     )
 
 

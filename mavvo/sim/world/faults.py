@@ -1,7 +1,9 @@
 """Faults the simulator injects, from a scenario or on demand.
 
-Flight controller: ``link_silence`` (nothing sent), ``reboot`` (down for the duration, then the boot
-clock restarts at zero and streams stay off until requested again), ``nan_attitude``,
+Flight controller: ``link_silence`` (nothing sent), ``stall`` (nothing arrives, then everything sent
+meanwhile at once: a buffered link), ``clock_step`` (the process stops: nothing sent or read, and its
+boot clock stands still, so it runs the duration behind afterwards), ``reboot`` (down for the duration,
+then the boot clock restarts at zero and streams stay off until requested again), ``nan_attitude``,
 ``stale_attitude`` (the last ATTITUDE repeated unchanged), ``corrupt_bytes`` (every message on the wire
 has a byte flipped, so its checksum fails, and garbage bytes come between messages).
 Camera: ``frames_missing`` (no frames), ``dark_frames`` (5% exposure), ``textureless_frames``
@@ -17,6 +19,8 @@ from mavvo.options import bounded
 
 FaultKind = Literal[
     "link_silence",
+    "stall",
+    "clock_step",
     "reboot",
     "nan_attitude",
     "stale_attitude",

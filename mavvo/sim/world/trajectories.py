@@ -137,7 +137,8 @@ class WaypointTrajectory(Trajectory):
     """Rest-to-rest quintic segments between waypoints (NED), at most ``speed_m_s``.
 
     With ``yaw="velocity"`` the vehicle turns in place at each waypoint to face the next leg (at most
-    ``yaw_rate_deg_s``); with ``"fixed"`` it keeps ``yaw_deg``. ``dwell_s`` is spent at each waypoint.
+    ``yaw_rate_deg_s``); with ``"fixed"`` it keeps ``yaw_deg``. ``dwell_s`` is spent at each waypoint,
+    ``hold_first_s`` at the first before anything moves.
     """
 
     def __init__(
@@ -148,6 +149,7 @@ class WaypointTrajectory(Trajectory):
         yaw_deg: float = 0.0,
         yaw_rate_deg_s: float = 45.0,
         dwell_s: float = 0.0,
+        hold_first_s: float = 0.0,
     ) -> None:
         wp = np.asarray(waypoints_ned_m, dtype=float)
         if wp.ndim != 2 or wp.shape[1] != 3 or len(wp) < 2:
@@ -157,6 +159,9 @@ class WaypointTrajectory(Trajectory):
         heading = np.radians(yaw_deg)
         if yaw == "velocity":
             heading = _leg_heading(wp, 0, heading)
+        if hold_first_s > 0:  # standing at the first waypoint (on the ground, before take-off)
+            segs.append(_Segment(t, hold_first_s, wp[0], wp[0], heading, heading))
+            t += hold_first_s
         for i in range(len(wp) - 1):
             target = _leg_heading(wp, i, heading) if yaw == "velocity" else heading
             turn = _wrap(target - heading)
@@ -286,6 +291,10 @@ class SquareSpec:
     yaw: YawMode = bounded("fixed", "fixed: keep yaw_deg; velocity: turn at the corners to face the next side")
     yaw_deg: float = bounded(0.0, "heading when yaw is fixed")
     dwell_s: float = bounded(0.5, "pause at each corner", ge=0)
+    ground_s: float = bounded(
+        0.0, "time standing on the ground below the first corner, then a climb to altitude (0: start at altitude)", ge=0
+    )
+    ground_height_m: float = bounded(0.3, "camera height on the ground (landing gear)", gt=0)
 
 
 @dataclass(frozen=True)
@@ -376,8 +385,11 @@ def make_trajectory(spec: TrajectorySpec) -> Trajectory:
     if isinstance(spec, SquareSpec):
         s, z = spec.side_m, -spec.altitude_m
         corners = [[0, 0, z], [s, 0, z], [s, s, z], [0, s, z]]
-        wp = np.array(corners * spec.laps + [corners[0]], dtype=float)
-        return WaypointTrajectory(wp, spec.speed_m_s, spec.yaw, spec.yaw_deg, dwell_s=spec.dwell_s)
+        ground = [[0, 0, -spec.ground_height_m]] if spec.ground_s > 0 else []
+        wp = np.array(ground + corners * spec.laps + [corners[0]], dtype=float)
+        return WaypointTrajectory(
+            wp, spec.speed_m_s, spec.yaw, spec.yaw_deg, dwell_s=spec.dwell_s, hold_first_s=spec.ground_s
+        )
     if isinstance(spec, LawnmowerSpec):
         z = -spec.altitude_m
         wp = []
