@@ -27,7 +27,7 @@ moved-venv:
 $(STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/python -m pip install --quiet -e '.[test,fleet]'
 	@# The distribution's PyGObject, for the gst: camera (says what to install where it is missing).
 	$(BIN)/python tools/link_system_gi.py
 	$(BIN)/python -m mavvo.estimation.warmup
@@ -76,6 +76,7 @@ bench: $(STAMP)
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/relpose_flight.py --markdown docs/benchmarks.md --plots docs/img
 	OMP_NUM_THREADS=1 $(BIN)/python benchmarks/render.py --markdown docs/benchmarks.md
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/pipeline.py --threads --markdown docs/benchmarks.md
+	$(BIN)/python benchmarks/batch_scaling.py --markdown docs/benchmarks.md
 
 # Install on the companion computer (sudo make install): the package into a venv made in PREFIX (never
 # a copied one), the settings under ETCDIR (kept if present), the unit, the mavvo user; then check-config

@@ -13,7 +13,7 @@ import sys
 from typing import Sequence
 
 from mavvo import __version__
-from mavvo.commands import calibrate, camera, check_config, inspect, monitor, preflight, replay, run, sim
+from mavvo.commands import batch, calibrate, camera, check_config, inspect, monitor, preflight, replay, run, sim
 from mavvo.errors import ConfigError, MavvoError
 
 log = logging.getLogger("mavvo")
@@ -34,7 +34,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="store_true", help="same as --log-level debug")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    for command in (run, check_config, preflight, camera, sim, replay, inspect, calibrate, monitor):
+    for command in (run, check_config, preflight, camera, sim, replay, batch, inspect, calibrate, monitor):
         command.add_parser(sub)
     return p
 

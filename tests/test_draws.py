@@ -76,13 +76,11 @@ def test_bad_arguments_are_named(args, message, capsys):
 def test_a_failed_flight_is_named_and_the_run_exits_1(monkeypatch, capsys):
     import mavvo.sim.scenarios.draws as draws
 
-    def fly(scenario, seed, out_dir):
-        if seed == "101":
-            raise RuntimeError(
-                f"mavvo sim --scenario {scenario} --seed {seed}: exit code 1: mavvo: unexpected ValueError"
-            )
+    def fly(task):  # runs on a worker process of the sweep engine
+        if task[1] == "101":
+            raise ValueError("a broken flight")
         return _summary(1.0, 0.97, 0.2, None)
 
     monkeypatch.setattr(draws, "fly", fly)
     assert main(["--scenarios", "hover", "--seeds", "own,101", "--jobs", "1"]) == 1
-    assert "draws: mavvo sim --scenario hover --seed 101: exit code 1" in capsys.readouterr().err
+    assert "draws: hover seed 101: ValueError: a broken flight" in capsys.readouterr().err

@@ -203,7 +203,13 @@ def test_north_is_taken_on_the_ground_and_held_against_a_disturbed_compass():
     corners = _corner_errors_m(run, sc)
     assert len(corners) == 5 and max(corners) < 0.5, corners
     assert run.safety.heading_median_error_deg < 1.0
-    # Control: the same flight with the heading following the flight controller's yaw in flight.
+
+
+@pytest.mark.slow
+def test_following_the_disturbed_compass_in_flight_turns_the_square():
+    """The control of the test above: the same flight with the heading following the flight
+    controller's yaw in flight puts the corners more than 1 m off."""
+    sc = load_scenario("square_compass")
     base = ServiceConfig()
     follow = dataclasses.replace(base, odometry=dataclasses.replace(base.odometry, heading_source="follow"))
     followed = _corner_errors_m(run_daemon_in_sim(dataclasses.replace(sc, duration_s=42.0), follow), sc)  # 3 corners

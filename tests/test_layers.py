@@ -28,15 +28,17 @@ LAYERS = (
     ("mavvo.service",),
     ("mavvo.calibration",),
     ("mavvo.evaluation",),
+    ("mavvo.fleet.engine",),  # the sweep engine: draws and the batch both run on it
     ("mavvo.sim", "mavvo.sim.world"),
     ("mavvo.sim.flight_controller",),
     ("mavvo.sim.scenarios",),
     ("mavvo.offline",),
+    ("mavvo.fleet",),
     ("mavvo.cli", "mavvo.commands", "mavvo.__main__"),
     ("tools",),  # outside the package: the fault suite checks settings files through the command line
 )
 # What the command line loads only inside a command's function (start-up of ``mavvo run``).
-LOADED_ON_DEMAND = ("mavvo.sim", "mavvo.offline", "mavvo.evaluation")
+LOADED_ON_DEMAND = ("mavvo.sim", "mavvo.offline", "mavvo.evaluation", "mavvo.fleet")
 # Outside libraries with exactly one importer.
 SOLE_IMPORTER = {
     "pymavlink": "mavvo.service.mavlink",
@@ -240,6 +242,8 @@ DISTRIBUTION_OF = {
     "matplotlib": "matplotlib",
 }
 FROM_THE_SYSTEM = {"gi", "picamera2"}
+# Outside libraries of an optional extra: imported only inside functions, which say what to install.
+IN_AN_EXTRA = {"distributed": "fleet", "dask": "fleet"}
 
 
 def test_every_outside_import_of_the_package_is_a_declared_dependency() -> None:
@@ -258,7 +262,13 @@ def test_every_outside_import_of_the_package_is_a_declared_dependency() -> None:
             continue
         for e in imports_of(path.read_text(encoding="utf-8"), name, path.name == "__init__.py"):
             top = e.imported.split(".")[0]
-            if top and top != "mavvo" and top not in sys.stdlib_module_names and top not in FROM_THE_SYSTEM:
+            if top in IN_AN_EXTRA:
+                extra = re.search(rf"^{IN_AN_EXTRA[top]} = \[(.*?)\]", text, re.M)
+                assert extra is not None and "distributed" in extra.group(1), (
+                    f"pyproject.toml: no {IN_AN_EXTRA[top]} extra"
+                )
+                assert e.in_function, f"{name}:{e.line}: {top} (an extra) imported at module level"
+            elif top and top != "mavvo" and top not in sys.stdlib_module_names and top not in FROM_THE_SYSTEM:
                 outside.add(top)
     unknown = sorted(outside - DISTRIBUTION_OF.keys())
     assert unknown == [], f"imported by mavvo, not in DISTRIBUTION_OF: {unknown}"

@@ -5,25 +5,24 @@
 
 One flight of a scenario is one draw of its noise (camera pixels, the flight controller's attitude and
 sensors), and the 1 s covariance figures move by several points from one draw to another. Each
-(scenario, seed) runs ``mavvo sim --scenario S [--seed N] --json`` (lockstep, so the same on every run)
-in its own process, ``--jobs`` at a time; ``own`` is the scenario's own seed. The report has two
-tables: the own seed's flights, and the median and range over all draws of each scenario.
+(scenario, seed) is one lockstep flight (the same on every run), flown as one task of the sweep engine
+(:mod:`mavvo.fleet.engine`, the same path as ``mavvo batch``) on ``--jobs`` local worker processes;
+``own`` is the scenario's own seed. The report has two tables: the own seed's flights, and the median
+and range over all draws of each scenario.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime as dt
-import json
 import statistics
-import subprocess
 import sys
-import tempfile
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Mapping
 
-from mavvo.sim.scenarios.loader import scenario_names
+from mavvo.fleet.engine import Outcome, run_tasks
+from mavvo.sim.scenarios.loader import load_scenario, scenario_names
 
 BEGIN, END = "<!-- draws:begin -->", "<!-- draws:end -->"
 OWN = "own"
@@ -32,16 +31,15 @@ DEFAULT_SEEDS = (OWN, "101", "102", "103", "104")
 Summary = Mapping[str, Any]  # what `mavvo sim --json` prints
 
 
-def fly(scenario: str, seed: str, out_dir: Path) -> Summary:
-    """One lockstep flight by ``mavvo sim`` in its own process: its JSON summary."""
-    cmd = [sys.executable, "-m", "mavvo", "sim", "--scenario", scenario, "--json", "--out", str(out_dir)]
+def fly(task: tuple[str, str]) -> Summary:
+    """One lockstep flight of ``(scenario, seed)``, on a worker: its summary (``mavvo sim --json``'s)."""
+    from mavvo.sim.scenarios.service_run import run_daemon_in_sim
+
+    name, seed = task
+    scenario = load_scenario(name)
     if seed != OWN:
-        cmd += ["--seed", seed]
-    proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
-    if proc.returncode != 0:
-        tail = proc.stderr.strip().splitlines()[-1:] or ["(no output)"]
-        raise RuntimeError(f"mavvo sim --scenario {scenario} --seed {seed}: exit code {proc.returncode}: {tail[0]}")
-    return json.loads(proc.stdout)
+        scenario = dataclasses.replace(scenario, seed=int(seed))
+    return run_daemon_in_sim(scenario).summary()
 
 
 def _end_error(s: Summary) -> str:
@@ -139,7 +137,9 @@ def main(argv: list[str] | None = None) -> int:
         default=",".join(DEFAULT_SEEDS),
         help=f"comma-separated seeds, '{OWN}' for the scenario's own (default {','.join(DEFAULT_SEEDS)})",
     )
-    parser.add_argument("--jobs", type=int, default=2, help="flights at a time (default 2; each takes about a core)")
+    parser.add_argument(
+        "--jobs", type=int, default=2, help="worker processes, flights at a time (default 2; each takes a core)"
+    )
     parser.add_argument(
         "--markdown", type=Path, help="rewrite this section of this markdown file (between the draws markers)"
     )
@@ -156,17 +156,24 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--jobs: expected at least 1, got {args.jobs}")
     tasks = [(name, seed) for seed in seeds for name in scenarios]
     draws: dict[str, dict[str, Summary]] = {name: {} for name in scenarios}
-    with tempfile.TemporaryDirectory(prefix="mavvo-draws-") as tmp, ThreadPoolExecutor(args.jobs) as pool:
-        futures = {task: pool.submit(fly, task[0], task[1], Path(tmp) / f"{task[0]}-{task[1]}") for task in tasks}
-        for k, ((name, seed), future) in enumerate(futures.items(), 1):
-            try:
-                draws[name][seed] = future.result()
-            except RuntimeError as e:  # a flight that failed: say which, and stop
-                for f in futures.values():
-                    f.cancel()
-                print(f"draws: {e}", file=sys.stderr)
-                return 1
-            print(f"[{k}/{len(tasks)}] {name} seed {seed} done", file=sys.stderr)
+    failures: list[str] = []
+
+    def record(o: Outcome) -> None:
+        name, seed = o.key  # type: ignore[misc]
+        if o.error is not None:
+            failures.append(f"{name} seed {seed}: {o.error}")
+        else:
+            draws[name][seed] = o.result
+        print(
+            f"[{sum(map(len, draws.values())) + len(failures)}/{len(tasks)}] {name} seed {seed} done", file=sys.stderr
+        )
+
+    status = run_tasks(fly, [(t, t) for t in tasks], record, workers=args.jobs)
+    if failures or status.cancelled:
+        for f in failures:
+            print(f"draws: {f}", file=sys.stderr)
+        return 1
+    draws = {name: dict(sorted(f.items(), key=lambda kv: (kv[0] != OWN, kv[0]))) for name, f in draws.items()}
     section = report(draws, dt.date.today().isoformat())
     print(section)
     if args.markdown:
