@@ -103,6 +103,29 @@ def test_bad_settings_are_refused_before_anything_runs(flights, tmp_path, capsys
     assert "nowhere: no such flight" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # a sweep interrupted and resumed: make soak
+def test_ctrl_c_cancels_the_rest_keeps_what_finished_and_the_same_command_resumes(flights, tmp_path, capsys):
+    import signal
+
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "mavvo", "batch", str(flights / "recordings" / "*"), "--grid",
+           str(flights / "grid.yaml"), "--out", str(out), "--workers", "1"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    journal = out / "results.jsonl"
+    deadline = time.monotonic() + 120
+    while not (journal.exists() and journal.read_text().count("\n") >= 1):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    done = journal.read_text().count("\n")
+    assert proc.returncode == 130 and 1 <= done < 4, (proc.returncode, done, err)
+    assert "run the same command again to resume" in err and "Traceback" not in err
+    assert _batch(*cmd[4:]) == 0
+    assert f"{done} finished before, {4 - done} to run" in capsys.readouterr().err
+    assert len(Journal(out).rows()) == 4
+
+
 # ------------------------------------------------------------------ the engine alone
 
 

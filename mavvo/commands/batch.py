@@ -79,10 +79,11 @@ def main(args: argparse.Namespace) -> int:
         task_row,
         write_tables,
     )
-    from mavvo.fleet.engine import run_tasks
+    from mavvo.fleet.engine import quiet_dask_logs, run_tasks
 
     if not log.isEnabledFor(logging.DEBUG):  # Dask's own INFO lines (workers starting, closing) drown the progress
-        logging.getLogger("distributed").setLevel(logging.WARNING)
+        quiet_dask_logs()
+
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"--workers: expected at least 1, got {args.workers}")
     flights = expand_flights(args.flights)

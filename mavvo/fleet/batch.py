@@ -22,6 +22,7 @@ import glob
 import hashlib
 import itertools
 import json
+import logging
 import math
 import statistics
 from collections.abc import Iterable, Sequence
@@ -226,6 +227,9 @@ def replay_task(task: BatchTask) -> dict[str, Any]:
     from mavvo.offline.sources import open_replay_source
     from mavvo.service.yaml_loader import load_yaml as read
 
+    # The service's own warnings about one flight ("no frame paired ...") would interleave from every
+    # worker; the row says how the flight went.
+    logging.getLogger("mavvo").setLevel(logging.ERROR)
     f, s = task.flight, task.settings
     with tempfile.TemporaryDirectory(prefix="mavvo-batch-") as tmp:
         config = None

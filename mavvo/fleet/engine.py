@@ -26,7 +26,7 @@ from typing import Any
 
 from mavvo.errors import ConfigError, MavvoError
 
-__all__ = ["Outcome", "Progress", "SweepStatus", "run_tasks", "default_workers"]
+__all__ = ["Outcome", "Progress", "SweepStatus", "run_tasks", "default_workers", "quiet_dask_logs"]
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +78,17 @@ def default_workers() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
         return os.cpu_count() or 1
+
+
+def quiet_dask_logs() -> None:
+    """Dask's loggers at WARNING (they set their own levels when Dask is imported: import it first)."""
+    try:
+        import distributed  # noqa: F401
+    except ImportError:
+        return
+    for name in list(logging.root.manager.loggerDict):
+        if name == "distributed" or name.startswith("distributed."):
+            logging.getLogger(name).setLevel(logging.WARNING)
 
 
 def _guarded(fn: Callable[[Any], Any], payload: Any) -> tuple[Any, str | None, float]:
