@@ -247,8 +247,8 @@ def test_filter_follows_constant_velocity_and_rejects_a_jump() -> None:
 
 def test_filter_steps_match_filterpys_kalman_filter() -> None:
     """The predict/update steps written out in the filter give what filterpy's KalmanFilter gives for
-    the same F, Q, H, R (filterpy: the reference, in the test dependencies only), position-and-yaw and
-    yaw-only updates mixed, irregular times."""
+    the same F, Q, H, R (filterpy: the reference, in the test dependencies only), position-and-yaw,
+    yaw-only and height (down-only) updates mixed, irregular times."""
     from filterpy.kalman import KalmanFilter
 
     from mavvo.odometry.filter import _H
@@ -279,7 +279,11 @@ def test_filter_steps_match_filterpys_kalman_filter() -> None:
         C = A @ A.T + sp**2 * np.eye(3)  # a full position covariance: errors along some directions more
         R = np.zeros((4, 4))
         R[:3, :3], R[3, 3] = C, sy**2
-        if k % 4 == 3:
+        if k % 5 == 4:  # a height from a rangefinder: the down coordinate alone
+            down = float(ref.x[2, 0] + rng.normal(0, 0.03))
+            assert f.update_down(down, 0.03) == Update.FUSED
+            ref.update(np.array([[down]]), R=np.array([[0.03**2]]), H=_H[2:3])
+        elif k % 4 == 3:
             assert f.update(None, yaw, pos_cov_m2=C, yaw_sigma_rad=sy) == Update.FUSED
             ref.update(np.array([[yaw]]), R=np.array([[sy**2]]), H=_H[3:4])
         else:
@@ -422,3 +426,32 @@ def test_a_keyframe_matches_the_ids_it_shares_with_a_frame():
         _, want_kf, want_cur = np.intersect1d(kf_ids, cur_ids, return_indices=True)
         assert np.array_equal(i_kf, want_kf) and np.array_equal(i_cur, want_cur)
         assert np.array_equal(kf_ids[i_kf], cur_ids[i_cur])
+
+
+def test_height_from_the_range_is_fused_a_glitch_rejected_and_a_step_of_the_ground_followed() -> None:
+    """Hovering 1.00 m above a floor: the range measures the down coordinate (the filter's drifted 0.3 m
+    is pulled back); one range 0.4 m short (a glitch) is rejected; a table 0.7 m high slid under the
+    vehicle is, after step_frames ranges in a row, the ground stepping: the down coordinate stays."""
+    from mavvo.odometry.height import HeightAnchor, HeightOptions
+
+    anchor = HeightAnchor(HeightOptions(step_frames=5))
+    f = PoseFilter(FilterOptions())
+    f.reset(0.0, np.array([0.0, 0.0, -1.0]), 0.0, pos_cov_m2=0.01 * np.eye(3), yaw_sigma_rad=0.01)
+    tilt = math.radians(10.0)
+    h = anchor.height_m(1.0 / (math.cos(tilt) * math.cos(tilt)), tilt, tilt)  # tilt-compensated
+    assert h == pytest.approx(1.0) and anchor.height_m(2.0, math.radians(40.0), 0.0) is None
+    assert anchor.start(-1.0, h, first=True) == -1.0 and anchor.ground_down_m == pytest.approx(0.0)
+    f._x[2, 0] = -1.3  # vision's sum of translations drifted 0.3 m up
+    for k in range(40):
+        f.predict(0.05 * (k + 1))
+        f._x[5, 0] = 0.0
+        assert anchor.fuse(f, 1.0)
+    assert f.position_ned_m[2] == pytest.approx(-1.0, abs=0.01)
+    assert not anchor.fuse(f, 0.6) and anchor.fuse(f, 1.0)  # the glitch: rejected, nothing moved
+    assert f.position_ned_m[2] == pytest.approx(-1.0, abs=0.01)
+    for _ in range(5):  # the table: 0.3 m below the vehicle now
+        assert not anchor.fuse(f, 0.3)
+    assert anchor.steps == 1 and anchor.ground_down_m == pytest.approx(-0.7, abs=0.01)
+    assert anchor.fuse(f, 0.3) and f.position_ned_m[2] == pytest.approx(-1.0, abs=0.01)
+    # A restart after tracking was lost starts at the measured height, not where vision left it.
+    assert anchor.start(-1.5, 0.3, first=False) == pytest.approx(-1.0, abs=0.01)

@@ -2,7 +2,8 @@
 
 State (8): position x, y, z (m), velocity (m/s), yaw (rad, kept continuous, not wrapped) and yaw rate
 (rad/s). Process noise is white acceleration (``accel_sigma_m_s2``) and white yaw acceleration.
-Measurements are vision positions and yaws with a covariance from the odometry's quality. Before an
+Measurements are vision positions and yaws with a covariance from the odometry's quality, and the down
+coordinate alone (a height above the ground from a rangefinder, :meth:`PoseFilter.update_down`). Before an
 update, the innovation's squared Mahalanobis distance is compared with the chi-square quantile of
 ``gate_probability`` for as many degrees of freedom as the measurement has (4 for position and yaw,
 1 for yaw alone): a jump beyond it is rejected. After ``max_rejections`` rejections in a row the
@@ -196,6 +197,22 @@ class PoseFilter:
         self._P = (
             I_KH @ P @ I_KH.T + K @ R @ K.T
         )  # P = (I - K H) P (I - K H)' + K R K' (Joseph: stays symmetric, positive)
+        return Update.FUSED
+
+    def update_down(self, down_m: float, sigma_m: float) -> Update:
+        """Fuse a measurement of the down coordinate alone (a height from a rangefinder), 1 sigma
+        ``sigma_m``, gated with one degree of freedom. A rejection is only counted: a run of them means
+        the ground moved (a table, a kerb), which the caller decides, not a jump of the vehicle."""
+        x, P = self._x, self._P
+        y = down_m - x[2, 0]  # innovation y = z - H x, H picking the down coordinate
+        S = P[2, 2] + sigma_m**2  # S = H P H' + R
+        if y * y / S > self._gate[1]:
+            return Update.REJECTED
+        K = P[:, 2:3] / S  # K = P H' / S
+        self._x = x + K * y  # x = x + K y
+        I_KH = np.eye(_DIM_X)
+        I_KH[:, 2] -= K[:, 0]  # I - K H
+        self._P = I_KH @ P @ I_KH.T + (K @ K.T) * sigma_m**2  # Joseph form, as in update
         return Update.FUSED
 
     def shift_yaw(self, delta_rad: float) -> None:

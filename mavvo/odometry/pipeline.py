@@ -61,6 +61,7 @@ from mavvo.geometry.medians import median
 from mavvo.geometry.refine import tilt_rotation
 from mavvo.odometry.filter import FilterOptions, PoseFilter, Update, wrap_angle
 from mavvo.odometry.frontend import Frontend, FrontendOptions, Tracks
+from mavvo.odometry.height import HeightAnchor, HeightOptions
 from mavvo.odometry.keyframes import Keyframe, KeyframeChain, KeyframeOptions, carry_depths, keyframe_reason
 from mavvo.odometry.scale import ScaleEstimate, ScaleOptions, estimate_scale, scale_from_scene_depth, triangulate_unit
 from mavvo.options import bounded
@@ -95,6 +96,7 @@ class OdometryOptions:
     keyframes: KeyframeOptions = field(default_factory=KeyframeOptions)
     scale: ScaleOptions = field(default_factory=ScaleOptions)
     filter: FilterOptions = field(default_factory=FilterOptions)
+    height: HeightOptions = field(default_factory=HeightOptions)
     min_tracks: int = bounded(30, "fewer tracks shared with the keyframe: tracking is lost", ge=5, le=5000)
     min_inliers: int = bounded(20, "fewer inliers: no pose from this frame", ge=5, le=5000)
     good_inliers: int = bounded(120, "inliers for full quality", ge=5, le=5000)
@@ -237,6 +239,8 @@ class Odometry:
         self.frontend = Frontend(camera, opt.frontend)
         self.chain = KeyframeChain(opt.keyframes)
         self.filter = PoseFilter(opt.filter)
+        self.height = HeightAnchor(opt.height)
+        self._height_fused = False  # this frame's range was fused: a keyframe made from it takes the filter's down
         self._focal_px = 0.5 * (camera.fx_px + camera.fy_px)
         self._max_err_rad = opt.ransac.max_err_px / self._focal_px
         self._min_parallax_rad = math.radians(opt.scale.min_parallax_deg)
@@ -320,6 +324,9 @@ class Odometry:
             self._drift.anchor_var_m2 += self.options.anchor_sigma_m**2 if fc_p is not None else sigma**2
             self.reset_counter = (self.reset_counter + 1) % 256
             log.info("re-initialised at frame %d (reset %d), anchored at %s", frame.seq, self.reset_counter, how)
+        h = self.height.height_m(frame.range_m, frame.roll_rad, frame.pitch_rad)
+        p = p.copy()
+        p[2] = self.height.start(float(p[2]), h, first=self._good is None)
         self._drift.anchor_p_ned_m, self._drift.flown_m, self._drift.last_p_ned_m = p.copy(), 0.0, None
         kf = Keyframe(
             frame.seq,
@@ -339,6 +346,7 @@ class Odometry:
         self.filter.reset(
             frame.t_exposure_s, p, yaw, v_ned_m_s=v, pos_cov_m2=sigma**2 * np.eye(3), yaw_sigma_rad=self._yaw_sigma_rad
         )
+
         self._good = _Good(frame.t_exposure_s, p.copy(), np.zeros(3) if v is None else v.copy(), yaw, fc_yaw)
         diag = VoDiagnostics(
             state=VisionState.INITIALISING, reason=StateReason.NEW_KEYFRAME, tracks=len(tracks.ids), keyframe=True
@@ -480,6 +488,9 @@ class Odometry:
         self.filter.predict(frame.t_exposure_s)
         outcome = self.filter.update(p_meas, m.yaw_rad, pos_cov_m2=pos_cov, yaw_sigma_rad=yaw_sigma)
         accepted = outcome != Update.REJECTED
+        self._height_fused = self.height.fuse(
+            self.filter, self.height.height_m(frame.range_m, frame.roll_rad, frame.pitch_rad)
+        )
         if outcome == Update.RESTARTED:
             # The filter jumped to the measurement: a change of the sent pose that is not motion.
             self.reset_counter = (self.reset_counter + 1) % 256
@@ -537,6 +548,9 @@ class Odometry:
     ) -> None:
         rp = m.relpose
         p_kf, k = self._keyframe_position(kf, m, reason)
+        if self._height_fused:  # the measured height, not the sum of the translations, carries on
+            p_kf = p_kf.copy()
+            p_kf[2] = self.filter.position_ned_m[2]
         t_m = -rp.R_2_1 @ m.c2_m * k  # metric t_2_1
         depth = carry_depths(
             kf,
