@@ -77,6 +77,7 @@ bench: $(STAMP)
 	OMP_NUM_THREADS=1 $(BIN)/python benchmarks/render.py --markdown docs/benchmarks.md
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/pipeline.py --threads --markdown docs/benchmarks.md
 	$(BIN)/python benchmarks/batch_scaling.py --markdown docs/benchmarks.md
+	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/small_quad.py --markdown docs/benchmarks.md
 
 # Install on the companion computer (sudo make install): the package into a venv made in PREFIX (never
 # a copied one), the settings under ETCDIR (kept if present), the unit, the mavvo user; then check-config

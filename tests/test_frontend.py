@@ -102,3 +102,40 @@ def test_pixels_without_a_bearing_never_become_tracks() -> None:
     for t in tracks:
         assert len(t.ids) > 100 and np.all(np.isfinite(t.f_cam)) and len(t.ids) == len(t.uv_px) == len(t.f_cam)
         assert 0 <= t.tracked <= len(t.ids)
+
+
+def test_pixel_settings_scale_with_the_image_and_the_count_does_not() -> None:
+    small = CameraSpec(width_px=320, height_px=240, fx_px=230.0, fy_px=230.0, cx_px=159.5, cy_px=119.5)
+    f320, f640 = Frontend(small.camera_model()), Frontend(CAMERA.camera_model())
+    assert (f640.min_distance_px, f640._win, f640.klt_levels, f640.border_px) == (12.0, (15, 15), 3, 8)
+    assert (f320.min_distance_px, f320._win, f320.klt_levels, f320.border_px) == (6.0, (11, 11), 2, 4)
+    assert f320.options.max_features == f640.options.max_features
+
+
+def test_the_threshold_drops_on_a_plain_floor_but_not_on_a_blank_or_dark_frame() -> None:
+    """A floor of soft, low-contrast blobs: FAST at 20 finds a handful, so the threshold comes down and
+    the tracks fill up. Sensor noise alone (a blank or a dark frame) leaves it where it was: corners
+    in noise would only be tracks that wander."""
+    rng = np.random.default_rng(4)
+    blobs = cv2.GaussianBlur(rng.normal(0, 1, (480, 640)).astype(np.float32), (0, 0), 4)
+    blobs *= 6.0 / blobs.std()  # soft: 6 grey levels, 1 sigma
+    floor = np.clip(128 + blobs + rng.normal(0, 1.5, blobs.shape), 0, 255).astype(np.uint8)
+    adapting = FrontendOptions(fast_threshold_adapts=True)
+    f = Frontend(CAMERA.camera_model(), adapting)
+    first = len(f.process(floor).ids)
+    for _ in range(8):
+        f.reset()
+        last = f.process(floor)
+    assert f.fast_threshold < 20 and len(last.ids) > 2 * max(first, 1), (f.fast_threshold, first, len(last.ids))
+    fixed = Frontend(CAMERA.camera_model())  # the default: the threshold stays
+    for _ in range(8):
+        fixed.reset()
+        fixed.process(floor)
+    assert fixed.fast_threshold == 20
+    blank = np.clip(rng.normal(128, 2.0, (480, 640)), 0, 255).astype(np.uint8)
+    g = Frontend(CAMERA.camera_model(), adapting)
+    for _ in range(8):
+        g.reset()
+        g.process(blank)
+        g.process((blank // 20).astype(np.uint8))  # dark: 5% exposure
+    assert g.fast_threshold == 20

@@ -455,3 +455,23 @@ def test_height_from_the_range_is_fused_a_glitch_rejected_and_a_step_of_the_grou
     assert anchor.fuse(f, 0.3) and f.position_ned_m[2] == pytest.approx(-1.0, abs=0.01)
     # A restart after tracking was lost starts at the measured height, not where vision left it.
     assert anchor.start(-1.5, 0.3, first=False) == pytest.approx(-1.0, abs=0.01)
+
+
+def test_a_range_that_drifts_away_smoothly_is_the_estimate_lagging_not_the_ground_stepping() -> None:
+    """A climb the filter has not followed: the range moves 2 cm per frame, the estimate stays. Before,
+    five rejections in a row moved the ground by the lag (the sent height then kept that error)."""
+    from mavvo.odometry.height import HeightAnchor, HeightOptions
+
+    anchor = HeightAnchor(HeightOptions(step_frames=5))
+    f = PoseFilter(FilterOptions())
+    f.reset(0.0, np.array([0.0, 0.0, -1.0]), 0.0, pos_cov_m2=1e-4 * np.eye(3), yaw_sigma_rad=0.01)
+    anchor.start(-1.0, 1.0, first=True)
+    h, pulled = 1.0, []
+    for k in range(30):
+        h += 0.02
+        f.predict(0.02 * (k + 1))
+        f._x[2, 0], f._x[5, 0] = -1.0, 0.0  # the estimate does not climb
+        anchor.fuse(f, h)
+        pulled.append(-1.0 - f.position_ned_m[2])
+    assert anchor.steps == 0 and anchor.ground_down_m == pytest.approx(0.0)
+    assert max(pulled) > 0.1  # the range won: the estimate was pulled up toward the measured height

@@ -172,7 +172,7 @@ def expand_settings(configs: Sequence[Path], grid: Path | None) -> list[Settings
     with ``grid``'s cross product. The grid file maps dotted keys to lists of values::
 
         odometry.heading_correction_time_s: [5, 10, 20]
-        frontend.fast_threshold: [10, 20]
+        odometry.frontend.fast_threshold: [10, 20]
 
     Every set is checked as a configuration is (unknown keys, values out of bounds) before any runs."""
     bases = [Settings(p.stem, load_yaml(p)) for p in configs] or [Settings("own", {})]
@@ -181,7 +181,7 @@ def expand_settings(configs: Sequence[Path], grid: Path | None) -> list[Settings
         data = load_yaml(grid)
         if not data:
             raise ConfigError(
-                f"{grid}: expected dotted keys with lists of values, e.g. 'frontend.fast_threshold: [10, 20]'"
+                f"{grid}: expected dotted keys with lists of values, e.g. 'odometry.frontend.fast_threshold: [10, 20]'"
             )
         axes = []
         for key, values in data.items():

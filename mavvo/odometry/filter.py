@@ -199,14 +199,15 @@ class PoseFilter:
         )  # P = (I - K H) P (I - K H)' + K R K' (Joseph: stays symmetric, positive)
         return Update.FUSED
 
-    def update_down(self, down_m: float, sigma_m: float) -> Update:
+    def update_down(self, down_m: float, sigma_m: float, *, gated: bool = True) -> Update:
         """Fuse a measurement of the down coordinate alone (a height from a rangefinder), 1 sigma
-        ``sigma_m``, gated with one degree of freedom. A rejection is only counted: a run of them means
-        the ground moved (a table, a kerb), which the caller decides, not a jump of the vehicle."""
+        ``sigma_m``, gated with one degree of freedom unless ``gated`` is False. A rejection is only
+        counted: what a run of them means (the ground moved, or the estimate drifted) is the caller's
+        to decide."""
         x, P = self._x, self._P
         y = down_m - x[2, 0]  # innovation y = z - H x, H picking the down coordinate
         S = P[2, 2] + sigma_m**2  # S = H P H' + R
-        if y * y / S > self._gate[1]:
+        if gated and y * y / S > self._gate[1]:
             return Update.REJECTED
         K = P[:, 2:3] / S  # K = P H' / S
         self._x = x + K * y  # x = x + K y

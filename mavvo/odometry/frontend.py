@@ -8,7 +8,13 @@ frame against its keyframe by id. Per frame:
    ``fb_max_px`` and it stays ``border_px`` inside the image;
 2. when fewer than ``redetect_fraction`` of ``max_features`` survive, FAST corners are detected in the
    grid cells that have lost theirs: at most ``max_features / cells`` per cell, the strongest first, and
-   none within ``min_distance_px`` of a live track or of each other.
+   none within ``min_distance_px`` of a live track or of each other. With ``fast_threshold_adapts``
+   the threshold follows the texture: lowered while the images yield too few candidates, raised back
+   when they yield plenty.
+
+Pixel settings (spacing, KLT window, border, pyramid levels) are given for ``reference_width_px``
+(640) and scale with the camera's width: at 320x240 the spacing is 6 px, the window 11 px (its floor)
+and the pyramid one level shorter.
 
 Bearings come from the camera
 model, so lens distortion is handled without undistorting images.
@@ -16,6 +22,7 @@ model, so lens distortion is handled without undistorting images.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -28,26 +35,47 @@ __all__ = ["FrontendOptions", "Tracks", "Frontend"]
 
 _MIN_SIDE_PX = 32
 _MAX_SIDE_PX = 4096
+_MIN_SPACING_PX = 4.0  # corners closer than this share most of a KLT window
+_MIN_WINDOW_PX = 11  # a smaller KLT window follows noise on blurred, low-contrast images
+_MIN_THRESHOLD = 5  # the lowest FAST threshold, whatever the noise estimate says
+_STRUCTURE_OVER_NOISE = 4.0  # an image whose grey levels spread less than this many noise sigmas is blank
+_QUANTISATION_SIGMA = 0.5  # grey levels: rounding alone leaves about 0.3
+_NOISE_MASK = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+_FEW, _PLENTY = 1, 4  # candidates per wanted corner: fewer, lower the threshold; more, raise it back
 
 
 @dataclass(frozen=True)
 class FrontendOptions:
-    """Settings of :class:`Frontend`; the defaults suit 640x480 at 15-30 frames/s."""
+    """Settings of :class:`Frontend`. Pixel counts are for an image ``reference_width_px`` wide and
+    scale with the camera's width (see :class:`Frontend`); the feature count does not: the estimator
+    needs as many tracks from a small image as from a large one."""
 
     max_features: int = bounded(250, "tracks kept per frame (the detector tops up to this)", gt=0, le=5000)
     grid_cols: int = bounded(8, "detection grid columns (features are spread over the cells)", gt=0, le=64)
     grid_rows: int = bounded(6, "detection grid rows", gt=0, le=64)
     fast_threshold: int = bounded(
-        20, "FAST intensity threshold, grey levels (halved once when a frame yields too few)", gt=0, lt=255
+        20,
+        "FAST intensity threshold, grey levels (halved for a frame that yields too few; with fast_threshold_adapts, lowered while the images yield too few)",
+        gt=0,
+        lt=255,
+    )
+    fast_threshold_adapts: bool = bounded(
+        False,
+        "lower the FAST threshold while a structured image yields too few corners (small cameras over plain floors: on indoor_hops 27 re-initialisations become 3; off by default: near the ground it cost the compass square's climb 0.6 deg of heading)",
     )
     min_distance_px: float = bounded(
-        12.0, "no new corner closer than this to a track or another new corner", gt=0, le=500
+        12.0, "no new corner closer than this to a track or another new corner (at reference_width_px)", gt=0, le=500
+    )
+    reference_width_px: int = bounded(
+        640, "the image width the pixel settings are given for; other widths scale them", ge=32, le=16384
     )
     redetect_fraction: float = bounded(
         0.8, "detect new corners when fewer than this fraction of max_features survive", gt=0, le=1
     )
-    klt_window_px: int = bounded(15, "Lucas-Kanade window side", ge=5, le=101)
-    klt_levels: int = bounded(3, "pyramid levels above the full image", ge=0, le=6)
+    klt_window_px: int = bounded(15, "Lucas-Kanade window side (at reference_width_px; at least 11)", ge=5, le=101)
+    klt_levels: int = bounded(
+        3, "pyramid levels above the full image (at reference_width_px; one fewer per halving)", ge=0, le=6
+    )
     klt_iterations: int = bounded(20, "Lucas-Kanade iterations per level", gt=0, le=1000)
     fb_max_px: float = bounded(0.5, "largest forward-backward round-trip error of a surviving track", gt=0, le=50)
     klt_back_levels: int = bounded(
@@ -56,7 +84,7 @@ class FrontendOptions:
         ge=0,
         le=6,
     )
-    border_px: int = bounded(8, "tracks this close to the image edge are dropped", ge=0, le=500)
+    border_px: int = bounded(8, "tracks this close to the image edge are dropped (at reference_width_px)", ge=0, le=500)
 
 
 @dataclass(frozen=True)
@@ -76,15 +104,29 @@ class Tracks:
     tracked: int
 
 
+def noise_sigma(img: np.ndarray) -> float:
+    """Sensor noise of a grey image, 1 sigma in grey levels (Immerkaer 1996: the mean absolute response to
+    a mask that cancels smooth structure, sqrt(pi/2) / (6 (W-2)(H-2)) sum |I * N|)."""
+    r = cv2.filter2D(img.astype(np.float32), -1, _NOISE_MASK, borderType=cv2.BORDER_ISOLATED)[1:-1, 1:-1]
+    return float(math.sqrt(math.pi / 2.0) * np.abs(r).mean() / 6.0)
+
+
 class Frontend:
     """Tracks features through a sequence of 8-bit grey images of one camera (see the module docstring)."""
 
     def __init__(self, camera: CameraModel, options: FrontendOptions | None = None) -> None:
         self.camera = camera
         self.options = opt = options or FrontendOptions()
+        # Pixel settings follow the image's size: a 320x240 camera sees the same scene in half the pixels.
+        s = camera.width_px / opt.reference_width_px
+        self.min_distance_px = max(opt.min_distance_px * s, _MIN_SPACING_PX)
+        win = max(int(round(opt.klt_window_px * s)) | 1, min(_MIN_WINDOW_PX, opt.klt_window_px))
+        self._win = (win, win)
+        self.klt_levels = max(opt.klt_levels + int(round(math.log2(s))), min(opt.klt_levels, 1))
+        self.border_px = int(round(opt.border_px * s))
+        self.fast_threshold = opt.fast_threshold  # adapts to the texture (_adapt_threshold)
         self._fast = cv2.FastFeatureDetector_create(opt.fast_threshold, True)
         self._fast_low = cv2.FastFeatureDetector_create(max(opt.fast_threshold // 2, 1), True)
-        self._win = (opt.klt_window_px, opt.klt_window_px)
         self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, opt.klt_iterations, 0.03)
         self._per_cell = max(1, -(-opt.max_features // (opt.grid_cols * opt.grid_rows)))
         self._next_id = 0
@@ -141,22 +183,40 @@ class Frontend:
         """Forward and backward KLT; (surviving mask over uv0, their new positions)."""
         opt = self.options
         p0 = uv0.reshape(-1, 1, 2)
-        lk = dict(winSize=self._win, maxLevel=opt.klt_levels, criteria=self._criteria)
+        lk = dict(winSize=self._win, maxLevel=self.klt_levels, criteria=self._criteria)
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, **lk)
         # Backward from the forward result, started at the original positions: a consistent track
         # converges there without the coarse levels (the same keep/drop decision for 99.96% of the
         # tracks of a survey flight as with all levels, at a third of the cost); one that is not
         # stays off and is dropped.
-        lk["maxLevel"] = opt.klt_back_levels
+        lk["maxLevel"] = min(opt.klt_back_levels, self.klt_levels)
         p0b, st0, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, p0.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
         p1 = p1.reshape(-1, 2)
         d = p0b.reshape(-1, 2) - uv0
         fb = np.hypot(d[:, 0], d[:, 1])
         h, w = cur.shape
-        b = opt.border_px
+        b = self.border_px
         inside = (p1[:, 0] >= b) & (p1[:, 0] <= w - 1 - b) & (p1[:, 1] >= b) & (p1[:, 1] <= h - 1 - b)
         keep = (st1.ravel() == 1) & (st0.ravel() == 1) & (fb < opt.fb_max_px) & inside
         return keep, p1[keep]
+
+    def _adapt_threshold(self, candidates: int, img: np.ndarray) -> None:
+        """The next detection's FAST threshold: lower while the texture yields fewer than ``_FEW``
+        candidates per wanted corner even at half the threshold, and the image has structure above its noise (a low-contrast floor,
+        blur), never below three times the noise; back to ``fast_threshold`` at once when it yields more
+        than ``_PLENTY`` (strong corners first). A dark or blank frame (no structure) leaves it alone:
+        corners found in noise would only be tracks that wander."""
+        t, top = self.fast_threshold, self.options.fast_threshold
+        if candidates < _FEW * self.options.max_features and t > _MIN_THRESHOLD:
+            noise = max(noise_sigma(img), _QUANTISATION_SIGMA)  # a flat dark frame has no noise to measure
+            if float(img.std()) > _STRUCTURE_OVER_NOISE * noise:
+                t = max(_MIN_THRESHOLD, int(3.0 * noise), int(t * 0.75))
+        elif candidates > _PLENTY * self.options.max_features and t < top:
+            t = top  # the texture is back (after a dark or blank stretch): strong corners first again
+        if t != self.fast_threshold:
+            self.fast_threshold = t
+            self._fast.setThreshold(t)
+            self._fast_low.setThreshold(max(t // 2, 1))
 
     def _cell(self, uv: np.ndarray, w: int, h: int) -> np.ndarray:
         """(N,) index of each pixel's detection-grid cell."""
@@ -169,10 +229,12 @@ class Frontend:
         """New corners in cells short of their share, away from live tracks: (M,2) float32."""
         opt = self.options
         h, w = img.shape
-        b = max(opt.border_px, 3)
+        b = max(self.border_px, 3)
         kps = self._fast.detect(img)
         if len(kps) < opt.max_features:
-            kps = self._fast_low.detect(img)
+            kps = self._fast_low.detect(img)  # half the threshold, for this frame
+        if opt.fast_threshold_adapts:
+            self._adapt_threshold(len(kps), img)
         if not kps:
             return np.zeros((0, 2), np.float32)
         pts = np.array([k.pt for k in kps], np.float32)
@@ -181,7 +243,7 @@ class Frontend:
         pts, resp = pts[ok], resp[ok]
 
         # Fine occupancy grid (cell = min distance): a cell next to a live track is taken.
-        d = opt.min_distance_px
+        d = self.min_distance_px
         fw, fh = int(np.ceil(w / d)), int(np.ceil(h / d))
         occupied = np.zeros((fh + 2, fw + 2), bool)
         if len(live_uv):

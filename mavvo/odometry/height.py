@@ -13,9 +13,10 @@ range paired to 90% of the frames). Here the range measures it directly, over fl
 restart after tracking was lost starts at ``g - h`` rather than at a dead-reckoned height. Each
 frame with a range fuses ``z_down`` into the filter with sigma ``range_sigma_m + range_sigma_per_m * h``
 (the sensor's noise, plus what a tilt error and an uneven floor add with height), gated with one degree
-of freedom. A range that disagrees for ``step_frames`` frames in a row is the ground itself stepping
-(a table, a kerb, a roof): ``g`` moves by the step, so the vehicle does not. A glitch (one frame) is
-rejected. Tilted beyond ``max_tilt_deg`` the beam may miss the ground under the vehicle: not used.
+of freedom. A single range that disagrees (a glitch) is rejected. ``step_frames`` in a row that began
+with the range jumping by 0.1 m or more from the reading before are the ground itself stepping (a table,
+a kerb, a roof: no vehicle moves that far in one frame): ``g`` moves by the step, so the vehicle does
+not. A run that began smoothly means the estimate drifted or lagged: the range wins. Tilted beyond ``max_tilt_deg`` the beam may miss the ground under the vehicle: not used.
 Without a range the down coordinate behaves as before.
 """
 
@@ -31,6 +32,8 @@ from mavvo.options import bounded
 __all__ = ["HeightOptions", "HeightAnchor"]
 
 log = logging.getLogger(__name__)
+
+_STEP_MIN_M = 0.1  # a ground step shows as the range jumping this much from one reading to the next
 
 
 @dataclass(frozen=True)
@@ -62,6 +65,8 @@ class HeightAnchor:
         self.options = options or HeightOptions()
         self.ground_down_m: float | None = None
         self._disagree = 0
+        self._last_height_m: float | None = None
+        self._jump_m = 0.0  # the range's change at the frame a run of disagreement began
         self.steps = 0  # the ground stepped (counted)
 
     def height_m(self, range_m: float | None, roll_rad: float, pitch_rad: float) -> float | None:
@@ -78,7 +83,7 @@ class HeightAnchor:
         range): the down coordinate to start at. The first start takes the ground from it; a restart
         keeps the ground (it has not moved because tracking was lost) and starts at the measured height,
         not at the dead-reckoned or the flight controller's down coordinate."""
-        self._disagree = 0
+        self._disagree, self._last_height_m = 0, height_m
         if height_m is None or not self.options.from_range:
             if first:
                 self.ground_down_m = None
@@ -96,13 +101,22 @@ class HeightAnchor:
             self.ground_down_m = float(flt.position_ned_m[2]) + height_m  # the first range after a start
             return False
         sigma = self.options.range_sigma_m + self.options.range_sigma_per_m * height_m
+        previous, self._last_height_m = self._last_height_m, height_m
         if flt.update_down(self.ground_down_m - height_m, sigma) is Update.FUSED:
             self._disagree = 0
             return True
+        if self._disagree == 0:  # how the range moved as the disagreement began
+            self._jump_m = 0.0 if previous is None else height_m - previous
         self._disagree += 1
-        if self._disagree >= self.options.step_frames:  # the ground moved, not the vehicle
+        if self._disagree < self.options.step_frames:
+            return False
+        self._disagree = 0
+        if abs(self._jump_m) >= _STEP_MIN_M:  # the range jumped and stayed: the ground moved, not the vehicle
             new = float(flt.position_ned_m[2]) + height_m
             log.info("the ground under the rangefinder stepped by %+.2f m", self.ground_down_m - new)
-            self.ground_down_m, self._disagree = new, 0
+            self.ground_down_m = new
             self.steps += 1
-        return False
+            return False
+        # The range moved smoothly away from the estimate: the estimate lagged or drifted. The range wins.
+        flt.update_down(self.ground_down_m - height_m, sigma, gated=False)
+        return True

@@ -371,8 +371,25 @@ class CircleSpec:
     yaw_deg: float = bounded(0.0, "heading when yaw is fixed")
 
 
+@dataclass(frozen=True)
+class HopsSpec:
+    """A small quad indoors: around a rectangle, hopping between two heights at every waypoint (the
+    corners and the middle of each side), stopping at each."""
+
+    TYPE: ClassVar[str] = "hops"
+
+    low_m: float = bounded(0.4, "the low height", gt=0)
+    high_m: float = bounded(1.5, "the high height", gt=0)
+    length_m: float = bounded(4.0, "the rectangle along north", gt=0)
+    width_m: float = bounded(2.0, "the rectangle along east", gt=0)
+    speed_m_s: float = bounded(1.0, "top speed between waypoints", gt=0)
+    laps: int = bounded(1, "times around", ge=1)
+    dwell_s: float = bounded(0.3, "pause at each waypoint", ge=0)
+    yaw_deg: float = bounded(0.0, "heading")
+
+
 TrajectorySpec = Union[
-    HoverSpec, SquareSpec, FigureEightSpec, LawnmowerSpec, TakeoffLandingSpec, YawSpinSpec, CircleSpec
+    HoverSpec, SquareSpec, FigureEightSpec, LawnmowerSpec, TakeoffLandingSpec, YawSpinSpec, CircleSpec, HopsSpec
 ]
 
 TRAJECTORY_SPECS: dict[str, type] = {c.TYPE: c for c in TrajectorySpec.__args__}
@@ -401,6 +418,11 @@ def make_trajectory(spec: TrajectorySpec) -> Trajectory:
         lo, hi = -spec.start_height_m, -spec.altitude_m
         wp = np.array([[0, 0, lo], [0, 0, hi], [0, 0, lo]], dtype=float)
         return WaypointTrajectory(wp, spec.climb_rate_m_s, "fixed", spec.yaw_deg, dwell_s=spec.hover_s)
+    if isinstance(spec, HopsSpec):
+        L, W = spec.length_m, spec.width_m
+        ring = [[0, 0], [L / 2, 0], [L, 0], [L, W / 2], [L, W], [L / 2, W], [0, W], [0, W / 2]] * spec.laps + [[0, 0]]
+        wp = np.array([[n, e, -(spec.low_m if k % 2 == 0 else spec.high_m)] for k, (n, e) in enumerate(ring)])
+        return WaypointTrajectory(wp, spec.speed_m_s, "fixed", spec.yaw_deg, dwell_s=spec.dwell_s)
     if isinstance(spec, FigureEightSpec):
         A = spec.length_m / 2
         z = -spec.altitude_m
