@@ -244,3 +244,28 @@ def test_on_the_ground_before_take_off_the_sent_sigma_stays_small():
     # ... and the position it keeps sending stays where it stands.
     p = np.array([[m.x, m.y] for m in run.vision_messages])
     assert np.abs(p - p[0]).max() < 0.05
+
+
+def test_the_autopilots_word_that_its_yaw_is_aligned_ends_the_wait():
+    """A yaw a disturbed compass keeps moving against the gyro (0.3 deg/s) never passes the gyro test:
+    the first estimate waited for service.heading_wait_max_s (real flights: 22.5 s, and 30 s then "north
+    may be off"). EKF_STATUS_REPORT's attitude flag (ArduPilot: yaw aligned) with the compass inside its
+    gate for yaw_settle_window_s settles it; a flag that drops starts the count again."""
+    state = FlightControllerState(FixedClock(), TimingOptions(yaw_settle_window_s=1.5))
+    clock = state.clock
+    for k in range(400):  # 4 s at 100 Hz, the yaw wandering at 0.3 deg/s against a still gyro
+        clock.t = k * 0.01
+        state.on_attitude(30_000 + k * 10, 0.0, 0.0, math.radians(0.3 * clock.t), body_rates_rad_s=(0.0, 0.0, 0.0))
+        if k % 50 == 0:
+            state.on_ekf_status(k < 100 or k >= 150, 0.2)  # the flag drops between 1.0 and 1.5 s
+    # Good from 1.5 s on: settled by the report at 3.0 s, for exposures from then on.
+    assert state.yaw_settled and state.pair(3.0).yaw_settled and not state.pair(2.9).yaw_settled
+    untold = FlightControllerState(FixedClock(), TimingOptions(yaw_settle_window_s=1.5))
+    for k in range(400):
+        untold.clock.t = k * 0.01
+        untold.on_attitude(
+            30_000 + k * 10, 0.0, 0.0, math.radians(0.3 * untold.clock.t), body_rates_rad_s=(0.0, 0.0, 0.0)
+        )
+        if k % 50 == 0:
+            untold.on_ekf_status(True, 1.5)  # the compass outside its gate: not a word to trust
+    assert not untold.yaw_settled

@@ -55,6 +55,9 @@ class Recorder:
     def on_armed(self, armed, t_arrival_host_s=None):
         self.armed = armed
 
+    def on_ekf_status(self, attitude_good, compass_ratio, t_arrival_host_s=None):
+        self.ekf = (attitude_good, compass_ratio)
+
     def wants_timesync(self):
         return False
 

@@ -115,6 +115,12 @@ class LinkOptions:
         gt=0,
         le=1000,
     )
+    ekf_status_rate_hz: float = bounded(
+        2.0,
+        "EKF_STATUS_REPORT rate to request (the autopilot's word that its yaw is aligned: the first estimate need not wait for the yaw to stop moving)",
+        gt=0,
+        le=100,
+    )
     request_retry_s: float = bounded(
         2.0, "first retry of a stream request that brought nothing; doubles up to 30 s", gt=0, le=30
     )
@@ -151,6 +157,9 @@ class LinkListener(Protocol):
     def on_timesync(self, t_sent_host_s: float, t_fc_s: float, t_arrival_host_s: float | None = None) -> None: ...
     def on_reboot(self) -> None: ...
     def on_armed(self, armed: bool, t_arrival_host_s: float | None = None) -> None: ...
+    def on_ekf_status(
+        self, attitude_good: bool, compass_ratio: float, t_arrival_host_s: float | None = None
+    ) -> None: ...
     def wants_timesync(self) -> bool: ...
 
 
@@ -318,6 +327,7 @@ class Link:
             _Stream(mav.MAVLINK_MSG_ID_DISTANCE_SENSOR, options.range_rate_hz),
             _Stream(mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, options.height_rate_hz),
             _Stream(mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, options.local_position_rate_hz),
+            _Stream(mav.MAVLINK_MSG_ID_EKF_STATUS_REPORT, options.ekf_status_rate_hz),
         ]
         self._status_map = {
             SystemStatus.STANDBY: mav.MAV_STATE_STANDBY,
@@ -686,6 +696,8 @@ class Link:
                 self.listener.on_range(msg.time_boot_ms, msg.current_distance * 0.01 if ok else None, now)
         elif kind == "GLOBAL_POSITION_INT":
             self.listener.on_height(msg.time_boot_ms, msg.relative_alt * 1e-3, now)
+        elif kind == "EKF_STATUS_REPORT":
+            self.listener.on_ekf_status(bool(msg.flags & self._mav.EKF_ATTITUDE), msg.compass_variance, now)
         elif kind == "TIMESYNC":
             if msg.tc1 == 0:  # the flight controller asks for our clock: the one estimates are stamped with
                 self._write("TIMESYNC", {"tc1": int(now * 1e9), "ts1": msg.ts1})

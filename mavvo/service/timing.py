@@ -213,6 +213,7 @@ class FlightControllerState:
         self._yaw_prev: tuple[float, float, float] | None = None  # (t_fc_s, unwrapped yaw, yawspeed)
         self._yaw_samples = 0
         self._settled_at_fc_s: float | None = None  # the ATTITUDE time at which the yaw was judged settled
+        self._ekf_good_since: float | None = None  # host time since which EKF_STATUS_REPORT says the yaw is good
         self._armed: deque[tuple[float, bool]] = deque(maxlen=_READINGS_KEPT)  # (arrival, armed) changes
         self.version = 0
         self._waiting_at: int | None = None  # the version a worker found nothing new at and waits on
@@ -326,6 +327,25 @@ class FlightControllerState:
             if not self._armed or self._armed[-1][1] != armed:
                 self._armed.append((now, armed))
 
+    def on_ekf_status(self, attitude_good: bool, compass_ratio: float, t_arrival_host_s: float | None = None) -> None:
+        """EKF_STATUS_REPORT: the autopilot's own word on its yaw. ArduPilot sets the attitude flag only
+        once its yaw is aligned; ``compass_ratio`` is its compass innovation test ratio (< 1: inside its
+        gate). Both holding for ``yaw_settle_window_s`` settles the yaw as well as the gyro test does:
+        in flight a disturbed compass keeps moving the yaw against the gyro, and the wait would run to
+        ``service.heading_wait_max_s``."""
+        now = self._arrival(t_arrival_host_s)
+        with self._lock:
+            self._updated()
+            if not (attitude_good and compass_ratio < 1.0):
+                self._ekf_good_since = None
+                return
+            if self._ekf_good_since is None:
+                self._ekf_good_since = now
+            elif self._settled_at_fc_s is None and now - self._ekf_good_since >= self.options.yaw_settle_window_s:
+                offset = self._sync.offset_s()
+                if offset is not None:
+                    self._settled_at_fc_s = now + offset  # on the flight controller's clock, as the gyro test's
+
     def on_timesync(self, t_sent_host_s: float, t_fc_s: float, t_arrival_host_s: float | None = None) -> None:
         """The answer to a TIMESYNC request that was sent at ``t_sent_host_s``."""
         now = self._arrival(t_arrival_host_s)
@@ -371,6 +391,7 @@ class FlightControllerState:
             self._yaw_drift.clear()
             self._yaw_prev = None
             self._settled_at_fc_s = None
+            self._ekf_good_since = None
 
     # ------------------------------------------------------------------ the worker's side
 

@@ -459,9 +459,12 @@ class SimFlightController:
         )
 
     def _ekf_status(self, t_s: float) -> Any:
-        """ArduPilot's EKF_STATUS_REPORT: attitude, velocities and horizontal position (relative; absolute
-        too with an origin) are good."""
-        flags = 0x1 | 0x2 | 0x4 | 0x8 | 0x20 | (0x10 if self.spec.ekf_origin else 0)
+        """ArduPilot's EKF_STATUS_REPORT: velocities and horizontal position (relative; absolute too with
+        an origin) are good, and the attitude once its yaw has converged (ArduPilot sets that flag only
+        after its yaw alignment): the settling error under 0.5 deg."""
+        settling = self.estimator.yaw_error_rad(self._boot_time_s(t_s))  # disarmed: the settling term alone
+        aligned = 0x1 if abs(math.degrees(settling)) < 0.5 else 0
+        flags = aligned | 0x2 | 0x4 | 0x8 | 0x20 | (0x10 if self.spec.ekf_origin else 0)
         return self._mav.MAVLink_ekf_status_report_message(flags, 0.1, 0.1, 0.1, 0.1, 0.0)
 
     def _system_time(self, t_s: float) -> Any:
