@@ -220,3 +220,12 @@ def test_a_running_scheduler_and_worker_are_reached_with_scheduler(flights, tmp_
         for p in reversed(procs):
             p.terminate()
             p.wait(30)
+
+
+def test_without_dask_the_user_is_told_what_to_install(flights, tmp_path, monkeypatch, capsys):
+    """An installed copy has no fleet extra: a clear line and exit 2, not an ImportError's text."""
+    monkeypatch.setitem(sys.modules, "distributed", None)
+    monkeypatch.setitem(sys.modules, "dask", None)
+    assert _batch(flights / "recordings" / "*", "--out", tmp_path / "out") == 2
+    err = capsys.readouterr().err
+    assert "mavvo batch needs Dask: pip install 'mavvo[fleet]'" in err and "Traceback" not in err

@@ -30,6 +30,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from mavvo.errors import ConfigError
 from mavvo.offline.recording import merge
 from mavvo.service.settings import parse_config
@@ -225,7 +227,6 @@ def replay_task(task: BatchTask) -> dict[str, Any]:
     from mavvo.offline.driver import replay
     from mavvo.offline.report import reference_at
     from mavvo.offline.sources import open_replay_source
-    from mavvo.service.yaml_loader import load_yaml as read
 
     # The service's own warnings about one flight ("no frame paired ...") would interleave from every
     # worker; the row says how the flight went.
@@ -235,9 +236,7 @@ def replay_task(task: BatchTask) -> dict[str, Any]:
         config = None
         if f.config is not None or s.overrides:
             config = Path(tmp) / "settings.yaml"
-            import yaml
-
-            config.write_text(yaml.safe_dump(merge(read(f.config) if f.config else {}, s.overrides)))
+            config.write_text(yaml.safe_dump(merge(load_yaml(f.config) if f.config else {}, s.overrides)))
         inp = open_replay_source(
             Path(f.source),
             config=config,

@@ -142,6 +142,8 @@ def run_tasks(
 ) -> SweepStatus:
     """Run ``fn(payload)`` for each ``(key, payload)`` (see the module docstring). ``fn`` and the
     payloads must pickle (a module-level function, plain data)."""
+    n_workers = workers or default_workers()
+    client, cluster = _client(n_workers, scheduler)  # first: says what to install when Dask is missing
     from distributed import as_completed
     from distributed.client import FutureCancelledError
 
@@ -150,8 +152,6 @@ def run_tasks(
     except ImportError:  # older releases
         from distributed import KilledWorker  # type: ignore[no-redef]
 
-    n_workers = workers or default_workers()
-    client, cluster = _client(n_workers, scheduler)
     started = time.monotonic()
     done = failed = 0
     futures: dict[Any, Hashable] = {}
