@@ -31,11 +31,13 @@ def range_sample(
     trajectory: Trajectory, t_s: float, spec: FlightControllerSpec, rng: np.random.Generator
 ) -> float | None:
     """A downward laser's distance along the body z axis to the ground plane (boxes are not seen), with
-    noise; None when out of the sensor's range or tilted beyond ~84 deg."""
+    noise; None when out of the sensor's range, tilted beyond ~84 deg, or dropped."""
     p, R = trajectory.pose(t_s)
     cos_tilt = R[2, 2]
     if cos_tilt <= 0.1:
         return None
+    if spec.rangefinder_dropout > 0 and rng.random() < spec.rangefinder_dropout:
+        return None  # drawn only when asked for: scenarios without dropouts keep their noise
     r = float(-p[2] / cos_tilt + rng.normal(0.0, spec.rangefinder_noise_m))
     return r if spec.rangefinder_min_m <= r <= spec.rangefinder_max_m else None
 

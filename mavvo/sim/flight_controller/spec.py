@@ -31,6 +31,9 @@ class FlightControllerSpec:
     rangefinder_min_m: float = bounded(0.2, "shortest range", ge=0)
     rangefinder_max_m: float = bounded(40.0, "longest range (beyond: reported as max + 1 cm)", gt=0)
     rangefinder_noise_m: float = bounded(0.02, "range noise (1 sigma)", ge=0)
+    rangefinder_dropout: float = bounded(
+        0.0, "fraction of readings with no return (a dark or shiny floor): reported out of range", ge=0, lt=1
+    )
     baro_noise_m: float = bounded(0.1, "barometric altitude noise (1 sigma)", ge=0)
     home_lat_deg: float = bounded(47.397742, "home latitude", ge=-90, le=90)
     home_lon_deg: float = bounded(8.545594, "home longitude", ge=-180, le=180)

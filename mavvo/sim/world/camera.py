@@ -33,6 +33,17 @@ class HostClock(Protocol):
 
 
 _TEXTURELESS_LEVEL = 120
+# Bands of a rolling-shutter image: at 320x240, 1 m/s and 0.4 m (575 px/s) with a 20 ms readout the
+# image moves 0.7 px from one band to the next.
+_ROLLING_BANDS = 16
+
+
+def _vignette(spec: "CameraSpec") -> np.ndarray:
+    """(H,W) float32 gain: 1 at the principal point, 1 - vignetting at the farthest corner, falling off
+    with the squared distance (a cos^4 law's first term)."""
+    v, u = np.mgrid[0 : spec.height_px, 0 : spec.width_px].astype(np.float32)
+    r2 = (u - spec.cx_px) ** 2 + (v - spec.cy_px) ** 2
+    return (1.0 - spec.vignetting * r2 / r2.max()).astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -51,6 +62,13 @@ class CameraSpec(CameraIntrinsics):
     motion_blur: bool = bounded(True, "blur along the image motion during the exposure")
     gain_variation: float = bounded(0.0, "auto-exposure wander: relative amplitude of a slow gain change", ge=0, lt=1)
     gain_period_s: float = bounded(10.0, "period of the gain change", gt=0)
+    rolling_shutter_ms: float = bounded(
+        0.0,
+        "rolling shutter: time from the first row's exposure to the last's (0: a global shutter); the frame's time is its middle row's",
+        ge=0,
+        le=100,
+    )
+    vignetting: float = bounded(0.0, "how much darker the image corners are than its centre (0.3: 30%)", ge=0, lt=1)
 
     def R_body_cam(self) -> np.ndarray:
         return mount_rotation(self.mount, np.radians(self.oblique_depression_deg))
@@ -92,6 +110,7 @@ class SimCamera:
         self._duration_s = trajectory.duration_s if duration_s is None else duration_s
         self._next = 0
         self.dropped = 0
+        self._vignette = _vignette(spec) if spec.vignetting > 0 else None
         self._closed = False
 
     def camera_pose(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -143,12 +162,28 @@ class SimCamera:
             img = np.full((spec.height_px, spec.width_px), _TEXTURELESS_LEVEL, np.uint8)
             return apply_effects(img, noise_sigma=spec.noise_sigma, rng=self._rng)
         R, p = self.camera_pose(t_exp_s)
-        img = self.renderer.render(R, p)
+        img = self.renderer.render(R, p) if spec.rolling_shutter_ms <= 0 else self._rolling(t_exp_s)
         gain = 1.0 + spec.gain_variation * np.sin(2 * np.pi * t_exp_s / spec.gain_period_s)
+        if self._vignette is not None:
+            gain = gain * self._vignette
         if self.faults.active("dark_frames", t_exp_s):
             gain *= _DARK_GAIN
         blur = self._blur_px(t_exp_s, R, p) if spec.motion_blur and spec.exposure_ms > 0 else (0.0, 0.0)
         return apply_effects(img, gain=gain, blur_px=blur, noise_sigma=spec.noise_sigma, rng=self._rng)
+
+    def _rolling(self, t_exp_s: float) -> np.ndarray:
+        """The image of a rolling shutter: each band of rows rendered at the pose of its own exposure
+        time, the middle row at ``t_exp_s``; enough bands that the image moves under a pixel between
+        neighbours at 1 m/s over the nearest ground (_ROLLING_BANDS)."""
+        h = self.spec.height_px
+        readout_s = self.spec.rolling_shutter_ms * 1e-3
+        out = np.empty((h, self.spec.width_px), np.uint8)
+        edges = np.linspace(0, h, _ROLLING_BANDS + 1).round().astype(int)
+        for top, bottom in zip(edges[:-1], edges[1:]):
+            row = 0.5 * (top + bottom - 1)
+            R, p = self.camera_pose(t_exp_s + readout_s * (row / (h - 1) - 0.5))
+            out[top:bottom] = self.renderer.render(R, p)[top:bottom]
+        return out
 
     def _blur_px(self, t_s: float, R: np.ndarray, p: np.ndarray) -> tuple[float, float]:
         """Image motion over the exposure of the point seen at the image centre from pose (R, p) at

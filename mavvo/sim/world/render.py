@@ -226,12 +226,12 @@ def _virtual_pinhole(camera: CameraModel) -> tuple[np.ndarray, tuple[int, int], 
 def apply_effects(
     image: np.ndarray,
     *,
-    gain: float = 1.0,
+    gain: float | np.ndarray = 1.0,
     blur_px: tuple[float, float] = (0.0, 0.0),
     noise_sigma: float = 0.0,
     rng: np.random.Generator | None = None,
 ) -> np.ndarray:
-    """Exposure gain, linear motion blur along ``blur_px`` (image motion during the exposure, pixels)
+    """Exposure gain (a number, or (H,W) per pixel), linear motion blur along ``blur_px`` (image motion during the exposure, pixels)
     and Gaussian pixel noise (grey levels) applied to a rendered (H,W) uint8 image."""
     out = image.astype(np.float32)
     length = float(np.hypot(*blur_px))
@@ -249,7 +249,7 @@ def apply_effects(
             cv2.LINE_AA,
         )
         out = cv2.filter2D(out, -1, kernel / kernel.sum(), borderType=cv2.BORDER_REFLECT)
-    if gain != 1.0:
+    if not (np.isscalar(gain) and gain == 1.0):
         out *= gain
     if noise_sigma > 0.0:
         if rng is None:

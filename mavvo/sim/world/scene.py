@@ -47,6 +47,12 @@ class WorldSpec:
     finest_m_per_px: float = bounded(0.004, "ground size of one texel of the finest layer", gt=0)
     layers: int = bounded(5, "number of texture layers, each 8x coarser", ge=1, le=8)
     checker_size_m: float = bounded(1.0, "side of one checkerboard square", gt=0)
+    contrast: float = bounded(
+        1.0,
+        "the ground's grey levels around mid-grey are scaled by this (0.15: a plain floor whose corners FAST finds only at low thresholds)",
+        gt=0,
+        le=1,
+    )
     boxes: tuple[BoxSpec, ...] = field(default=(), metadata={"help": "raised textured boxes"})
 
 
@@ -100,6 +106,8 @@ class World:
                 TextureLayer(corner_tile(_TILE_PX, rng), spec.finest_m_per_px * _LAYER_RATIO**k)
                 for k in range(spec.layers)
             )
+        if spec.contrast != 1.0:
+            layers = tuple(TextureLayer(_scaled_contrast(la.tile, spec.contrast), la.m_per_px) for la in layers)
         boxes = tuple(_build_box(b, np.random.default_rng([spec.texture_seed, i])) for i, b in enumerate(spec.boxes))
         return cls(layers, boxes, spec)
 
@@ -132,6 +140,11 @@ def corner_tile(size_px: int, rng: np.random.Generator) -> np.ndarray:
             q = np.round((pts + [dx, dy]) * 16).astype(np.int32)
             cv2.fillConvexPoly(img, q, int(levels[i]), lineType=cv2.LINE_AA, shift=4)
     return img
+
+
+def _scaled_contrast(tile: np.ndarray, contrast: float) -> np.ndarray:
+    """``tile``'s grey levels pulled toward 128 by ``contrast`` (0..1)."""
+    return np.clip(128.0 + contrast * (tile.astype(np.float32) - 128.0) + 0.5, 0, 255).astype(np.uint8)
 
 
 def checker_tile(square_px: int) -> np.ndarray:
