@@ -1,4 +1,4 @@
-"""Feature tracking: FAST corners spread over a grid, pyramidal KLT with a forward-backward check.
+"""Feature tracking: corners spread over a grid (FAST, or Shi-Tomasi on faint texture), pyramidal KLT with a forward-backward check.
 
 Pixels in, tracks out. Each track keeps one id for as long as it lives, so the odometry can match a
 frame against its keyframe by id. Per frame:
@@ -6,11 +6,15 @@ frame against its keyframe by id. Per frame:
 1. the previous frame's tracks are followed into the new image with pyramidal Lucas-Kanade, then
    followed back (from their old positions, at full resolution by default); a track survives when both directions converge, the round trip returns within
    ``fb_max_px`` and it stays ``border_px`` inside the image;
-2. when fewer than ``redetect_fraction`` of ``max_features`` survive, FAST corners are detected in the
+2. when fewer than ``redetect_fraction`` of ``max_features`` survive, corners are detected in the
    grid cells that have lost theirs: at most ``max_features / cells`` per cell, the strongest first, and
-   none within ``min_distance_px`` of a live track or of each other. With ``fast_threshold_adapts``
-   the threshold follows the texture: lowered while the images yield too few candidates, raised back
-   when they yield plenty.
+   none within ``min_distance_px`` of a live track or of each other. The candidates are FAST corners
+   at ``fast_threshold``, or at half of it when those are too few, but never below four sigmas of the
+   image's noise (below that FAST finds corners in the noise itself, which KLT follows by less than a
+   pixel either way: tracks that pass for standing still). Where even those are too few (a low-contrast
+   floor, blur), Shi-Tomasi corners found at half resolution: halving averages the noise away but keeps
+   a faint texture, and a corner counts when its smallest structure-tensor eigenvalue is five times
+   what noise alone gives there (noise's 99.9th percentile is three times its median).
 
 Pixel settings (spacing, KLT window, border, pyramid levels) are given for ``reference_width_px``
 (640) and scale with the camera's width: at 320x240 the spacing is 6 px, the window 11 px (its floor)
@@ -24,6 +28,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
+from typing import ClassVar
 
 import cv2
 import numpy as np
@@ -38,10 +44,12 @@ _MAX_SIDE_PX = 4096
 _MIN_SPACING_PX = 4.0  # corners closer than this share most of a KLT window
 _MIN_WINDOW_PX = 11  # a smaller KLT window follows noise on blurred, low-contrast images
 _MIN_THRESHOLD = 5  # the lowest FAST threshold, whatever the noise estimate says
-_STRUCTURE_OVER_NOISE = 4.0  # an image whose grey levels spread less than this many noise sigmas is blank
+# FAST below this many noise sigmas finds corners in the noise itself: on a plain patch of floor (noise
+# sigma 3) 10-24 per frame at 3 sigma, their structure no more than the noise's; 0-2 at 4 sigma.
+# KLT follows such a corner by less than a pixel either way, so it passes for a track that does not move.
+_NOISE_CORNER_SIGMAS = 4.0
 _QUANTISATION_SIGMA = 0.5  # grey levels: rounding alone leaves about 0.3
 _NOISE_MASK = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
-_FEW, _PLENTY = 1, 4  # candidates per wanted corner: fewer, lower the threshold; more, raise it back
 
 
 @dataclass(frozen=True)
@@ -50,18 +58,19 @@ class FrontendOptions:
     scale with the camera's width (see :class:`Frontend`); the feature count does not: the estimator
     needs as many tracks from a small image as from a large one."""
 
+    # Keys a configuration may still carry from an earlier release: what replaced them.
+    RETIRED_KEYS: ClassVar[dict[str, str]] = {
+        "fast_threshold_adapts": "faint texture is now always found (Shi-Tomasi at half resolution when FAST finds too few); remove the key",
+    }
+
     max_features: int = bounded(250, "tracks kept per frame (the detector tops up to this)", gt=0, le=5000)
     grid_cols: int = bounded(8, "detection grid columns (features are spread over the cells)", gt=0, le=64)
     grid_rows: int = bounded(6, "detection grid rows", gt=0, le=64)
     fast_threshold: int = bounded(
         20,
-        "FAST intensity threshold, grey levels (halved for a frame that yields too few; with fast_threshold_adapts, lowered while the images yield too few)",
+        "FAST intensity threshold, grey levels (halved, but not below 4 noise sigmas, for a frame that yields too few; then Shi-Tomasi at half resolution)",
         gt=0,
         lt=255,
-    )
-    fast_threshold_adapts: bool = bounded(
-        False,
-        "lower the FAST threshold while a structured image yields too few corners (small cameras over plain floors: on indoor_hops 27 re-initialisations become 3; off by default: near the ground it cost the compass square's climb 0.6 deg of heading)",
     )
     min_distance_px: float = bounded(
         12.0, "no new corner closer than this to a track or another new corner (at reference_width_px)", gt=0, le=500
@@ -111,6 +120,45 @@ def noise_sigma(img: np.ndarray) -> float:
     return float(math.sqrt(math.pi / 2.0) * np.abs(r).mean() / 6.0)
 
 
+def _image_noise_sigma(img: np.ndarray) -> float:
+    """:func:`noise_sigma` of the image's central quarter (within 0.02 of the whole image's on
+    indoor_hops' frames, at a quarter of the cost), at least what rounding leaves."""
+    h, w = img.shape
+    return max(noise_sigma(img[h // 4 : h - h // 4, w // 4 : w - w // 4]), _QUANTISATION_SIGMA)
+
+
+_EIG_BLOCK = 5  # Shi-Tomasi block at half resolution: 10 px of the image
+_EIG_OVER_NOISE = 5.0  # a corner's smallest eigenvalue over noise alone's median (its 99.9th percentile: 3)
+
+
+@lru_cache(maxsize=1)
+def _eig_per_noise_var() -> float:
+    """Median of :func:`_half_res_min_eig` over Gaussian noise of unit variance (its value for noise
+    alone; it scales with the variance)."""
+    rng = np.random.default_rng(20101005)
+    img = np.clip(128.0 + 8.0 * rng.standard_normal((240, 320)) + 0.5, 0, 255).astype(np.uint8)
+    return float(np.median(_half_res_min_eig(img))) / 64.0
+
+
+def _half_res_min_eig(img: np.ndarray) -> np.ndarray:
+    return cv2.cornerMinEigenVal(cv2.pyrDown(img), _EIG_BLOCK, 3)
+
+
+def _min_eigen_corners(img: np.ndarray, noise: float) -> tuple[np.ndarray, np.ndarray]:
+    """Shi-Tomasi corners found at half resolution: (M,2) float32 full-resolution pixels and their
+    strength. Halving averages the noise away but keeps a faint texture's structure."""
+    e = _half_res_min_eig(img)
+    peak = (e == cv2.dilate(e, np.ones((3, 3), np.uint8))) & (e > _EIG_OVER_NOISE * _eig_per_noise_var() * noise**2)
+    v, u = np.nonzero(peak)
+    pts = np.column_stack([2.0 * u, 2.0 * v]).astype(np.float32)  # pyrDown centres dst(x, y) on src(2x, 2y)
+    return pts, e[v, u].astype(np.float32)
+
+
+def _noise_floor(noise: float) -> int:
+    """The lowest FAST threshold that does not find corners in noise of ``noise`` sigma (grey levels)."""
+    return max(_MIN_THRESHOLD, math.ceil(_NOISE_CORNER_SIGMAS * noise))
+
+
 class Frontend:
     """Tracks features through a sequence of 8-bit grey images of one camera (see the module docstring)."""
 
@@ -124,9 +172,8 @@ class Frontend:
         self._win = (win, win)
         self.klt_levels = max(opt.klt_levels + int(round(math.log2(s))), min(opt.klt_levels, 1))
         self.border_px = int(round(opt.border_px * s))
-        self.fast_threshold = opt.fast_threshold  # adapts to the texture (_adapt_threshold)
         self._fast = cv2.FastFeatureDetector_create(opt.fast_threshold, True)
-        self._fast_low = cv2.FastFeatureDetector_create(max(opt.fast_threshold // 2, 1), True)
+        self._fast_low = cv2.FastFeatureDetector_create(max(opt.fast_threshold // 2, 1), True)  # set per frame
         self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, opt.klt_iterations, 0.03)
         self._per_cell = max(1, -(-opt.max_features // (opt.grid_cols * opt.grid_rows)))
         self._next_id = 0
@@ -200,24 +247,6 @@ class Frontend:
         keep = (st1.ravel() == 1) & (st0.ravel() == 1) & (fb < opt.fb_max_px) & inside
         return keep, p1[keep]
 
-    def _adapt_threshold(self, candidates: int, img: np.ndarray) -> None:
-        """The next detection's FAST threshold: lower while the texture yields fewer than ``_FEW``
-        candidates per wanted corner even at half the threshold, and the image has structure above its noise (a low-contrast floor,
-        blur), never below three times the noise; back to ``fast_threshold`` at once when it yields more
-        than ``_PLENTY`` (strong corners first). A dark or blank frame (no structure) leaves it alone:
-        corners found in noise would only be tracks that wander."""
-        t, top = self.fast_threshold, self.options.fast_threshold
-        if candidates < _FEW * self.options.max_features and t > _MIN_THRESHOLD:
-            noise = max(noise_sigma(img), _QUANTISATION_SIGMA)  # a flat dark frame has no noise to measure
-            if float(img.std()) > _STRUCTURE_OVER_NOISE * noise:
-                t = max(_MIN_THRESHOLD, int(3.0 * noise), int(t * 0.75))
-        elif candidates > _PLENTY * self.options.max_features and t < top:
-            t = top  # the texture is back (after a dark or blank stretch): strong corners first again
-        if t != self.fast_threshold:
-            self.fast_threshold = t
-            self._fast.setThreshold(t)
-            self._fast_low.setThreshold(max(t // 2, 1))
-
     def _cell(self, uv: np.ndarray, w: int, h: int) -> np.ndarray:
         """(N,) index of each pixel's detection-grid cell."""
         gc, gr = self.options.grid_cols, self.options.grid_rows
@@ -225,20 +254,30 @@ class Frontend:
             (uv[:, 0] * gc / w).astype(int), gc - 1
         )
 
+    def _candidates(self, img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Corner candidates (M,2) float32 pixels and their strengths (M,), comparable among themselves
+        (see the module docstring for the detector that gives them)."""
+        want = self.options.max_features
+        kps = self._fast.detect(img)
+        if len(kps) < want:
+            noise = _image_noise_sigma(img)
+            low = max(self.options.fast_threshold // 2, _noise_floor(noise))
+            if low < self.options.fast_threshold:
+                self._fast_low.setThreshold(low)
+                kps = self._fast_low.detect(img)
+            if len(kps) < want:
+                return _min_eigen_corners(img, noise)
+        pts = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
+        return pts, np.array([k.response for k in kps], np.float32)
+
     def _detect(self, img: np.ndarray, live_uv: np.ndarray) -> np.ndarray:
         """New corners in cells short of their share, away from live tracks: (M,2) float32."""
         opt = self.options
         h, w = img.shape
         b = max(self.border_px, 3)
-        kps = self._fast.detect(img)
-        if len(kps) < opt.max_features:
-            kps = self._fast_low.detect(img)  # half the threshold, for this frame
-        if opt.fast_threshold_adapts:
-            self._adapt_threshold(len(kps), img)
-        if not kps:
+        pts, resp = self._candidates(img)
+        if len(pts) == 0:
             return np.zeros((0, 2), np.float32)
-        pts = np.array([k.pt for k in kps], np.float32)
-        resp = np.array([k.response for k in kps], np.float32)
         ok = (pts[:, 0] >= b) & (pts[:, 0] <= w - 1 - b) & (pts[:, 1] >= b) & (pts[:, 1] <= h - 1 - b)
         pts, resp = pts[ok], resp[ok]
 

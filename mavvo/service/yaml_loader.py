@@ -109,6 +109,10 @@ def _build_dataclass(cls: type, data: Any, source: str, path: str) -> Any:
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     unknown = [k for k in data if k not in fields]
+    retired = getattr(cls, "RETIRED_KEYS", {})
+    for k in unknown:
+        if k in retired:
+            raise ConfigError(f"{source}: {_join(path, str(k))}: no longer a key: {retired[k]}")
     if unknown:
         raise ConfigError(
             f"{source}: {_join(path, str(unknown[0]))}: unknown key; expected one of {', '.join(sorted(fields))}"
