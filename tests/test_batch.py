@@ -42,7 +42,7 @@ def flights(tmp_path_factory) -> Path:
         run_daemon_in_sim(
             load_scenario(name), ServiceConfig(record=RecordOptions(dir=str(root / "recordings"))), duration_s=6.0
         )
-    (root / "grid.yaml").write_text("odometry.heading_correction_time_s: [5.0, 20.0]\n")
+    (root / "grid.yaml").write_text("odometry.filter.accel_sigma_m_s2: [1.0, 6.0]\n")
     return root
 
 
@@ -65,8 +65,8 @@ def test_a_local_cluster_gives_the_sequential_replays_bit_for_bit_and_a_second_r
     assert len({r["estimates_sha256"] for r in rows}) > 2
     summary = json.loads((out / "summary.json").read_text())
     assert {s["settings"] for s in summary["settings"]} == {
-        "odometry.heading_correction_time_s=5",
-        "odometry.heading_correction_time_s=20",
+        "odometry.filter.accel_sigma_m_s2=1",
+        "odometry.filter.accel_sigma_m_s2=6",
     }
     assert summary["best"]["settings"] in {s["settings"] for s in summary["settings"]}
     assert all(s["flights_ok"] == 2 and s["end_error_m_median"] is not None for s in summary["settings"])

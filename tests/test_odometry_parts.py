@@ -338,6 +338,7 @@ def test_a_new_keyframe_goes_where_the_filter_puts_its_frame_when_that_is_the_be
             np.zeros(0),
             np.zeros(0),
             (0.0, 0.0),
+            0.0,
         )  # type: ignore[arg-type]
 
     def filtered_at(p_ned_m: list[float]) -> None:
@@ -398,6 +399,7 @@ def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_
             np.zeros(0),
             np.zeros(0),
             (0.0, 0.0),
+            0.0,
         )
         p, cov = vo._position_noise(frame, kf, m)
         assert p is not None

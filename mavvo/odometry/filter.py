@@ -216,6 +216,11 @@ class PoseFilter:
         self._P = I_KH @ P @ I_KH.T + (K @ K.T) * sigma_m**2  # Joseph form, as in update
         return Update.FUSED
 
+    def commit_position_noise(self, cov_m2: np.ndarray) -> None:
+        """Grow the position uncertainty by ``cov_m2`` (3,3): an error now fixed in the reference every
+        later measurement is made from (a new keyframe), which no later measurement can average away."""
+        self._P[0:3, 0:3] += cov_m2
+
     def shift_yaw(self, delta_rad: float) -> None:
         """Turn the yaw state by ``delta_rad`` (the world heading was corrected; nothing measured)."""
         self._x[6, 0] += delta_rad

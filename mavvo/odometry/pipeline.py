@@ -18,8 +18,9 @@ first keyframe is placed where the flight controller believes the vehicle is
 (``PairedFrame.fc_position_ned_m``; the origin when it says nothing) with its yaw (0 when it sends
 none); afterwards vision carries position and heading. Vision's yaw drifts slowly; a compass's does not
 but is disturbed in flight (the motors' current, the EKF's in-flight yaw alignment), and then vision's is
-the better of the two. So the heading is pulled toward the flight controller's yaw (time constant
-``heading_correction_time_s``) only when ``heading_source`` says that yaw is clean: by default while
+the better of the two. So the heading is pulled toward the flight controller's yaw (at least with the
+time constant ``heading_correction_time_s``, harder where vision's chained heading is the less certain:
+a Kalman gain against ``fc_yaw_sigma_deg``, docs/odometry.md) only when ``heading_source`` says that yaw is clean: by default while
 the flight controller is disarmed, which takes north on the ground before take-off, and in flight only
 while its yaw agrees with vision's within ``heading_gate_deg`` (a compass the motors turn by degrees
 is left alone; an undisturbed one keeps vision's slow drift in check).
@@ -85,6 +86,10 @@ _TRACK_NOISE_MIN, _TRACK_NOISE_MAX = 0.5, 10.0
 _STILL_PARALLAX_PX = 1.0  # median parallax below this and nothing triangulated: the camera has not moved
 # No parallax and less turn than this against the keyframe: standing still, not a degraded pure rotation.
 _STATIONARY_YAW_RAD = math.radians(2.0)
+# The relative yaw's error over what its inliers' residuals alone explain (roll/pitch errors and outliers
+# left in add to it): on indoor_hops' frames the median |error| / sigma was 1.4-2.2 (1 for a Gaussian
+# is 0.67), so its 1 sigma is about 3 sigmas of the residuals.
+_YAW_SIGMA_INFLATION = 3.0
 
 
 @dataclass(frozen=True)
@@ -109,7 +114,7 @@ class OdometryOptions:
     )
     position_sigma_per_speed_s: float = bounded(
         0.003,
-        "vision position noise per m/s of speed with the tracks' noise at track_noise_px (the translation's direction and length errors grow with the motion and the noise; counted from half to ten times this noise), seconds",
+        "vision position noise per m/s of speed with the tracks' noise at track_noise_px and the scene 10 m away or more (the translation's direction and length errors grow with the motion and the noise; counted from half to ten times this noise; nearer, it shrinks with the depth down to a fifth), seconds",
         ge=0,
         le=10,
     )
@@ -126,6 +131,12 @@ class OdometryOptions:
         "pull the vision heading toward the flight controller's yaw with this time constant (0: vision's heading alone) ...",
         ge=0,
         le=3600,
+    )
+    fc_yaw_sigma_deg: float = bounded(
+        0.5,
+        "... and faster where vision's heading is the less certain: the flight controller's yaw error that does not average out between keyframes (EKF noise, a compass within heading_gate_deg)",
+        gt=0,
+        le=180,
     )
     heading_source: Literal["ground", "follow", "vision"] = bounded(
         "ground",
@@ -194,6 +205,16 @@ class _NoPose:
     reason: StateReason
 
 
+def _relative_yaw_var(residual_rms_rad: float, f2_lvl: np.ndarray) -> float:
+    """Variance of a relative yaw measured from the inlier bearings ``f2_lvl`` (N,3) of view 2 (level
+    frame) with errors of ``residual_rms_rad``: a turn about the vertical moves each bearing by its
+    horizontal extent, so sigma = residual / sqrt(sum(fx^2 + fy^2)), times _YAW_SIGMA_INFLATION."""
+    if not math.isfinite(residual_rms_rad) or len(f2_lvl) == 0:
+        return 0.0
+    extent_sq = float(np.sum(f2_lvl[:, 0] ** 2 + f2_lvl[:, 1] ** 2))
+    return (_YAW_SIGMA_INFLATION * residual_rms_rad) ** 2 / extent_sq if extent_sq > 0 else 0.0
+
+
 def _along(direction: np.ndarray, sigma_m: float) -> np.ndarray:
     """(3,3) covariance of an error of ``sigma_m`` (1 sigma) along ``direction`` (none where it is zero)."""
     n_sq = float(direction @ direction)
@@ -213,6 +234,7 @@ class _Measurement:
     depth2_m: np.ndarray  # (matched,) metric depths along the current bearings, NaN where none
     parallax_rad: np.ndarray  # (matched,)
     roll_pitch_rad: tuple[float, float]  # the frame's, corrected by vision (the relative pose's tilt of view 2)
+    yaw_var_rad2: float  # variance of the relative yaw (_relative_yaw_var)
 
 
 class Odometry:
@@ -246,6 +268,9 @@ class Odometry:
         self._min_parallax_rad = math.radians(opt.scale.min_parallax_deg)
         self._carry_min_parallax_rad = math.radians(opt.scale.carry_min_parallax_deg)
         self._yaw_sigma_rad = math.radians(opt.yaw_sigma_deg)
+        self._fc_yaw_var = math.radians(opt.fc_yaw_sigma_deg) ** 2
+        # Vision's heading error variance, rad^2: the relative yaws chained since the FC's yaw last pulled it.
+        self._heading_var = 0.0
         self._att_sigma_rad = math.radians(opt.attitude_sigma_deg)
         if not 0 <= reset_counter <= 255:
             raise ValueError(f"reset_counter: expected 0..255, got {reset_counter}")
@@ -341,6 +366,7 @@ class Odometry:
         )
         self.chain.push(kf, self.reset_counter)
         self._last_yaw_2_1 = 0.0
+        self._heading_var = self._fc_yaw_var if math.isfinite(fc_yaw) else 0.0
         self._metric_interval = False
         self._failed_in_row = 0
         self.filter.reset(
@@ -457,7 +483,8 @@ class Odometry:
                     self._scene_depth_m = median(scale.baseline_m * lam1[valid])
         p, yaw = kf.pose_of(c2, rp.yaw_rad)
         parallax_px = median(par[inl]) * self._focal_px
-        return _Measurement(p, yaw, rp, scale, c2, parallax_px, depth2, par, (roll2, pitch2))
+        yaw_var = _relative_yaw_var(rp.residual_rms_rad, f2[inl])
+        return _Measurement(p, yaw, rp, scale, c2, parallax_px, depth2, par, (roll2, pitch2), yaw_var)
 
     def _accept(
         self,
@@ -508,6 +535,10 @@ class Odometry:
         )
         if why_kf:
             self._new_keyframe(frame, tracks, f_lvl, kf, i_kf, i_cur, m, reason)
+            # The new keyframe's error is now in every measurement made from it, so no later one
+            # averages it away: the chain's random walk, which the filter's covariance must carry
+            # (on indoor_hops' floor the 1 s motion's median NEES went from 6-8 to 3-4 with it).
+            self.filter.commit_position_noise(pos_cov)
         if accepted:
             self._good = _Good(
                 frame.t_exposure_s,
@@ -564,9 +595,16 @@ class Odometry:
             self._carry_min_parallax_rad,
         )
         yaw = wrap_angle(m.yaw_rad)
+        self._heading_var += m.yaw_var_rad2  # this keyframe's relative yaw is committed to the chain
         tau = self.options.heading_correction_time_s
         if tau > 0 and math.isfinite(frame.yaw_rad) and self._fc_yaw_steers(frame, wrap_angle(frame.yaw_rad - yaw)):
-            nudge = min(1.0, (frame.t_exposure_s - kf.t_s) / tau) * wrap_angle(frame.yaw_rad - yaw)
+            # The pull: at least the time constant's share; more where vision's chained heading is less
+            # certain than the flight controller's yaw (a Kalman gain: low over plain floors, where each
+            # keyframe's relative yaw rests on few, noisy tracks).
+            gain = self._heading_var / (self._heading_var + self._fc_yaw_var)
+            gain = max(min(1.0, (frame.t_exposure_s - kf.t_s) / tau), gain)
+            nudge = gain * wrap_angle(frame.yaw_rad - yaw)
+            self._heading_var *= 1.0 - gain
             yaw = wrap_angle(yaw + nudge)
             self.filter.shift_yaw(nudge)  # a correction of the frame's heading, not a measurement to gate
         # The new keyframe keeps its level frame as vision corrected it.
@@ -644,17 +682,10 @@ class Odometry:
         p_meas: np.ndarray | None = m.p_ned_m
         along_m, along_dir = 0.0, np.zeros(3)
         if m.scale is not None:
-            # Roll/pitch the relative pose kept as given, or corrected with too little parallax to tell
-            # a tilt from a translation, turn every bearing by about their error: the translation moves
-            # by depth times it. Resolved ones leave what the pairing's interpolation may add.
+            # Roll/pitch errors move the translation by the depth times them (_attitude_shift_m).
             # The motion's errors grow with the tracks' noise (the relative pose's residuals, over
             # the noise position_sigma_per_speed_s is given for). Independent sources: they add in
             # quadrature; a height source's noise moves the position along the translation only.
-            tilt_rad = (
-                frame.interpolation_sigma_rad
-                if rp.attitude_resolved
-                else math.hypot(*self._view_attitude_sigmas_rad(kf, frame))
-            )
             resid_px = rp.residual_rms_rad * self._focal_px if math.isfinite(rp.residual_rms_rad) else math.inf
             track_noise = min(
                 max(resid_px / opt.track_noise_px, _TRACK_NOISE_MIN), _TRACK_NOISE_MAX
@@ -662,8 +693,11 @@ class Odometry:
             c2_m = float(np.linalg.norm(m.c2_m))
             unresolved = math.hypot(
                 m.scale.spread * c2_m,
-                opt.position_sigma_per_speed_s * float(np.linalg.norm(self.filter.velocity_ned_m_s)) * track_noise,
-                depth * tilt_rad,
+                opt.position_sigma_per_speed_s
+                * float(np.linalg.norm(self.filter.velocity_ned_m_s))
+                * track_noise
+                * min(max(depth / _REFERENCE_DEPTH_M, 0.2), 1.0),
+                self._attitude_shift_m(frame, kf, m),
                 kf.unmeasured_m,  # measured from a keyframe whose own place was not
             )
             along_m, along_dir = m.scale.sensor_spread * c2_m, m.p_ned_m - kf.p_ned_m
@@ -676,6 +710,19 @@ class Odometry:
             p_meas, unresolved = None, 0.0
         iso_m = math.hypot(opt.position_sigma_m * max(depth / _REFERENCE_DEPTH_M, 0.2), unresolved)
         return p_meas, iso_m**2 * np.eye(3) + _along(along_dir, along_m)
+
+    def _attitude_shift_m(self, frame: PairedFrame, kf: Keyframe, m: _Measurement) -> float:
+        """How far roll/pitch errors move a measured position (1 sigma, m): the scene's depth times the
+        views' attitude error. Roll/pitch the relative pose kept as given, or corrected with too little
+        parallax to tell a tilt from a translation, turn every bearing by about their error; resolved
+        ones leave what the pairing's interpolation may add."""
+        depth = self._scene_depth_m or self.options.scale.initial_depth_m
+        tilt_rad = (
+            frame.interpolation_sigma_rad
+            if m.relpose.attitude_resolved
+            else math.hypot(*self._view_attitude_sigmas_rad(kf, frame))
+        )
+        return depth * tilt_rad
 
     def _unresolved_baseline_m(self, kf: Keyframe, m: _Measurement) -> float:
         """How far a frame placed at its keyframe for want of a measured translation may be from it
