@@ -20,6 +20,7 @@ from mavvo.service.settings import ServiceConfig, load_config
 
 log = logging.getLogger(__name__)
 
+_DRAIN_S = 0.2  # simulated (real) seconds of serving after a stop
 _PROGRESS_EVERY_S = 5.0
 _DEFAULT_SCENARIO = "figure_eight"
 
@@ -198,6 +199,9 @@ def _fc_only(scenario: Any, args: argparse.Namespace) -> int:
                     _counts(_received(sim)),
                 )
                 next_report += _PROGRESS_EVERY_S
+        # A bounded drain: what the client sent just before the stop is still in the socket (on a
+        # loaded machine the last estimates were lost, and with them the evaluation).
+        sim.serve(threading.Event(), until_s=sim.clock.now_s() + _DRAIN_S)
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
