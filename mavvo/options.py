@@ -10,9 +10,12 @@ YAML loader (:mod:`mavvo.service.yaml_loader`) reads the metadata to check a fil
 from __future__ import annotations
 
 import dataclasses
+import math
+import operator
+import typing
 from typing import Any
 
-__all__ = ["BOUNDS", "bounded"]
+__all__ = ["BOUNDS", "bounded", "check_fields"]
 
 # Bound keyword -> the comparison it stands for, as error messages spell it.
 BOUNDS = {"ge": ">=", "gt": ">", "le": "<=", "lt": "<"}
@@ -27,3 +30,24 @@ def bounded(default: Any, help: str = "", **bounds: float) -> Any:
     if isinstance(default, (list, dict)):
         raise TypeError("bounded: use tuples, not mutable defaults")
     return dataclasses.field(default=default, metadata={"help": help, **bounds})
+
+
+_COMPARE = {"ge": operator.ge, "gt": operator.gt, "le": operator.le, "lt": operator.lt}
+
+
+def check_fields(options: Any) -> None:
+    """Check an options object made in Python (not through the YAML loader, which checks a file with
+    its path in the message) against what its fields declare: bounds on numbers and the choices of a
+    ``Literal``. Raises ValueError naming the field, what was expected and what came."""
+    hints = typing.get_type_hints(type(options))
+    for f in dataclasses.fields(options):
+        value = getattr(options, f.name)
+        choices = typing.get_args(hints[f.name]) if typing.get_origin(hints[f.name]) is typing.Literal else ()
+        if choices and value not in choices:
+            raise ValueError(f"{f.name}: expected one of {', '.join(map(repr, choices))}, got {value!r}")
+        bounds = {k: v for k, v in f.metadata.items() if k in _COMPARE}
+        if not bounds or isinstance(value, bool) or not isinstance(value, (int, float)):
+            continue
+        if not (math.isfinite(value) and all(_COMPARE[k](value, v) for k, v in bounds.items())):
+            wanted = " and ".join(f"{BOUNDS[k]} {v:g}" for k, v in bounds.items())
+            raise ValueError(f"{f.name}: expected a number {wanted}, got {value!r}")

@@ -364,12 +364,18 @@ def test_malformed_input_raises(f1, f2, kwargs, match) -> None:
 
 
 def test_options_are_validated() -> None:
-    with pytest.raises(ValueError, match="minimal_solver"):
+    """Options made in Python are held to what their fields declare (mavvo.options.check_fields): the
+    choices of a Literal, the bounds, and a NaN is no number."""
+    with pytest.raises(ValueError, match=r"minimal_solver: expected one of '3pt', '4pt', 'linear5pt', got '7pt'"):
         RelposeOptions(minimal_solver="7pt")  # type: ignore[arg-type]
-    with pytest.raises(ValueError, match="tilt_sigma_deg"):
+    with pytest.raises(ValueError, match=r"model: expected one of 'auto', 'essential', 'ground', got 'plane'"):
+        RelposeOptions(model="plane")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"tilt_sigma_deg: expected a number >= 0 and <= 30, got -1.0"):
         RelposeOptions(tilt_sigma_deg=-1.0)
-    with pytest.raises(ValueError, match="confidence"):
+    with pytest.raises(ValueError, match=r"confidence: expected a number > 0 and < 1, got 1.0"):
         RelposeOptions(confidence=1.0)
+    with pytest.raises(ValueError, match=r"max_err_px: expected a number > 0 and <= 100, got nan"):
+        RelposeOptions(max_err_px=float("nan"))
     with pytest.raises(ValueError, match="uv1_px"):
         estimate_relpose_known_gravity(
             np.ones((5, 3)), np.ones((5, 2)), CameraModel(640, 480, 500, 500, 320, 240), np.eye(3), np.eye(3)

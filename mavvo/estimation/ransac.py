@@ -30,7 +30,7 @@ from typing import Protocol
 import numpy as np
 
 from mavvo.jit import kernel
-from mavvo.options import bounded
+from mavvo.options import bounded, check_fields
 
 __all__ = [
     "Estimator",
@@ -95,18 +95,7 @@ class RansacOptions:
     )
 
     def __post_init__(self) -> None:
-        if not 0 < self.confidence < 1:
-            raise ValueError(f"confidence: expected a probability in (0, 1), got {self.confidence}")
-        for name in (
-            "max_iterations",
-            "first_block",
-            "min_block",
-            "preemptive_points",
-            "full_scores_per_block",
-            "lo_rounds",
-        ):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)}")
+        check_fields(self)
         if self.min_iterations < 0 or self.min_iterations > self.max_iterations:
             raise ValueError(
                 f"min_iterations: expected 0..max_iterations ({self.max_iterations}), got {self.min_iterations}"

@@ -61,7 +61,7 @@ from mavvo.geometry.frames import as_rotation, rot_z
 from mavvo.geometry.refine import kabsch, tilt_rotation
 from mavvo.geometry.residuals import ground_sq, rotation_sq, rotation_sq_point
 from mavvo.jit import kernel
-from mavvo.options import bounded
+from mavvo.options import bounded, check_fields
 from mavvo.types import StrEnum
 
 __all__ = [
@@ -171,24 +171,7 @@ class RelposeOptions(RansacOptions):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.minimal_solver not in SAMPLE_SIZE:
-            raise ValueError(f"minimal_solver: expected one of {sorted(SAMPLE_SIZE)}, got {self.minimal_solver!r}")
-        if self.nonminimal_solver not in ("none", "4pt", "linear5pt"):
-            raise ValueError(
-                f"nonminimal_solver: expected 'none', '4pt' or 'linear5pt', got {self.nonminimal_solver!r}"
-            )
-        if self.model not in ("auto", "essential", "ground"):
-            raise ValueError(f"model: expected 'auto', 'essential' or 'ground', got {self.model!r}")
-        if not 0 < self.yaw_prior_tolerance_deg <= 180:
-            raise ValueError(
-                f"yaw_prior_tolerance_deg: expected an angle in (0, 180], got {self.yaw_prior_tolerance_deg}"
-            )
-        if not self.min_parallax_ratio >= 0:
-            raise ValueError(f"min_parallax_ratio: expected a number >= 0, got {self.min_parallax_ratio}")
-        if not self.tilt_sigma_deg >= 0:
-            raise ValueError(f"tilt_sigma_deg: expected an angle >= 0 (0: off), got {self.tilt_sigma_deg}")
-        if not self.max_err_px > 0:
-            raise ValueError(f"max_err_px: expected a positive number of pixels, got {self.max_err_px}")
+        check_fields(self)
 
     @property
     def tilt_sigma_rad(self) -> float | None:
