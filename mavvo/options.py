@@ -10,6 +10,7 @@ YAML loader (:mod:`mavvo.service.yaml_loader`) reads the metadata to check a fil
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import operator
 import typing
@@ -35,19 +36,29 @@ def bounded(default: Any, help: str = "", **bounds: float) -> Any:
 _COMPARE = {"ge": operator.ge, "gt": operator.gt, "le": operator.le, "lt": operator.lt}
 
 
+@functools.lru_cache(maxsize=None)
+def _declared(cls: type) -> tuple[tuple[str, tuple[Any, ...], tuple[tuple[str, float], ...]], ...]:
+    """Per field of ``cls``: (name, Literal choices or (), bounds). Worked out once per class: options
+    are made on hot paths (dataclasses.replace per relative pose) and type hints cost 0.2 ms."""
+    hints = typing.get_type_hints(cls)
+    out = []
+    for f in dataclasses.fields(cls):
+        tp = hints[f.name]
+        choices = typing.get_args(tp) if typing.get_origin(tp) is typing.Literal else ()
+        out.append((f.name, choices, tuple((k, v) for k, v in f.metadata.items() if k in _COMPARE)))
+    return tuple(out)
+
+
 def check_fields(options: Any) -> None:
     """Check an options object made in Python (not through the YAML loader, which checks a file with
     its path in the message) against what its fields declare: bounds on numbers and the choices of a
     ``Literal``. Raises ValueError naming the field, what was expected and what came."""
-    hints = typing.get_type_hints(type(options))
-    for f in dataclasses.fields(options):
-        value = getattr(options, f.name)
-        choices = typing.get_args(hints[f.name]) if typing.get_origin(hints[f.name]) is typing.Literal else ()
+    for name, choices, bounds in _declared(type(options)):
+        value = getattr(options, name)
         if choices and value not in choices:
-            raise ValueError(f"{f.name}: expected one of {', '.join(map(repr, choices))}, got {value!r}")
-        bounds = {k: v for k, v in f.metadata.items() if k in _COMPARE}
+            raise ValueError(f"{name}: expected one of {', '.join(map(repr, choices))}, got {value!r}")
         if not bounds or isinstance(value, bool) or not isinstance(value, (int, float)):
             continue
-        if not (math.isfinite(value) and all(_COMPARE[k](value, v) for k, v in bounds.items())):
-            wanted = " and ".join(f"{BOUNDS[k]} {v:g}" for k, v in bounds.items())
-            raise ValueError(f"{f.name}: expected a number {wanted}, got {value!r}")
+        if not (math.isfinite(value) and all(_COMPARE[k](value, v) for k, v in bounds)):
+            wanted = " and ".join(f"{BOUNDS[k]} {v:g}" for k, v in bounds)
+            raise ValueError(f"{name}: expected a number {wanted}, got {value!r}")
