@@ -56,7 +56,7 @@ lint: $(STAMP)
 soak: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow -rP
 
-# Every shipped scenario over five draws of its noise (about 12 minutes on 2 cores): what the vehicle
+# Every shipped scenario over five draws of its noise (about 30 minutes on 2 cores, the small-quad scenarios the longest): what the vehicle
 # would feel, median and range; writes the tables into docs/service.md.
 draws: $(STAMP)
 	$(BIN)/python -m mavvo.sim.scenarios.draws --markdown docs/service.md
