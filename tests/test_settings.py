@@ -88,6 +88,12 @@ def test_check_config_exit_codes(tmp_path, capsys):
     assert "link.attitude_rate_hz: expected a number > 0, got 0" in err and err.count("\n") == 1
     assert main(["check-config", str(tmp_path / "nowhere.yaml")]) == 2
     assert "nowhere.yaml: cannot read" in capsys.readouterr().err
+    # An empty file is valid but says so (issue 49: it passed silently).
+    for text in ("", "# all defaults\n"):
+        assert main(["check-config", str(write(tmp_path, text))]) == 0
+        assert "it sets nothing, so every setting is its default" in capsys.readouterr().out
+    assert main(["check-config", str(write(tmp_path, "link: {attitude_rate_hz: 20}"))]) == 0
+    assert "sets nothing" not in capsys.readouterr().out
 
 
 def test_run_exit_codes(tmp_path, capsys):

@@ -9,6 +9,7 @@ from typing import Any
 from mavvo.errors import ConfigError
 from mavvo.service.link import read_signing_key
 from mavvo.service.settings import load_config
+from mavvo.service.yaml_loader import load_yaml
 
 
 def add_parser(sub: Any) -> None:
@@ -30,7 +31,9 @@ def main(args: argparse.Namespace) -> int:
             read_signing_key(cfg.link.signing_key_file)
         except ConfigError as e:
             raise ConfigError(f"{args.file}: {e}") from e
+    # An empty file (or one of comments only) is valid, but most likely not what was meant.
+    nothing = "; it sets nothing, so every setting is its default" if not load_yaml(args.file) else ""
     print(
-        f"{args.file}: ok (link {cfg.link.url}, camera {cfg.camera.source} {cfg.camera.width_px}x{cfg.camera.height_px}, scale from {cfg.odometry.scale.source})"
+        f"{args.file}: ok (link {cfg.link.url}, camera {cfg.camera.source} {cfg.camera.width_px}x{cfg.camera.height_px}, scale from {cfg.odometry.scale.source}){nothing}"
     )
     return 0
