@@ -537,7 +537,7 @@ class Odometry:
             self._new_keyframe(frame, tracks, f_lvl, kf, i_kf, i_cur, m, reason)
             # The new keyframe's error is now in every measurement made from it, so no later one
             # averages it away: the chain's random walk, which the filter's covariance must carry
-            # (on indoor_hops' floor the 1 s motion's median NEES went from 6-8 to 3-4 with it).
+            # (docs/odometry.md, Position noise at close range).
             self.filter.commit_position_noise(pos_cov)
         if accepted:
             self._good = _Good(
@@ -682,10 +682,17 @@ class Odometry:
         p_meas: np.ndarray | None = m.p_ned_m
         along_m, along_dir = 0.0, np.zeros(3)
         if m.scale is not None:
-            # Roll/pitch errors move the translation by the depth times them (_attitude_shift_m).
+            # Roll/pitch the relative pose kept as given, or corrected with too little parallax to tell
+            # a tilt from a translation, turn every bearing by about their error: the translation moves
+            # by depth times it. Resolved ones leave what the pairing's interpolation may add.
             # The motion's errors grow with the tracks' noise (the relative pose's residuals, over
             # the noise position_sigma_per_speed_s is given for). Independent sources: they add in
             # quadrature; a height source's noise moves the position along the translation only.
+            tilt_rad = (
+                frame.interpolation_sigma_rad
+                if rp.attitude_resolved
+                else math.hypot(*self._view_attitude_sigmas_rad(kf, frame))
+            )
             resid_px = rp.residual_rms_rad * self._focal_px if math.isfinite(rp.residual_rms_rad) else math.inf
             track_noise = min(
                 max(resid_px / opt.track_noise_px, _TRACK_NOISE_MIN), _TRACK_NOISE_MAX
@@ -697,7 +704,7 @@ class Odometry:
                 * float(np.linalg.norm(self.filter.velocity_ned_m_s))
                 * track_noise
                 * min(max(depth / _REFERENCE_DEPTH_M, 0.2), 1.0),
-                self._attitude_shift_m(frame, kf, m),
+                depth * tilt_rad,
                 kf.unmeasured_m,  # measured from a keyframe whose own place was not
             )
             along_m, along_dir = m.scale.sensor_spread * c2_m, m.p_ned_m - kf.p_ned_m
@@ -710,19 +717,6 @@ class Odometry:
             p_meas, unresolved = None, 0.0
         iso_m = math.hypot(opt.position_sigma_m * max(depth / _REFERENCE_DEPTH_M, 0.2), unresolved)
         return p_meas, iso_m**2 * np.eye(3) + _along(along_dir, along_m)
-
-    def _attitude_shift_m(self, frame: PairedFrame, kf: Keyframe, m: _Measurement) -> float:
-        """How far roll/pitch errors move a measured position (1 sigma, m): the scene's depth times the
-        views' attitude error. Roll/pitch the relative pose kept as given, or corrected with too little
-        parallax to tell a tilt from a translation, turn every bearing by about their error; resolved
-        ones leave what the pairing's interpolation may add."""
-        depth = self._scene_depth_m or self.options.scale.initial_depth_m
-        tilt_rad = (
-            frame.interpolation_sigma_rad
-            if m.relpose.attitude_resolved
-            else math.hypot(*self._view_attitude_sigmas_rad(kf, frame))
-        )
-        return depth * tilt_rad
 
     def _unresolved_baseline_m(self, kf: Keyframe, m: _Measurement) -> float:
         """How far a frame placed at its keyframe for want of a measured translation may be from it

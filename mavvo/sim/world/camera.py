@@ -38,7 +38,7 @@ _TEXTURELESS_LEVEL = 120
 _ROLLING_BANDS = 16
 
 
-def _vignette(spec: "CameraSpec") -> np.ndarray:
+def _vignette(spec: CameraSpec) -> np.ndarray:
     """(H,W) float32 gain: 1 at the principal point, 1 - vignetting at the farthest corner, falling off
     with the squared distance (a cos^4 law's first term)."""
     v, u = np.mgrid[0 : spec.height_px, 0 : spec.width_px].astype(np.float32)
