@@ -75,11 +75,16 @@ class Frame:
         t_exposure_s: middle of the exposure on the host clock (``time.monotonic`` on a drone, the
             simulation clock in the simulator), seconds.
         seq: frame counter of the source, starting at 0; a gap means frames were lost before mavvo.
+        exposure_us: the exposure time the camera reports for this frame, microseconds; None where
+            the source does not say (V4L2, GStreamer, files).
+        gain: the analogue gain the camera reports for this frame (1 = none); None where not said.
     """
 
     image: np.ndarray
     t_exposure_s: float
     seq: int
+    exposure_us: float | None = None
+    gain: float | None = None
 
 
 @dataclass(frozen=True)

@@ -78,6 +78,12 @@ class FakePicamera2FollowingDocumentedAPI:
         self.requests.append(req)
         return req
 
+    # Two of an IMX219's sensor modes, as Picamera2 lists them.
+    sensor_modes = [
+        {"format": "SRGGB10_CSI2P", "unpacked": "SRGGB10", "bit_depth": 10, "size": (640, 480), "fps": 206.65},
+        {"format": "SRGGB10_CSI2P", "unpacked": "SRGGB10", "bit_depth": 10, "size": (1640, 1232), "fps": 41.85},
+    ]
+
     def stop(self) -> None:
         self.started = False
 
@@ -108,6 +114,7 @@ def test_frames_carry_the_luma_plane_and_the_mid_exposure_stamp() -> None:
     }
     f = src.read(1.0)
     assert f is not None and f.image.shape == (240, 320) and np.all(f.image == 100) and f.seq == 0
+    assert (f.exposure_us, f.gain) == (4000.0, 2.0)  # the request's metadata, for mavvo camera
     assert f.t_exposure_s == pytest.approx(1000.02 - 0.002 + 0.006, abs=1e-9)
     assert cam.requests[-1].released  # every request goes back to the camera
     src.close()
@@ -136,3 +143,14 @@ def test_a_missing_camera_or_library_is_a_clear_error(monkeypatch: pytest.Monkey
 
 def test_auto_exposure_asks_only_for_the_frame_rate() -> None:
     assert picamera2_controls(CameraOptions(rate_hz=30.0)) == {"FrameDurationLimits": (33333, 33333)}
+
+
+def test_the_listing_names_each_sensor_mode_and_closes_the_camera() -> None:
+    from mavvo.service.camera_probe import _libcamera_modes
+
+    assert _libcamera_modes(FakePicamera2FollowingDocumentedAPI, 0) == (
+        "640x480 SRGGB10_CSI2P 10-bit up to 206.7 fps",
+        "1640x1232 SRGGB10_CSI2P 10-bit up to 41.9 fps",
+    )
+    assert FakePicamera2FollowingDocumentedAPI.instances[-1].closed
+    assert _libcamera_modes(FakePicamera2FollowingDocumentedAPI, 1) == ("cannot open: list index out of range",)

@@ -80,3 +80,22 @@ def test_advice_names_what_to_change() -> None:
     assert advice(measure(ScriptedSource(clock, [], 0.0), clock, 1.0, "empty"), CameraOptions())[0].startswith(
         "no frame in 1 s"
     )
+
+
+def test_reported_exposure_and_gain_are_measured_and_advised_on() -> None:
+    clock = SteppedClock()
+
+    class AutoExposing(ScriptedSource):
+        exposures = [2000.0] * 5 + [12000.0] * 5  # the camera lengthens its exposure in a darker room
+
+        def read(self, timeout_s: float) -> Frame | None:
+            f = super().read(timeout_s)
+            return Frame(f.image, f.t_exposure_s, f.seq, exposure_us=self.exposures[f.seq], gain=1.0 + f.seq)
+
+    m = measure(AutoExposing(clock, [(i, 100.0 + 0.02 * i) for i in range(10)], age_s=0.01), clock, 10.0, "scripted")
+    assert (m.exposure_us_min, m.exposure_us_max, m.gain_min, m.gain_max) == (2000.0, 12000.0, 1.0, 10.0)
+    text = "\n".join(advice(m, CameraOptions(rate_hz=50.0)))
+    assert "changed its exposure (2000-12000 us) or gain (1.00-10.00)" in text
+    assert "exposures up to 12000 us are over half the frame period" in text  # 20 ms at 50 Hz
+    quiet = measure(ScriptedSource(clock, [(i, 200.0 + 0.02 * i) for i in range(10)], age_s=0.01), clock, 10.0, "s")
+    assert np.isnan(quiet.exposure_us_max) and not any("exposure (" in t for t in advice(quiet, CameraOptions()))

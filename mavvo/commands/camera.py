@@ -21,8 +21,9 @@ def add_parser(sub: Any) -> None:
         "camera",
         help="list cameras, or measure one (rate, lost frames, stamps, exposure)",
         description="Without --source or --config: list the V4L2 devices, libcamera cameras and GStreamer support mavvo can use. "
+        "The listing shows each camera's modes (format, size, frame rates). "
         "With them: read the camera for --seconds and report its real frame rate, frames lost, how far the stamps lie before "
-        "delivery (and how steadily), the brightness as it moves, and advice. Exit 0: measured or listed; 1: no frame; 2: bad input.",
+        "delivery (and how steadily), the brightness, exposure and gain as they move, and advice. Exit 0: measured or listed; 1: no frame; 2: bad input.",
     )
     c.add_argument(
         "--config",
@@ -61,6 +62,10 @@ def _print_measurement(m: CameraMeasurement, tips: list[str]) -> None:
         ("stamp age", f"{_fmt(m.age_median_ms)} ms median, {_fmt(m.age_spread_ms)} ms spread (5-95%)"),
         ("brightness", f"{_fmt(m.brightness_min)}-{_fmt(m.brightness_max)} of 255"),
     ]
+    if not math.isnan(m.exposure_us_max):
+        rows.append(("exposure", f"{m.exposure_us_min:.0f}-{m.exposure_us_max:.0f} us"))
+    if not math.isnan(m.gain_max):
+        rows.append(("gain", f"{m.gain_min:.2f}-{m.gain_max:.2f}"))
     if m.ended:
         rows.append(("ended", m.ended))
     print(_table(rows))
@@ -79,6 +84,8 @@ def main(args: argparse.Namespace) -> int:
             width = max(len(c.source) for c in cams)
             for c in cams:
                 print(f"{c.source.ljust(width)}  {c.kind:<9}  {c.description}")
+                for mode in c.modes:
+                    print(f"{'':{width}}    mode: {mode}")
         return 0
     cfg = load_config(args.config) if args.config is not None else ServiceConfig()
     options = cfg.camera if args.source is None else dataclasses.replace(cfg.camera, source=args.source)

@@ -33,7 +33,7 @@ from mavvo.service.camera_options import CameraOptions
 from mavvo.service.timing import Clock
 from mavvo.types import Frame
 
-__all__ = ["Picamera2Source", "exposure_mid_time_s", "import_picamera2", "picamera2_controls"]
+__all__ = ["Picamera2Source", "exposure_mid_time_s", "import_picamera2", "picamera2_controls", "sensor_modes"]
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +56,26 @@ def import_picamera2() -> Any:
 def exposure_mid_time_s(sensor_timestamp_ns: int, exposure_time_us: float, readout_ms: float) -> float:
     """The middle of the middle row's exposure, seconds on the sensor timestamp's clock (see the module)."""
     return sensor_timestamp_ns * 1e-9 - exposure_time_us * 0.5e-6 + readout_ms * 0.5e-3
+
+
+def _number(value: Any) -> float | None:
+    """A metadata value as a float, None where it is missing or not a number."""
+    try:
+        return float(value) if value is not None else None
+    except (TypeError, ValueError):
+        return None
+
+
+def sensor_modes(cam: Any) -> list[str]:
+    """An opened Picamera2's ``sensor_modes`` (dicts with size, fps, bit_depth, format), one line each:
+    what ``camera.width_px``/``height_px``/``rate_hz`` can ask for without the ISP scaling a crop."""
+    out = []
+    for mode in cam.sensor_modes:
+        w, h = mode.get("size", ("?", "?"))
+        fps = _number(mode.get("fps"))
+        rate = f" up to {fps:.1f} fps" if fps is not None else ""
+        out.append(f"{w}x{h} {mode.get('format', '?')} {mode.get('bit_depth', '?')}-bit{rate}")
+    return out
 
 
 def picamera2_controls(options: CameraOptions) -> dict[str, Any]:
@@ -120,7 +140,13 @@ class Picamera2Source:
         finally:
             request.release()
         image = np.ascontiguousarray(yuv[: self.options.height_px, : self.options.width_px])
-        frame = Frame(image, self._exposure_time_s(metadata, t_grab), self._seq)
+        frame = Frame(
+            image,
+            self._exposure_time_s(metadata, t_grab),
+            self._seq,
+            exposure_us=_number(metadata.get("ExposureTime")),
+            gain=_number(metadata.get("AnalogueGain")),
+        )
         self._seq += 1
         return frame
 

@@ -4,7 +4,9 @@ A camera is judged by what visual odometry needs of it: the frame rate it really
 before mavvo (gaps in the source's sequence numbers), how far each frame's stamp lies before the moment
 mavvo got it (the spread of that age says how much the stamps can be trusted: a driver stamp ages by a
 steady transfer time, a grab-time stamp by exactly ``camera.latency_ms``), and whether the exposure moves
-(the mean brightness, where the source reports no exposure time).
+(the exposure time and gain the frames report, Picamera2's; the mean brightness for every source).
+The listing names each camera's modes (V4L2's enumerated formats, sizes and rates; libcamera's sensor
+modes), so ``camera.width_px``, ``height_px`` and ``rate_hz`` can be set to one the camera has.
 """
 
 from __future__ import annotations
@@ -13,11 +15,14 @@ import glob
 import statistics
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 from mavvo.errors import CameraEnded, CameraError
 from mavvo.service.camera import FrameSource
 from mavvo.service.camera_options import CameraOptions
+from mavvo.service.camera_picamera2 import sensor_modes
 from mavvo.service.timing import Clock
+from mavvo.service.v4l2_modes import v4l2_modes
 
 __all__ = ["CameraListing", "CameraMeasurement", "advice", "list_cameras", "measure"]
 
@@ -29,6 +34,7 @@ class CameraListing:
     source: str
     kind: str  # "v4l2", "libcamera", "gstreamer"
     description: str
+    modes: tuple[str, ...] = ()  # what the sensor or driver offers: format, size, rates; or why it cannot say
 
 
 @dataclass(frozen=True)
@@ -46,6 +52,10 @@ class CameraMeasurement:
     age_spread_ms: float  # 5th to 95th percentile of that age
     brightness_min: float  # mean grey level of the darkest and brightest frame, 0-255
     brightness_max: float
+    exposure_us_min: float  # the exposure time and analogue gain the frames report (NaN where the
+    exposure_us_max: float  # source does not say: V4L2, GStreamer, files)
+    gain_min: float
+    gain_max: float
     ended: str | None  # why the source stopped early, or None
 
     def as_dict(self) -> dict[str, object]:
@@ -67,15 +77,17 @@ def list_cameras() -> list[CameraListing]:
             name = name_file.read_text(encoding="utf-8").strip()
         except OSError:
             name = "V4L2 device"
-        out.append(CameraListing(dev, "v4l2", name))
+        out.append(CameraListing(dev, "v4l2", name, tuple(v4l2_modes(dev))))
     try:
         Picamera2 = import_picamera2()
         for i, info in enumerate(Picamera2.global_camera_info()):
+            num = info.get("Num", i)
             out.append(
                 CameraListing(
-                    f"picamera2:{info.get('Num', i)}",
+                    f"picamera2:{num}",
                     "libcamera",
                     f"{info.get('Model', '?')} at {info.get('Location', '?')}",
+                    _libcamera_modes(Picamera2, num),
                 )
             )
     except CameraError:
@@ -90,6 +102,25 @@ def list_cameras() -> list[CameraListing]:
     except CameraError:
         out.append(CameraListing("gst:PIPELINE", "gstreamer", f"not available: {GST_HINT}"))
     return out
+
+
+def _libcamera_modes(picamera2_cls: Any, num: int) -> tuple[str, ...]:
+    """The sensor modes of libcamera camera ``num`` (opened and closed again), or why they cannot be read."""
+    try:
+        cam = picamera2_cls(num)
+    except (IndexError, RuntimeError, OSError) as e:
+        return (f"cannot open: {e}",)
+    try:
+        return tuple(sensor_modes(cam))
+    except (RuntimeError, OSError) as e:
+        return (f"cannot list modes: {e}",)
+    finally:
+        cam.close()
+
+
+def _span(values: list[float]) -> tuple[float, float]:
+    nan = float("nan")
+    return (min(values), max(values)) if values else (nan, nan)
 
 
 def _percentile(xs: list[float], q: float) -> float:
@@ -119,6 +150,8 @@ def measure(source: FrameSource, clock: Clock, seconds: float, name: str) -> Cam
     ages_ms: list[float] = []
     seqs: list[int] = []
     brightness: list[float] = []
+    exposures_us: list[float] = []
+    gains: list[float] = []
     shape = (0, 0)
     ended = None
     t_end = clock.now_s() + seconds
@@ -135,11 +168,17 @@ def measure(source: FrameSource, clock: Clock, seconds: float, name: str) -> Cam
         ages_ms.append((t_grab - frame.t_exposure_s) * 1e3)
         seqs.append(frame.seq)
         brightness.append(float(frame.image.mean()))
+        if frame.exposure_us is not None:
+            exposures_us.append(frame.exposure_us)
+        if frame.gain is not None:
+            gains.append(frame.gain)
         shape = frame.image.shape[:2]
     n = len(stamps)
     span = stamps[-1] - stamps[0] if n >= 2 else 0.0
     dropped = max(_seq_gaps(seqs), _stamp_gaps(stamps))
     nan = float("nan")
+    exposure_us_min, exposure_us_max = _span(exposures_us)
+    gain_min, gain_max = _span(gains)
     return CameraMeasurement(
         source=name,
         seconds=seconds,
@@ -152,6 +191,10 @@ def measure(source: FrameSource, clock: Clock, seconds: float, name: str) -> Cam
         age_spread_ms=_percentile(ages_ms, 0.95) - _percentile(ages_ms, 0.05) if ages_ms else nan,
         brightness_min=min(brightness, default=nan),
         brightness_max=max(brightness, default=nan),
+        exposure_us_min=exposure_us_min,
+        exposure_us_max=exposure_us_max,
+        gain_min=gain_min,
+        gain_max=gain_max,
         ended=ended,
     )
 
@@ -184,6 +227,15 @@ def advice(m: CameraMeasurement, options: CameraOptions) -> list[str]:
     if options.exposure_us == 0:
         out.append(
             "auto-exposure is on: set camera.exposure_us (e.g. 2000-5000) to bound motion blur and stop brightness jumps between frames"
+        )
+    if m.exposure_us_max > 1.1 * m.exposure_us_min or m.gain_max > 1.1 * m.gain_min:
+        out.append(
+            f"the camera changed its exposure ({m.exposure_us_min:.0f}-{m.exposure_us_max:.0f} us) or gain "
+            f"({m.gain_min:.2f}-{m.gain_max:.2f}) while measuring: features change brightness between frames; fix camera.exposure_us and camera.gain"
+        )
+    if m.exposure_us_max * (1.0 / 1e6) * m.rate_hz > 0.5:
+        out.append(
+            f"exposures up to {m.exposure_us_max:.0f} us are over half the frame period: motion blur at speed; bound camera.exposure_us"
         )
     if m.brightness_max - m.brightness_min > 0.2 * max(m.brightness_max, 1.0):
         out.append(
