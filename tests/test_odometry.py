@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -344,3 +345,32 @@ def test_over_a_faint_floor_a_clean_flight_controller_yaw_holds_the_heading() ->
 
     pulled, drifting = worst_heading_error_deg({}), worst_heading_error_deg({"fc_yaw_sigma_deg": 180.0})
     assert pulled < 2.0 and drifting > 2.0 * pulled, (pulled, drifting)
+
+
+def test_a_compass_that_comes_back_clean_is_heard_again_after_vision_drifted() -> None:
+    """heading_source ground, armed, the forward camera's first 30 s with a magnetic disturbance that
+    turns the flight controller's yaw 5 deg from 2 to 18 s: the gate rightly shuts it out, and vision's
+    chained heading drifts by more than the fixed 1 deg meanwhile (a turn and a sideways step look alike
+    to a forward camera). When the compass is clean again, the gate widened by the two headings' joint
+    uncertainty lets it pull the heading back; the fixed gate alone would never hear it again."""
+    sc = load_scenario("forward")
+    seq = PairedSequence(sc, duration_s=30.0)
+    disturbed = math.radians(5.0)
+    frames = [
+        dataclasses.replace(f, fc_armed=True, yaw_rad=f.yaw_rad + (disturbed if 2.0 <= f.t_exposure_s < 18.0 else 0.0))
+        for f in seq
+    ]
+
+    def heading_errors_deg(options: dict) -> tuple[float, float]:
+        """The worst heading error while disturbed, and in the last 5 s."""
+        vo = Odometry(sc.camera.camera_model(), seq.R_body_cam, build(OdometryOptions, options, "test"))
+        est = [e for e in (vo.step(f) for f in frames) if e is not None and e.quality >= 1]
+        t = np.array([e.t_exposure_s for e in est])
+        d = np.array([e.rpy_rad[2] - seq.trajectory.state(e.t_exposure_s).yaw_rad for e in est])
+        d = np.degrees(np.abs(np.angle(np.exp(1j * d))))
+        return float(d[t < 18.0].max()), float(d[t > 25.0].max())
+
+    during, after = heading_errors_deg({"heading_source": "ground"})
+    _, after_fixed = heading_errors_deg({"heading_source": "ground", "heading_gate_sigmas": 0.0})
+    assert during < 2.5  # the disturbed compass was not followed
+    assert after < 0.6 and after_fixed > 1.0, (during, after, after_fixed)

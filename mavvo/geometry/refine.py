@@ -22,7 +22,7 @@ import numpy as np
 from mavvo.geometry.residuals import sampson_sq_point
 from mavvo.jit import kernel
 
-__all__ = ["UprightFit", "tilt_rotation", "refine_upright", "ground_similarity", "fit_rotation"]
+__all__ = ["UprightFit", "tilt_rotation", "refine_upright", "upright_yaw_variance", "ground_similarity", "fit_rotation"]
 
 
 @dataclass(frozen=True)
@@ -131,6 +131,32 @@ def rotate_row(R: np.ndarray, f: np.ndarray, i: int) -> tuple[float, float, floa
         R[1, 0] * x + R[1, 1] * y + R[1, 2] * z,
         R[2, 0] * x + R[2, 1] * y + R[2, 2] * z,
     )
+
+
+def upright_yaw_variance(yaw_rad: float, t_2_1: np.ndarray, f1: np.ndarray, f2: np.ndarray, sigma_rad: float) -> float:
+    """Variance (rad^2) of the yaw of ``E = [t]x Rz(yaw)`` fitted to the inlier bearings ``f1``, ``f2``
+    (N, 3, level frames, corrected) with Sampson errors of ``sigma_rad``, the translation's direction
+    free: ``sigma^2 [(J^T J)^-1]_00`` over (yaw, t along its tangent basis).
+
+    The translation is what makes it honest on a forward camera: there a turn and a sideways step move
+    the far points alike, and the yaw alone (the points' horizontal extent) looks several times better
+    determined than it is. NaN with fewer than 3 points, a zero translation or a singular system."""
+    t = np.asarray(t_2_1, dtype=np.float64)
+    nt = float(np.linalg.norm(t))
+    if len(f1) < 3 or not nt > 0 or not math.isfinite(sigma_rad):
+        return float("nan")
+    x = np.array([float(yaw_rad), *(t / nt), 0.0, 0.0, 0.0, 0.0])
+    eye = np.eye(3)
+    J, _ = _upright_rows(
+        x, eye, eye, np.ascontiguousarray(f1, dtype=np.float64), np.ascontiguousarray(f2, dtype=np.float64), 1.0, 0.0
+    )
+    A = J[:3] @ J[:3].T
+    try:
+        cov = np.linalg.inv(A)
+    except np.linalg.LinAlgError:
+        return float("nan")
+    var = float(cov[0, 0]) * sigma_rad**2
+    return var if math.isfinite(var) and var > 0 else float("nan")
 
 
 @kernel

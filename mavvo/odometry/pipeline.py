@@ -59,7 +59,7 @@ from mavvo.estimation.relpose import RelposeFailure, RelposeOptions, UprightRelp
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import R_lvl_body, R_lvl_cam, as_rotation, euler321_from_R
 from mavvo.geometry.medians import median
-from mavvo.geometry.refine import tilt_rotation
+from mavvo.geometry.refine import tilt_rotation, upright_yaw_variance
 from mavvo.odometry.filter import FilterOptions, PoseFilter, Update, wrap_angle
 from mavvo.odometry.frontend import Frontend, FrontendOptions, Tracks
 from mavvo.odometry.height import HeightAnchor, HeightOptions
@@ -144,9 +144,15 @@ class OdometryOptions:
     )
     heading_gate_deg: float = bounded(
         1.0,
-        "heading_source ground, armed: a flight controller's yaw further than this from vision's is a disturbed compass and is left alone",
+        "heading_source ground, armed: a flight controller's yaw further than this from vision's is a disturbed compass and is left alone ...",
         ge=0,
         le=180,
+    )
+    heading_gate_sigmas: float = bounded(
+        2.0,
+        "... or further than this many sigmas of their difference, where that is wider: vision's heading uncertainty grows while the compass is not heard, so a vision that drifted is pulled back and not locked out",
+        ge=0,
+        le=10,
     )
     degraded_quality_max: int = bounded(50, "quality cap while degraded", ge=1, le=100)
     anchor_sigma_m: float = bounded(
@@ -205,14 +211,21 @@ class _NoPose:
     reason: StateReason
 
 
-def _relative_yaw_var(residual_rms_rad: float, f2_lvl: np.ndarray) -> float:
-    """Variance of a relative yaw measured from the inlier bearings ``f2_lvl`` (N,3) of view 2 (level
-    frame) with errors of ``residual_rms_rad``: a turn about the vertical moves each bearing by its
-    horizontal extent, so sigma = residual / sqrt(sum(fx^2 + fy^2)), times _YAW_SIGMA_INFLATION."""
-    if not math.isfinite(residual_rms_rad) or len(f2_lvl) == 0:
+def _relative_yaw_var(rp: UprightRelpose, f1_lvl: np.ndarray, f2_lvl: np.ndarray) -> float:
+    """Variance of the relative yaw ``rp`` measured from its inlier bearings ``f1_lvl``, ``f2_lvl``
+    (N,3, corrected level frames), its residuals' RMS times _YAW_SIGMA_INFLATION as the bearing noise:
+    with the translation's direction free where there is one (upright_yaw_variance); without one (a
+    pure rotation), a turn about the vertical moves each bearing by its horizontal extent, so
+    sigma = noise / sqrt(sum(fx^2 + fy^2))."""
+    sigma = _YAW_SIGMA_INFLATION * rp.residual_rms_rad
+    if not math.isfinite(sigma) or len(f2_lvl) == 0:
         return 0.0
+    if rp.reason != RelposeFailure.PURE_ROTATION:
+        var = upright_yaw_variance(rp.yaw_rad, rp.t_2_1, f1_lvl, f2_lvl, sigma)
+        if math.isfinite(var):
+            return var
     extent_sq = float(np.sum(f2_lvl[:, 0] ** 2 + f2_lvl[:, 1] ** 2))
-    return (_YAW_SIGMA_INFLATION * residual_rms_rad) ** 2 / extent_sq if extent_sq > 0 else 0.0
+    return sigma**2 / extent_sq if extent_sq > 0 else 0.0
 
 
 def _along(direction: np.ndarray, sigma_m: float) -> np.ndarray:
@@ -278,6 +291,7 @@ class Odometry:
         self._drift = _Drift()
         self._heading_sigma_rad = math.radians(opt.heading_sigma_deg)
         self._heading_gate_rad = math.radians(opt.heading_gate_deg)
+        self._gate_sigmas = opt.heading_gate_sigmas
         self._good: _Good | None = None
         self._failed_in_row = 0
         self._metric_interval = False  # a trusted scale has been carried into the current keyframe
@@ -384,8 +398,12 @@ class Odometry:
         heading at this frame (``heading_source``)."""
         source = self.options.heading_source
         if source == "ground":
-            # Disarmed, or not known (a log without HEARTBEAT); armed, only a compass that agrees.
-            return frame.fc_armed is not True or abs(innovation_rad) <= self._heading_gate_rad
+            # Disarmed, or not known (a log without HEARTBEAT); armed, only a compass that agrees, within
+            # the fixed gate or the two headings' joint uncertainty (vision's grows while unheard).
+            if frame.fc_armed is not True:
+                return True
+            gate = max(self._heading_gate_rad, self._gate_sigmas * math.sqrt(self._heading_var + self._fc_yaw_var))
+            return abs(innovation_rad) <= gate
         return source == "follow"
 
     def _anchor(self, t_s: float, fc_p: np.ndarray | None) -> tuple[np.ndarray, float, str]:
@@ -483,7 +501,7 @@ class Odometry:
                     self._scene_depth_m = median(scale.baseline_m * lam1[valid])
         p, yaw = kf.pose_of(c2, rp.yaw_rad)
         parallax_px = median(par[inl]) * self._focal_px
-        yaw_var = _relative_yaw_var(rp.residual_rms_rad, f2[inl])
+        yaw_var = _relative_yaw_var(rp, f1[inl], f2[inl])
         return _Measurement(p, yaw, rp, scale, c2, parallax_px, depth2, par, (roll2, pitch2), yaw_var)
 
     def _accept(
