@@ -33,9 +33,10 @@ from mavvo.errors import ConfigError, MavvoError
 from mavvo.evaluation.metrics import PoseSeries
 from mavvo.evaluation.report import vision_estimates
 from mavvo.service.camera import InjectedSource
-from mavvo.service.daemon import Daemon, DaemonSummary
+from mavvo.service.daemon import Daemon
 from mavvo.service.link import us_to_s
 from mavvo.service.mavlink import mavutil
+from mavvo.service.progress import DaemonSummary
 from mavvo.service.settings import ServiceConfig
 from mavvo.service.tlog import payload
 from mavvo.sim.flight_controller.autopilot import RECORDED_TYPES, Received

@@ -54,7 +54,7 @@ from mavvo.service.state_file import ResetCounterFile
 from mavvo.service.timing import Clock, FlightControllerState, MonotonicClock, wait_for_pairing
 from mavvo.types import Frame, PoseEstimate, VisionState
 
-__all__ = ["Daemon", "DaemonSummary", "LockstepProgress"]
+__all__ = ["Daemon"]
 
 log = logging.getLogger(__name__)
 

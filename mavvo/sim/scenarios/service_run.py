@@ -27,7 +27,8 @@ from mavvo.evaluation.metrics import Evaluation, PoseSeries, evaluate
 from mavvo.evaluation.report import GROUND_TRUTH_FILE, vision_estimates, write_report, write_tum
 from mavvo.geometry.camera_model import CameraIntrinsics
 from mavvo.service.camera import CameraOptions
-from mavvo.service.daemon import Daemon, DaemonSummary, LockstepProgress
+from mavvo.service.daemon import Daemon
+from mavvo.service.progress import DaemonSummary, LockstepProgress
 from mavvo.service.settings import MountingOptions, ServiceConfig, as_matrix3
 from mavvo.service.timing import Clock
 from mavvo.sim.scenarios.flight import Simulation
