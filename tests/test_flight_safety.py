@@ -9,7 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from mavvo.odometry.pipeline import Odometry, OdometryOptions
+from mavvo.odometry.options import OdometryOptions
+from mavvo.odometry.pipeline import Odometry
 from mavvo.service.daemon import Daemon
 from mavvo.service.settings import ServiceConfig
 from mavvo.service.timing import FlightControllerState, TimingOptions

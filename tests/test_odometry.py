@@ -13,7 +13,8 @@ import pytest
 
 from mavvo.evaluation.metrics import Evaluation, PoseSeries, evaluate
 from mavvo.geometry.frames import R_from_euler321
-from mavvo.odometry.pipeline import Odometry, OdometryOptions
+from mavvo.odometry.options import OdometryOptions
+from mavvo.odometry.pipeline import Odometry
 from mavvo.service.yaml_loader import build
 from mavvo.sim.scenarios.loader import Scenario, load_scenario
 from mavvo.sim.scenarios.paired_frames import PairedSequence

@@ -12,7 +12,8 @@ from mavvo.estimation.relpose import RelposeFailure, _failure
 from mavvo.geometry.frames import rot_z
 from mavvo.odometry.filter import FilterOptions, PoseFilter, Update, wrap_angle
 from mavvo.odometry.keyframes import Keyframe, KeyframeOptions, carry_depths, keyframe_reason
-from mavvo.odometry.pipeline import Odometry, _Measurement
+from mavvo.odometry.measurement import Measurement, position_noise
+from mavvo.odometry.pipeline import Odometry
 from mavvo.odometry.scale import (
     ScaleEstimate,
     ScaleOptions,
@@ -327,8 +328,8 @@ def test_a_new_keyframe_goes_where_the_filter_puts_its_frame_when_that_is_the_be
     kf = Keyframe(0, 0.0, np.arange(3), np.eye(3), np.full(3, np.nan), np.array([1.0, 2.0, -5.0]), 0.0, 0.0)
     scale = ScaleEstimate(4.0, ScaleSource.RANGEFINDER, 40, 0.3)
 
-    def measured(p_ned_m: list[float], with_scale: bool = True) -> _Measurement:
-        return _Measurement(
+    def measured(p_ned_m: list[float], with_scale: bool = True) -> Measurement:
+        return Measurement(
             np.array(p_ned_m),
             0.0,
             None,
@@ -376,20 +377,12 @@ def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_
     opt = vo.options
     kf = Keyframe(0, 0.0, np.arange(3), np.eye(3), np.full(3, np.nan), np.array([1.0, 2.0, -10.0]), 0.0, 0.0)
     frame = PairedFrame(np.zeros((4, 4), np.uint8), 1.0, 1, 0.0, 0.0)
-    vo.filter.reset(
-        1.0,
-        np.array([5.0, 2.0, -10.0]),
-        0.0,
-        v_ned_m_s=np.array([3.0, 0.0, 0.0]),
-        pos_cov_m2=0.01 * np.eye(3),
-        yaw_sigma_rad=0.01,
-    )
     rp = dataclasses.replace(
         _failure(RelposeFailure.NO_MODEL, 40), success=True, reason=RelposeFailure.NONE, attitude_resolved=True
     )
 
     def noise(track_noise_px: float, sensor_spread: float) -> np.ndarray:
-        m = _Measurement(
+        m = Measurement(
             np.array([5.0, 2.0, -10.0]),
             0.0,
             dataclasses.replace(rp, residual_rms_rad=track_noise_px / vo._focal_px),
@@ -401,7 +394,16 @@ def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_
             (0.0, 0.0),
             0.0,
         )
-        p, cov = vo._position_noise(frame, kf, m)
+        p, cov = position_noise(
+            opt,
+            frame,
+            kf,
+            m,
+            depth_m=opt.scale.initial_depth_m,
+            focal_px=vo._focal_px,
+            speed_m_s=3.0,
+            view_attitude_sigmas_rad=(0.0, 0.0),
+        )
         assert p is not None
         return cov
 

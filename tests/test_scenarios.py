@@ -11,7 +11,7 @@ from conftest import free_port
 
 from mavvo.errors import CameraError, ConfigError
 from mavvo.odometry.frontend import Frontend
-from mavvo.odometry.pipeline import OdometryOptions
+from mavvo.odometry.options import OdometryOptions
 from mavvo.service.camera import FrameSource
 from mavvo.sim.scenarios.flight import Simulation
 from mavvo.sim.scenarios.loader import Scenario, load_scenario, scenario_names

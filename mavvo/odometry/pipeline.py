@@ -18,12 +18,11 @@ first keyframe is placed where the flight controller believes the vehicle is
 (``PairedFrame.fc_position_ned_m``; the origin when it says nothing) with its yaw (0 when it sends
 none); afterwards vision carries position and heading. Vision's yaw drifts slowly; a compass's does not
 but is disturbed in flight (the motors' current, the EKF's in-flight yaw alignment), and then vision's is
-the better of the two. So the heading is pulled toward the flight controller's yaw (at least with the
-time constant ``heading_correction_time_s``, harder where vision's chained heading is the less certain:
-a Kalman gain against ``fc_yaw_sigma_deg``, docs/odometry.md) only when ``heading_source`` says that yaw is clean: by default while
+the better of the two. So the heading is pulled toward the flight controller's yaw
+(:mod:`mavvo.odometry.heading`) only when ``heading_source`` says that yaw is clean: by default while
 the flight controller is disarmed, which takes north on the ground before take-off, and in flight only
-while its yaw agrees with vision's within ``heading_gate_deg`` (a compass the motors turn by degrees
-is left alone; an undisturbed one keeps vision's slow drift in check).
+while its yaw agrees with vision's within a gate that widens with vision's uncertainty (a compass the
+motors turn by degrees is left alone; an undisturbed one keeps vision's slow drift in check).
 
 States: ``initialising`` (a keyframe was just made: the pose is the anchor), ``tracking``,
 ``degraded`` (a pose, trusted less: pure rotation, no metric scale source, few inliers; quality at most
@@ -51,24 +50,25 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 
-from mavvo.estimation.relpose import RelposeFailure, RelposeOptions, UprightRelpose, estimate_upright_relpose
+from mavvo.estimation.relpose import RelposeFailure, UprightRelpose, estimate_upright_relpose
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import R_lvl_body, R_lvl_cam, as_rotation, euler321_from_R
 from mavvo.geometry.medians import median
-from mavvo.geometry.refine import tilt_rotation, upright_yaw_variance
-from mavvo.odometry.filter import FilterOptions, PoseFilter, Update, wrap_angle
-from mavvo.odometry.frontend import Frontend, FrontendOptions, Tracks
-from mavvo.odometry.height import HeightAnchor, HeightOptions
-from mavvo.odometry.keyframes import Keyframe, KeyframeChain, KeyframeOptions, carry_depths, keyframe_reason
-from mavvo.odometry.scale import ScaleEstimate, ScaleOptions, estimate_scale, scale_from_scene_depth, triangulate_unit
-from mavvo.options import bounded
+from mavvo.geometry.refine import tilt_rotation
+from mavvo.odometry.filter import PoseFilter, Update, wrap_angle
+from mavvo.odometry.frontend import Frontend, Tracks
+from mavvo.odometry.heading import HeadingChain, relative_yaw_var
+from mavvo.odometry.height import HeightAnchor
+from mavvo.odometry.keyframes import Keyframe, KeyframeChain, carry_depths, keyframe_reason
+from mavvo.odometry.measurement import Measurement, NoPose, position_noise, unresolved_baseline_m
+from mavvo.odometry.options import OdometryOptions
+from mavvo.odometry.scale import ScaleEstimate, estimate_scale, scale_from_scene_depth, triangulate_unit
 from mavvo.types import PairedFrame, PoseEstimate, ScaleSource, StateReason, VisionState, VoDiagnostics
 
-__all__ = ["OdometryOptions", "Odometry"]
+__all__ = ["Odometry"]
 
 log = logging.getLogger(__name__)
 
@@ -78,105 +78,8 @@ _UNTRUSTED_SCALE_REASON = {ScaleSource.HELD: StateReason.SCALE_HELD, ScaleSource
 # Frames whose keyframe goes where the filter puts them (Odometry._keyframe_position).
 _FILTER_PLACES_KEYFRAME = frozenset({StateReason.NONE, StateReason.FEW_INLIERS, *_UNTRUSTED_SCALE_REASON.values()})
 _BASELINE_FACTOR_MIN = 0.5  # a new keyframe's depths follow the filter's baseline within a factor of 2
-_REFERENCE_DEPTH_M = 10.0  # the scene depth position_sigma_m is given for
-# The motion term follows the tracks' noise within these multiples of track_noise_px: capped at 2x, the
-# `faults` camera's tracks dragged by its auto-exposure (residuals up to 0.9 px) were sent with a 2 cm sigma
-# while the position moved 0.1 m (one draw at 93.1% inside the 99% ellipse; 95.0% at 10x).
-_TRACK_NOISE_MIN, _TRACK_NOISE_MAX = 0.5, 10.0
-_STILL_PARALLAX_PX = 1.0  # median parallax below this and nothing triangulated: the camera has not moved
 # No parallax and less turn than this against the keyframe: standing still, not a degraded pure rotation.
 _STATIONARY_YAW_RAD = math.radians(2.0)
-# The relative yaw's error over what its inliers' residuals alone explain (roll/pitch errors and outliers
-# left in add to it): on indoor_hops' frames the median |error| / sigma was 1.4-2.2 (1 for a Gaussian
-# is 0.67), so its 1 sigma is about 3 sigmas of the residuals.
-_YAW_SIGMA_INFLATION = 3.0
-
-
-@dataclass(frozen=True)
-class OdometryOptions:
-    """Everything :class:`Odometry` can be told; the defaults suit a 640x480 camera at 20 frames/s."""
-
-    frontend: FrontendOptions = field(default_factory=FrontendOptions)
-    ransac: RelposeOptions = field(default_factory=RelposeOptions)
-    keyframes: KeyframeOptions = field(default_factory=KeyframeOptions)
-    scale: ScaleOptions = field(default_factory=ScaleOptions)
-    filter: FilterOptions = field(default_factory=FilterOptions)
-    height: HeightOptions = field(default_factory=HeightOptions)
-    min_tracks: int = bounded(30, "fewer tracks shared with the keyframe: tracking is lost", ge=5, le=5000)
-    min_inliers: int = bounded(20, "fewer inliers: no pose from this frame", ge=5, le=5000)
-    good_inliers: int = bounded(120, "inliers for full quality", ge=5, le=5000)
-    max_failed_frames: int = bounded(5, "frames in a row without a pose before the keyframe is given up", ge=1, le=1000)
-    position_sigma_m: float = bounded(
-        0.0008,
-        "vision position noise from the image at full quality with the scene 10 m away (it scales with the depth, down to a fifth of it); the other terms: docs/odometry.md",
-        gt=0,
-        le=100,
-    )
-    position_sigma_per_speed_s: float = bounded(
-        0.003,
-        "vision position noise per m/s of speed with the tracks' noise at track_noise_px and the scene 10 m away or more (the translation's direction and length errors grow with the motion and the noise; counted from half to ten times this noise; nearer, it shrinks with the depth down to a fifth), seconds",
-        ge=0,
-        le=10,
-    )
-    track_noise_px: float = bounded(
-        0.1,
-        "the tracks' noise (RMS of the relative pose's inlier residuals) position_sigma_per_speed_s is given for",
-        gt=0,
-        le=10,
-    )
-    yaw_sigma_deg: float = bounded(0.3, "vision yaw noise at full quality", gt=0, le=180)
-    attitude_sigma_deg: float = bounded(0.2, "roll/pitch uncertainty reported in the covariance", gt=0, le=90)
-    heading_correction_time_s: float = bounded(
-        10.0,
-        "pull the vision heading toward the flight controller's yaw with this time constant (0: vision's heading alone) ...",
-        ge=0,
-        le=3600,
-    )
-    fc_yaw_sigma_deg: float = bounded(
-        0.5,
-        "... and faster where vision's heading is the less certain: the flight controller's yaw error that does not average out between keyframes (EKF noise, a compass within heading_gate_deg)",
-        gt=0,
-        le=180,
-    )
-    heading_source: Literal["ground", "follow", "vision"] = bounded(
-        "ground",
-        "... when: ground: while the flight controller is disarmed (motors off, the compass clean), and in flight only while its yaw agrees with vision's within heading_gate_deg; follow: always (a GPS or other trustworthy yaw); vision: never after north is taken (EK3_SRC1_YAW 6: its yaw is mavvo's own)",
-    )
-    heading_gate_deg: float = bounded(
-        1.0,
-        "heading_source ground, armed: a flight controller's yaw further than this from vision's is a disturbed compass and is left alone ...",
-        ge=0,
-        le=180,
-    )
-    heading_gate_sigmas: float = bounded(
-        2.0,
-        "... or further than this many sigmas of their difference, where that is wider: vision's heading uncertainty grows while the compass is not heard, so a vision that drifted is pulled back and not locked out",
-        ge=0,
-        le=10,
-    )
-    degraded_quality_max: int = bounded(50, "quality cap while degraded", ge=1, le=100)
-    anchor_sigma_m: float = bounded(
-        0.3,
-        "how far the flight controller's own position estimate, where tracking is (re)started, may be from the truth (VO_DRIFT)",
-        gt=0,
-        le=100,
-    )
-    dead_reckon_max_s: float = bounded(
-        2.0,
-        "re-initialising without the flight controller's position: move the last good pose on by the filter's velocity over at most this long",
-        ge=0,
-        le=60,
-    )
-    max_speed_m_s: float = bounded(
-        10.0, "the vehicle's top speed: how uncertain a pose held over an outage is", gt=0, le=100
-    )
-    drift_per_m: float = bounded(0.02, "long-term drift (VO_DRIFT) per metre flown, 1 sigma", ge=0, le=1)
-    heading_sigma_deg: float = bounded(
-        2.0,
-        "heading uncertainty behind VO_DRIFT (the flight controller's yaw followed; without it vision's grows)",
-        ge=0,
-        le=180,
-    )
 
 
 @dataclass
@@ -202,52 +105,6 @@ class _Drift:
     def sigma_m(self, p_ned_m: np.ndarray, per_m: float, heading_rad: float) -> float:
         away = float(np.linalg.norm(p_ned_m[:2] - self.anchor_p_ned_m[:2]))
         return math.sqrt(self.anchor_var_m2 + (per_m * self.flown_m) ** 2 + (heading_rad * away) ** 2)
-
-
-@dataclass(frozen=True)
-class _NoPose:
-    """Why a frame has no pose against its keyframe."""
-
-    reason: StateReason
-
-
-def _relative_yaw_var(rp: UprightRelpose, f1_lvl: np.ndarray, f2_lvl: np.ndarray) -> float:
-    """Variance of the relative yaw ``rp`` measured from its inlier bearings ``f1_lvl``, ``f2_lvl``
-    (N,3, corrected level frames), its residuals' RMS times _YAW_SIGMA_INFLATION as the bearing noise:
-    with the translation's direction free where there is one (upright_yaw_variance); without one (a
-    pure rotation), a turn about the vertical moves each bearing by its horizontal extent, so
-    sigma = noise / sqrt(sum(fx^2 + fy^2))."""
-    sigma = _YAW_SIGMA_INFLATION * rp.residual_rms_rad
-    if not math.isfinite(sigma) or len(f2_lvl) == 0:
-        return 0.0
-    if rp.reason != RelposeFailure.PURE_ROTATION:
-        var = upright_yaw_variance(rp.yaw_rad, rp.t_2_1, f1_lvl, f2_lvl, sigma)
-        if math.isfinite(var):
-            return var
-    extent_sq = float(np.sum(f2_lvl[:, 0] ** 2 + f2_lvl[:, 1] ** 2))
-    return sigma**2 / extent_sq if extent_sq > 0 else 0.0
-
-
-def _along(direction: np.ndarray, sigma_m: float) -> np.ndarray:
-    """(3,3) covariance of an error of ``sigma_m`` (1 sigma) along ``direction`` (none where it is zero)."""
-    n_sq = float(direction @ direction)
-    if n_sq == 0.0 or sigma_m == 0.0:
-        return np.zeros((3, 3))
-    return (sigma_m**2 / n_sq) * np.outer(direction, direction)
-
-
-@dataclass
-class _Measurement:
-    p_ned_m: np.ndarray
-    yaw_rad: float
-    relpose: UprightRelpose
-    scale: ScaleEstimate | None
-    c2_m: np.ndarray
-    parallax_px: float
-    depth2_m: np.ndarray  # (matched,) metric depths along the current bearings, NaN where none
-    parallax_rad: np.ndarray  # (matched,)
-    roll_pitch_rad: tuple[float, float]  # the frame's, corrected by vision (the relative pose's tilt of view 2)
-    yaw_var_rad2: float  # variance of the relative yaw (_relative_yaw_var)
 
 
 class Odometry:
@@ -281,17 +138,13 @@ class Odometry:
         self._min_parallax_rad = math.radians(opt.scale.min_parallax_deg)
         self._carry_min_parallax_rad = math.radians(opt.scale.carry_min_parallax_deg)
         self._yaw_sigma_rad = math.radians(opt.yaw_sigma_deg)
-        self._fc_yaw_var = math.radians(opt.fc_yaw_sigma_deg) ** 2
-        # Vision's heading error variance, rad^2: the relative yaws chained since the FC's yaw last pulled it.
-        self._heading_var = 0.0
+        self.heading = HeadingChain(opt)
         self._att_sigma_rad = math.radians(opt.attitude_sigma_deg)
         if not 0 <= reset_counter <= 255:
             raise ValueError(f"reset_counter: expected 0..255, got {reset_counter}")
         self.reset_counter = reset_counter
         self._drift = _Drift()
         self._heading_sigma_rad = math.radians(opt.heading_sigma_deg)
-        self._heading_gate_rad = math.radians(opt.heading_gate_deg)
-        self._gate_sigmas = opt.heading_gate_sigmas
         self._good: _Good | None = None
         self._failed_in_row = 0
         self._metric_interval = False  # a trusted scale has been carried into the current keyframe
@@ -331,7 +184,7 @@ class Odometry:
             self.chain.drop()
             return self._failed(frame, StateReason.TRACKING_LOST, len(i_kf))
         m = self._measure(frame, kf, i_kf, i_cur, f_lvl)
-        if isinstance(m, _NoPose):
+        if isinstance(m, NoPose):
             self._failed_in_row += 1
             if self._failed_in_row >= self.options.max_failed_frames:
                 self.chain.drop()
@@ -380,7 +233,7 @@ class Odometry:
         )
         self.chain.push(kf, self.reset_counter)
         self._last_yaw_2_1 = 0.0
-        self._heading_var = self._fc_yaw_var if math.isfinite(fc_yaw) else 0.0
+        self.heading.restart(fc_yaw)
         self._metric_interval = False
         self._failed_in_row = 0
         self.filter.reset(
@@ -392,19 +245,6 @@ class Odometry:
             state=VisionState.INITIALISING, reason=StateReason.NEW_KEYFRAME, tracks=len(tracks.ids), keyframe=True
         )
         return self._estimate(frame, diag, quality=1)
-
-    def _fc_yaw_steers(self, frame: PairedFrame, innovation_rad: float) -> bool:
-        """Whether the flight controller's yaw, ``innovation_rad`` from vision's heading, may pull the
-        heading at this frame (``heading_source``)."""
-        source = self.options.heading_source
-        if source == "ground":
-            # Disarmed, or not known (a log without HEARTBEAT); armed, only a compass that agrees, within
-            # the fixed gate or the two headings' joint uncertainty (vision's grows while unheard).
-            if frame.fc_armed is not True:
-                return True
-            gate = max(self._heading_gate_rad, self._gate_sigmas * math.sqrt(self._heading_var + self._fc_yaw_var))
-            return abs(innovation_rad) <= gate
-        return source == "follow"
 
     def _anchor(self, t_s: float, fc_p: np.ndarray | None) -> tuple[np.ndarray, float, str]:
         """Where re-initialised tracking starts, its 1-sigma uncertainty, and what it came from."""
@@ -426,7 +266,7 @@ class Odometry:
 
     def _measure(
         self, frame: PairedFrame, kf: Keyframe, i_kf: np.ndarray, i_cur: np.ndarray, f_lvl: np.ndarray
-    ) -> _Measurement | _NoPose:
+    ) -> Measurement | NoPose:
         """The frame's pose against the keyframe, or the reason there is none."""
         opt = self.options
         f1, f2 = kf.f_lvl[i_kf], f_lvl[i_cur]
@@ -447,9 +287,9 @@ class Odometry:
             attitude_sigma_rad=sigmas,
         )
         if not rp.success and rp.reason != RelposeFailure.PURE_ROTATION:
-            return _NoPose(StateReason(rp.reason.value))
+            return NoPose(StateReason(rp.reason.value))
         if rp.num_inliers < opt.min_inliers:
-            return _NoPose(StateReason.TOO_FEW_INLIERS)
+            return NoPose(StateReason.TOO_FEW_INLIERS)
         self._last_yaw_2_1 = rp.yaw_rad
         T1, T2 = tilt_rotation(rp.tilt1_rad), tilt_rotation(rp.tilt2_rad)
         f1, f2 = f1 @ T1.T, f2 @ T2.T
@@ -484,9 +324,11 @@ class Odometry:
                 first_interval=not self._metric_interval,
             )
             if scale is None:
-                depth = self._scene_depth_m or opt.scale.initial_depth_m
                 scale = scale_from_scene_depth(
-                    pts, depth, ScaleSource.HELD if self._scene_depth_m else ScaleSource.ASSUMED, opt.scale.min_points
+                    pts,
+                    self._depth_m(),
+                    ScaleSource.HELD if self._scene_depth_m else ScaleSource.ASSUMED,
+                    opt.scale.min_points,
                 )
             if scale is None:
                 # Too little parallax to triangulate: the baseline is below what the images resolve
@@ -501,8 +343,8 @@ class Odometry:
                     self._scene_depth_m = median(scale.baseline_m * lam1[valid])
         p, yaw = kf.pose_of(c2, rp.yaw_rad)
         parallax_px = median(par[inl]) * self._focal_px
-        yaw_var = _relative_yaw_var(rp, f1[inl], f2[inl])
-        return _Measurement(p, yaw, rp, scale, c2, parallax_px, depth2, par, (roll2, pitch2), yaw_var)
+        yaw_var = relative_yaw_var(rp, f1[inl], f2[inl])
+        return Measurement(p, yaw, rp, scale, c2, parallax_px, depth2, par, (roll2, pitch2), yaw_var)
 
     def _accept(
         self,
@@ -512,7 +354,7 @@ class Odometry:
         kf: Keyframe,
         i_kf: np.ndarray,
         i_cur: np.ndarray,
-        m: _Measurement,
+        m: Measurement,
     ) -> PoseEstimate:
         opt = self.options
         rp = m.relpose
@@ -527,7 +369,16 @@ class Odometry:
             reason = StateReason.ATTITUDE_INTERPOLATED
         degraded = reason != StateReason.NONE
         quality = self._quality(rp, degraded=degraded)
-        p_meas, noise_cov = self._position_noise(frame, kf, m)
+        p_meas, noise_cov = position_noise(
+            opt,
+            frame,
+            kf,
+            m,
+            depth_m=self._depth_m(),
+            focal_px=self._focal_px,
+            speed_m_s=float(np.linalg.norm(self.filter.velocity_ned_m_s)),
+            view_attitude_sigmas_rad=self._view_attitude_sigmas_rad(kf, frame),
+        )
         pos_cov = noise_cov * (100.0 / quality) ** 2
         yaw_sigma = self._yaw_sigma_rad * 100.0 / quality
         self.filter.predict(frame.t_exposure_s)
@@ -592,7 +443,7 @@ class Odometry:
         kf: Keyframe,
         i_kf: np.ndarray,
         i_cur: np.ndarray,
-        m: _Measurement,
+        m: Measurement,
         reason: StateReason,
     ) -> None:
         rp = m.relpose
@@ -613,21 +464,13 @@ class Odometry:
             self._carry_min_parallax_rad,
         )
         yaw = wrap_angle(m.yaw_rad)
-        self._heading_var += m.yaw_var_rad2  # this keyframe's relative yaw is committed to the chain
-        tau = self.options.heading_correction_time_s
-        if tau > 0 and math.isfinite(frame.yaw_rad) and self._fc_yaw_steers(frame, wrap_angle(frame.yaw_rad - yaw)):
-            # The pull: at least the time constant's share; more where vision's chained heading is less
-            # certain than the flight controller's yaw (a Kalman gain: low over plain floors, where each
-            # keyframe's relative yaw rests on few, noisy tracks).
-            gain = self._heading_var / (self._heading_var + self._fc_yaw_var)
-            gain = max(min(1.0, (frame.t_exposure_s - kf.t_s) / tau), gain)
-            nudge = gain * wrap_angle(frame.yaw_rad - yaw)
-            self._heading_var *= 1.0 - gain
+        nudge = self.heading.commit(yaw, m.yaw_var_rad2, frame.yaw_rad, frame.fc_armed, frame.t_exposure_s - kf.t_s)
+        if nudge:
             yaw = wrap_angle(yaw + nudge)
             self.filter.shift_yaw(nudge)  # a correction of the frame's heading, not a measurement to gate
         # The new keyframe keeps its level frame as vision corrected it.
         f_kf = f_lvl @ tilt_rotation(m.relpose.tilt2_rad).T
-        unmeasured = self._unresolved_baseline_m(kf, m) if m.scale is None else 0.0
+        unmeasured = unresolved_baseline_m(kf, m, self._depth_m(), self._focal_px) if m.scale is None else 0.0
         self.chain.push(
             Keyframe(
                 frame.seq,
@@ -651,7 +494,7 @@ class Odometry:
         if np.any(known):
             self._scene_depth_m = median(depth[known])
 
-    def _keyframe_position(self, kf: Keyframe, m: _Measurement, reason: StateReason) -> tuple[np.ndarray, float]:
+    def _keyframe_position(self, kf: Keyframe, m: Measurement, reason: StateReason) -> tuple[np.ndarray, float]:
         """Where a new keyframe made from the measured frame goes, and the factor its baseline (and so
         the depths it carries) takes to match; ``reason`` is why the frame is degraded (NONE: tracking).
 
@@ -689,59 +532,9 @@ class Odometry:
         self.filter.predict(frame.t_exposure_s)  # the filter runs from the first keyframe on
         return self._estimate(frame, VoDiagnostics(state=VisionState.FAILED, reason=reason, tracks=tracks), quality=-1)
 
-    def _position_noise(
-        self, frame: PairedFrame, kf: Keyframe, m: _Measurement
-    ) -> tuple[np.ndarray | None, np.ndarray]:
-        """The position to fuse (None: the translation is not measured) and its noise covariance (3,3)
-        m^2 at full quality (docs/odometry.md, Covariance)."""
-        opt = self.options
-        rp = m.relpose
-        depth = self._scene_depth_m or opt.scale.initial_depth_m
-        p_meas: np.ndarray | None = m.p_ned_m
-        along_m, along_dir = 0.0, np.zeros(3)
-        if m.scale is not None:
-            # Roll/pitch the relative pose kept as given, or corrected with too little parallax to tell
-            # a tilt from a translation, turn every bearing by about their error: the translation moves
-            # by depth times it. Resolved ones leave what the pairing's interpolation may add.
-            # The motion's errors grow with the tracks' noise (the relative pose's residuals, over
-            # the noise position_sigma_per_speed_s is given for). Independent sources: they add in
-            # quadrature; a height source's noise moves the position along the translation only.
-            tilt_rad = (
-                frame.interpolation_sigma_rad
-                if rp.attitude_resolved
-                else math.hypot(*self._view_attitude_sigmas_rad(kf, frame))
-            )
-            resid_px = rp.residual_rms_rad * self._focal_px if math.isfinite(rp.residual_rms_rad) else math.inf
-            track_noise = min(
-                max(resid_px / opt.track_noise_px, _TRACK_NOISE_MIN), _TRACK_NOISE_MAX
-            )  # unknown: the most
-            c2_m = float(np.linalg.norm(m.c2_m))
-            unresolved = math.hypot(
-                m.scale.spread * c2_m,
-                opt.position_sigma_per_speed_s
-                * float(np.linalg.norm(self.filter.velocity_ned_m_s))
-                * track_noise
-                * min(max(depth / _REFERENCE_DEPTH_M, 0.2), 1.0),
-                depth * tilt_rad,
-                kf.unmeasured_m,  # measured from a keyframe whose own place was not
-            )
-            along_m, along_dir = m.scale.sensor_spread * c2_m, m.p_ned_m - kf.p_ned_m
-        elif rp.reason == RelposeFailure.PURE_ROTATION or m.parallax_px < _STILL_PARALLAX_PX:
-            # No parallax the images resolve (the relative pose says pure rotation, or under a pixel
-            # with nothing triangulated): the frame is where its keyframe is.
-            unresolved = self._unresolved_baseline_m(kf, m)
-        else:
-            # Parallax, but too few points to triangulate: the translation is not measured.
-            p_meas, unresolved = None, 0.0
-        iso_m = math.hypot(opt.position_sigma_m * max(depth / _REFERENCE_DEPTH_M, 0.2), unresolved)
-        return p_meas, iso_m**2 * np.eye(3) + _along(along_dir, along_m)
-
-    def _unresolved_baseline_m(self, kf: Keyframe, m: _Measurement) -> float:
-        """How far a frame placed at its keyframe for want of a measured translation may be from it
-        (1 sigma, m): the baseline the parallax left after the rotation stands for at the scene's
-        depth, and what the keyframe's own place did not measure (``Keyframe.unmeasured_m``)."""
-        depth = self._scene_depth_m or self.options.scale.initial_depth_m
-        return math.hypot(depth * m.parallax_px / self._focal_px, kf.unmeasured_m)
+    def _depth_m(self) -> float:
+        """The scene's depth: the last measured, else the assumed ``scale.initial_depth_m``."""
+        return self._scene_depth_m or self.options.scale.initial_depth_m
 
     def _trusted(self, scale: ScaleEstimate) -> bool:
         """Metric: a measured source, or the scene depth held from one while the interval is metric."""

@@ -21,7 +21,7 @@ import numpy as np
 
 from mavvo.errors import ConfigError
 from mavvo.geometry.frames import R_BODY_CAM_NADIR
-from mavvo.odometry.pipeline import OdometryOptions
+from mavvo.odometry.options import OdometryOptions
 from mavvo.options import bounded
 from mavvo.service.camera import CameraOptions
 from mavvo.service.link import LinkOptions, parse_url
