@@ -23,7 +23,8 @@ import pytest
 
 from mavvo.errors import CameraError, FrameRefused
 from mavvo.service.camera import ImageFolderSource, InjectedSource, image_size_px
-from mavvo.service.link import Link, LinkOptions, SystemStatus
+from mavvo.service.link import Link, SystemStatus
+from mavvo.service.link_options import LinkOptions
 from mavvo.service.mavlink import mavutil
 from mavvo.service.settings import ServiceConfig
 from mavvo.service.timing import MonotonicClock

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from mavvo.errors import ConfigError
-from mavvo.service.link import Link, LinkOptions, SystemStatus, parse_url, read_signing_key
+from mavvo.service.link import Link, SystemStatus
+from mavvo.service.link_options import LinkOptions, parse_url, read_signing_key
 from mavvo.service.timing import MonotonicClock
 from mavvo.sim.flight_controller.autopilot import SimFlightController
 from mavvo.sim.flight_controller.spec import FlightControllerSpec

@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from mavvo.errors import ConfigError
-from mavvo.service.link import read_signing_key
+from mavvo.service.link_options import read_signing_key
 from mavvo.service.settings import load_config
 from mavvo.service.yaml_loader import load_yaml
 

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from mavvo.errors import ConfigError, LinkError
-from mavvo.service.link import parse_url
+from mavvo.service.link_options import parse_url
 from mavvo.service.mavlink import mavutil
 from mavvo.service.monitor import Monitor, render
 

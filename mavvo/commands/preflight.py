@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from mavvo.errors import ConfigError, LinkError, MavvoError
-from mavvo.service.link import parse_url
+from mavvo.service.link_options import parse_url
 from mavvo.service.mavlink import mavutil
 from mavvo.service.preflight import blocks_flight, checks, params_to_read, table
 from mavvo.service.settings import ServiceConfig, load_config

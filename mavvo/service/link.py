@@ -23,39 +23,28 @@ Connection strings: ``/dev/ttyAMA0:921600`` (serial through pyserial; ``serial:`
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import math
 import os
 import queue
 import select
 import socket
-import stat
 import threading
 import time
 from collections import Counter
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import Any, Callable
 
-from mavvo.errors import ConfigError, LinkError
-from mavvo.options import bounded
+from mavvo.errors import LinkError
 from mavvo.service import signing
-from mavvo.service.mavlink import SOCKET_SCHEMES, mavutil
+from mavvo.service.autopilot_choice import AutopilotChoice
+from mavvo.service.link_listener import LinkListener
+from mavvo.service.link_options import LinkOptions, check_udp_port_free, parse_url, read_signing_key
+from mavvo.service.mavlink import mavutil
 from mavvo.service.timing import Clock
 from mavvo.types import StrEnum
 
-__all__ = [
-    "LinkOptions",
-    "LinkListener",
-    "Link",
-    "SystemStatus",
-    "Tap",
-    "parse_url",
-    "read_signing_key",
-    "stamp_us",
-    "us_to_s",
-]
+__all__ = ["Link", "SystemStatus", "Tap", "stamp_us", "us_to_s"]
 
 log = logging.getLogger(__name__)
 
@@ -82,87 +71,6 @@ _READ_BUDGET = 200  # messages read per loop turn at most: sending keeps its rat
 _WAIT_SLICE_S = 0.25  # long back-off waits are cut into slices, each a turn of the loop (see ``turns``)
 
 
-@dataclass(frozen=True)
-class LinkOptions:
-    """The MAVLink connection."""
-
-    url: str = bounded(
-        "/dev/ttyAMA0:921600", "serial DEVICE:BAUD, udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or tcpin:HOST:PORT"
-    )
-    fc_system_id: int = bounded(
-        0,
-        "the flight controller's MAVLink system id (0: the first autopilot that sends HEARTBEAT and ATTITUDE consistently for fc_confirm_s); mavvo uses the same",
-        ge=0,
-        le=255,
-    )
-    fc_confirm_s: float = bounded(
-        1.0,
-        "without fc_system_id: an autopilot is followed once its HEARTBEAT and ATTITUDE have come for this long; another one after that is reported, not followed",
-        gt=0,
-        le=60,
-    )
-    attitude_rate_hz: float = bounded(
-        100.0,
-        "ATTITUDE rate to request (at least the camera rate; 100 Hz brackets every exposure closely)",
-        gt=0,
-        le=1000,
-    )
-    range_rate_hz: float = bounded(20.0, "DISTANCE_SENSOR rate to request", gt=0, le=1000)
-    height_rate_hz: float = bounded(10.0, "GLOBAL_POSITION_INT (height above home) rate to request", gt=0, le=1000)
-    local_position_rate_hz: float = bounded(
-        10.0,
-        "LOCAL_POSITION_NED (the flight controller's own position, where re-initialised tracking is anchored) rate to request",
-        gt=0,
-        le=1000,
-    )
-    ekf_status_rate_hz: float = bounded(
-        2.0,
-        "EKF_STATUS_REPORT rate to request (the autopilot's word that its yaw is aligned: the first estimate need not wait for the yaw to stop moving)",
-        gt=0,
-        le=100,
-    )
-    request_retry_s: float = bounded(
-        2.0, "first retry of a stream request that brought nothing; doubles up to 30 s", gt=0, le=30
-    )
-    timesync_interval_s: float = bounded(1.0, "TIMESYNC request period", gt=0, le=60)
-    silence_timeout_s: float = bounded(3.0, "nothing heard for this long: reconnect", gt=0, le=600)
-    reconnect_max_s: float = bounded(8.0, "longest back-off between reconnection attempts", gt=0, le=600)
-    signing_key_file: str = bounded(
-        "",
-        "MAVLink 2 signing key: 64 hex digits, 32 raw bytes or a passphrase (SHA-256); mode 0600 or stricter; keep it at /var/lib/mavvo/signing.key (the unit's 0700 state directory); empty: unsigned",
-    )
-
-
-class LinkListener(Protocol):
-    """Receives the flight controller's state from the link thread (see :mod:`mavvo.service.timing`)."""
-
-    def on_attitude(
-        self,
-        t_fc_ms: int,
-        roll_rad: float,
-        pitch_rad: float,
-        yaw_rad: float,
-        t_arrival_host_s: float | None = None,
-        body_rates_rad_s: tuple[float, float, float] | None = None,
-    ) -> None: ...
-    def on_local_position(
-        self,
-        t_fc_ms: int,
-        p_ned_m: tuple[float, float, float],
-        v_ned_m_s: tuple[float, float, float],
-        t_arrival_host_s: float | None = None,
-    ) -> None: ...
-    def on_range(self, t_fc_ms: int, range_m: float | None, t_arrival_host_s: float | None = None) -> None: ...
-    def on_height(self, t_fc_ms: int, height_m: float, t_arrival_host_s: float | None = None) -> None: ...
-    def on_timesync(self, t_sent_host_s: float, t_fc_s: float, t_arrival_host_s: float | None = None) -> None: ...
-    def on_reboot(self) -> None: ...
-    def on_armed(self, armed: bool, t_arrival_host_s: float | None = None) -> None: ...
-    def on_ekf_status(
-        self, attitude_good: bool, compass_ratio: float, t_arrival_host_s: float | None = None
-    ) -> None: ...
-    def wants_timesync(self) -> bool: ...
-
-
 Tap = Callable[[int, bytes], None]
 """Sees every message the link reads or writes: (host clock in whole microseconds, the message's bytes;
 mavvo's own are from component 197). It must not block: it runs on the link thread."""
@@ -177,81 +85,6 @@ def stamp_us(clock: Clock) -> int:
 def us_to_s(t_us: int) -> float:
     """Microseconds to seconds, the one way both recording and replay convert."""
     return t_us / 1_000_000
-
-
-def parse_url(url: str) -> tuple[str, int | None]:
-    """(pymavlink device string, serial baud rate or None) for a connection string; ConfigError when
-    it is none of the supported forms."""
-    if url.startswith(SOCKET_SCHEMES):
-        host, _, port = url.split(":", 1)[1].rpartition(":")
-        if not host or not port.isdigit() or not 0 < int(port) < 65536:
-            raise ConfigError(f"link.url: expected {url.split(':')[0]}:HOST:PORT with a port 1-65535, got {url!r}")
-        return url, None
-    dev = url.removeprefix("serial:")
-    if dev.startswith("/dev/") or dev.startswith("/"):
-        path, _, baud = dev.rpartition(":")
-        if not path or not baud.isdigit() or int(baud) <= 0:
-            raise ConfigError(
-                f"link.url: expected a serial device with its baud rate, like /dev/ttyAMA0:921600, got {url!r}"
-            )
-        return path, int(baud)
-    raise ConfigError(
-        f"link.url: expected /dev/DEVICE:BAUD, udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or tcpin:HOST:PORT, got {url!r}"
-    )
-
-
-def read_signing_key(path: str | Path) -> bytes:
-    """The 32-byte signing key in ``path``: 64 hex digits, 32 raw bytes, or a passphrase hashed with
-    SHA-256 (as ground stations derive it). ConfigError if the file cannot be read or group or others may
-    read or write it."""
-    p = Path(path)
-    try:
-        st = p.stat()
-        raw = p.read_bytes()
-    except OSError as e:
-        raise ConfigError(f"link.signing_key_file {p}: cannot read: {e.strerror or e}") from e
-    if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
-        raise ConfigError(
-            f"link.signing_key_file {p}: expected mode 0600 or stricter (owner only), got {stat.S_IMODE(st.st_mode):04o}; run chmod 600 {p}"
-        )
-    text = raw.strip()
-    if len(text) == 64:
-        try:
-            return bytes.fromhex(text.decode("ascii"))
-        except (UnicodeDecodeError, ValueError):
-            pass
-    if len(raw) == 32:
-        return raw
-    if not text:
-        raise ConfigError(f"link.signing_key_file {p}: expected a key, the file is empty")
-    return hashlib.sha256(text).digest()
-
-
-@dataclass
-class _Candidate:
-    """An autopilot heard before one was chosen: (first HEARTBEAT, HEARTBEATs, ATTITUDEs, MAV_AUTOPILOT)."""
-
-    first_heartbeat_s: float
-    autopilot: int
-    heartbeats: int = 1
-    attitudes: int = 0
-
-
-def check_udp_port_free(url: str) -> None:
-    """For ``udpin:HOST:PORT``: LinkError when another socket holds the port. (pymavlink binds with
-    SO_REUSEADDR, so two services on one port would both start and split the datagrams between them.)"""
-    if not url.startswith("udpin:"):
-        return
-    host, _, port = url.split(":", 1)[1].rpartition(":")
-    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    try:
-        probe.bind((host, int(port)))
-    except OSError as e:
-        raise LinkError(
-            f"link.url {url}: cannot listen on {host}:{port}: {e.strerror or e} (another process has the port?)"
-        ) from e
-    finally:
-        probe.close()
 
 
 @dataclass
@@ -296,17 +129,13 @@ class Link:
         check_udp_port_free(options.url)
         self.signing_key = read_signing_key(options.signing_key_file) if options.signing_key_file else None
         self.counters: Counter[str] = Counter()
-        self.fc_system_id: int | None = options.fc_system_id or None
-        self.fc_component_id: int | None = None  # set once the flight controller is chosen
-        self._candidates: dict[tuple[int, int], _Candidate] = {}
-        self._others_told: set[tuple[int, int]] = set()
+        self.choice = AutopilotChoice(options, self.counters)
         self._datagram_from: Any = None  # the source address of the last UDP datagram read
         self._datagrams_read = 0
         # UDP datagrams read and done with (every message parsed from them handled, what they made due
         # written), whatever they held: a lockstep driver waits on it.
         self.datagrams_done = 0
         self._fc_address: Any = None  # the flight controller's UDP address, once chosen
-        self.autopilot: int | None = None  # the flight controller's HEARTBEAT autopilot (MAV_AUTOPILOT)
         self.connected = threading.Event()
         self._mavutil = mavutil()  # MAVLink 2 checked here, whoever imported pymavlink first
         self._mav = self._mavutil.mavlink
@@ -607,7 +436,9 @@ class Link:
                 },
             )
         targets = (
-            [(self.fc_system_id, self.fc_component_id)] if self.fc_component_id is not None else list(self._candidates)
+            [(self.fc_system_id, self.fc_component_id)]
+            if self.fc_component_id is not None
+            else list(self.choice.candidates)
         )
         if not targets:
             return  # requests go to a flight controller we have heard
@@ -661,20 +492,38 @@ class Link:
                 log.warning("link %s: %s message skipped: %s", self.options.url, kind, e)
         return True
 
+    @property
+    def fc_system_id(self) -> int | None:
+        """The flight controller's system id: configured, or chosen (None until then)."""
+        return self.choice.system_id
+
+    @property
+    def fc_component_id(self) -> int | None:
+        """The flight controller's component id, once chosen."""
+        return self.choice.component_id
+
+    @property
+    def autopilot(self) -> int | None:
+        """The flight controller's HEARTBEAT autopilot (MAV_AUTOPILOT), once chosen."""
+        return self.choice.autopilot
+
     def _dispatch(self, msg: Any, kind: str, now: float) -> None:
         self._last_rx_s = now
         src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
+        chosen = self.choice.is_chosen(src_sys, src_comp)
         if kind == "HEARTBEAT":
-            if msg.autopilot != self._mav.MAV_AUTOPILOT_INVALID:  # ground stations and companions say INVALID
-                self._autopilot_heartbeat(src_sys, src_comp, int(msg.autopilot), now)
-                if (src_sys, src_comp) == (self.fc_system_id, self.fc_component_id):
-                    self.listener.on_armed(bool(msg.base_mode & self._mav.MAV_MODE_FLAG_SAFETY_ARMED), now)
+            if msg.autopilot == self._mav.MAV_AUTOPILOT_INVALID:  # ground stations and companions say INVALID
+                return
+            if self.choice.heartbeat(src_sys, src_comp, int(msg.autopilot), now) or (
+                chosen and self._fc_address is None
+            ):
+                self._follow_chosen()  # just chosen, or a new socket after a reconnect
+            if self.choice.is_chosen(src_sys, src_comp):
+                self.listener.on_armed(bool(msg.base_mode & self._mav.MAV_MODE_FLAG_SAFETY_ARMED), now)
             return
-        if src_sys != self.fc_system_id or src_comp != self.fc_component_id:
-            c = self._candidates.get((src_sys, src_comp))
-            if kind == "ATTITUDE" and c is not None:
-                c.attitudes += 1
-                self._confirm_if_consistent(src_sys, src_comp, c, now)
+        if not chosen:
+            if kind == "ATTITUDE" and self.choice.attitude(src_sys, src_comp, now):
+                self._follow_chosen()
             return
         boot_ms = getattr(msg, "time_boot_ms", None)
         if boot_ms is not None:
@@ -684,6 +533,15 @@ class Link:
         for s in self._streams:
             if s.msg_id == msg.get_msgId():
                 s.last_rx_s, s.backoff_s = now, 0.0
+        self._to_listener(msg, kind, now)
+
+    def _follow_chosen(self) -> None:
+        """Speak as the chosen flight controller's system, and take datagrams only from its address."""
+        self._conn.mav.srcSystem = self.choice.system_id
+        self._pin_udp()
+
+    def _to_listener(self, msg: Any, kind: str, now: float) -> None:
+        """The chosen flight controller's message, handed over (or answered: TIMESYNC, COMMAND_ACK)."""
         if kind == "ATTITUDE":
             self.listener.on_attitude(
                 msg.time_boot_ms, msg.roll, msg.pitch, msg.yaw, now, (msg.rollspeed, msg.pitchspeed, msg.yawspeed)
@@ -711,53 +569,6 @@ class Link:
             self.counters["denied"] += 1
             if self.counters["denied"] <= 3:
                 log.info("flight controller refused a stream request (result %d); retrying with back-off", msg.result)
-
-    def _autopilot_heartbeat(self, sys_id: int, comp_id: int, autopilot: int, now: float) -> None:
-        """Choose the flight controller: the configured system id at its first HEARTBEAT, else the first
-        autopilot whose HEARTBEAT and ATTITUDE have both come for ``fc_confirm_s``. Any other after
-        that is reported (logged once, counted as ``other_autopilots``), never followed."""
-        key = (sys_id, comp_id)
-        if self.fc_component_id is not None:
-            if key == (self.fc_system_id, self.fc_component_id) and self._fc_address is None:
-                self._pin_udp()  # a new socket after a reconnect
-            elif key != (self.fc_system_id, self.fc_component_id):
-                self.counters["other_autopilots"] += 1
-                if key not in self._others_told and len(self._others_told) < 16:
-                    self._others_told.add(key)
-                    log.warning(
-                        "another autopilot on the link (system %d component %d): ignored; following system %d component %d",
-                        sys_id,
-                        comp_id,
-                        self.fc_system_id,
-                        self.fc_component_id,
-                    )
-            return
-        if self.options.fc_system_id and sys_id != self.options.fc_system_id:
-            self.counters["other_autopilots"] += 1
-            return
-        c = self._candidates.get(key)
-        if c is None:
-            if len(self._candidates) >= 16:  # a flood of forged ids must not grow this without bound
-                return
-            c = self._candidates[key] = _Candidate(now, autopilot)
-        else:
-            c.heartbeats += 1
-        if self.options.fc_system_id:
-            self._choose(sys_id, comp_id, autopilot)
-        else:
-            self._confirm_if_consistent(sys_id, comp_id, c, now)
-
-    def _confirm_if_consistent(self, sys_id: int, comp_id: int, c: _Candidate, now: float) -> None:
-        """Chosen once its HEARTBEAT (twice) and ATTITUDE have come for ``fc_confirm_s``."""
-        if c.heartbeats >= 2 and c.attitudes >= 3 and now - c.first_heartbeat_s >= self.options.fc_confirm_s:
-            self._choose(sys_id, comp_id, c.autopilot)
-
-    def _choose(self, sys_id: int, comp_id: int, autopilot: int) -> None:
-        self.fc_system_id, self.fc_component_id, self.autopilot = sys_id, comp_id, autopilot
-        self._conn.mav.srcSystem = sys_id
-        self._candidates.clear()
-        self._pin_udp()
-        log.info("flight controller: system %d component %d (autopilot type %d)", sys_id, comp_id, autopilot)
 
     def _rebooted(self, now: float) -> None:
         log.warning("flight controller rebooted (time_boot_ms went back); re-requesting streams")

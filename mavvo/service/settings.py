@@ -24,7 +24,7 @@ from mavvo.geometry.frames import R_BODY_CAM_NADIR
 from mavvo.odometry.options import OdometryOptions
 from mavvo.options import bounded
 from mavvo.service.camera import CameraOptions
-from mavvo.service.link import LinkOptions, parse_url
+from mavvo.service.link_options import LinkOptions, parse_url
 from mavvo.service.messages import Autopilot
 from mavvo.service.recorder import RecordOptions
 from mavvo.service.timing import TimingOptions

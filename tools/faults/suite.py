@@ -41,7 +41,8 @@ import numpy as np
 
 from mavvo.cli import main as cli
 from mavvo.service.daemon import Daemon
-from mavvo.service.link import Link, LinkOptions
+from mavvo.service.link import Link
+from mavvo.service.link_options import LinkOptions
 from mavvo.service.mavlink import mavutil
 from mavvo.service.timing import MonotonicClock
 from mavvo.sim.scenarios.loader import load_scenario
