@@ -37,7 +37,8 @@ from benchmarks.compare import (  # noqa: E402
     best_peer_cells,
 )
 from mavvo import geometry as solvers  # noqa: E402
-from mavvo.estimation.relpose import RelposeOptions, estimate_relpose_known_gravity  # noqa: E402
+from mavvo.estimation.relpose import estimate_relpose_known_gravity  # noqa: E402
+from mavvo.estimation.relpose_types import RelposeOptions
 from mavvo.estimation.warmup import warm_kernels  # noqa: E402
 from mavvo.geometry.camera_model import CameraModel  # noqa: E402
 from mavvo.geometry.frames import angle_between_rad, rotation_angle_rad  # noqa: E402

@@ -45,7 +45,8 @@ import cv2  # noqa: E402
 
 from benchmarks.common import load_average, machine, publish  # noqa: E402
 from benchmarks.compare import BEST_PEER_HEADER, YAW_PRIOR_NOISE_DEG, TrialErrors, best_peer_cells  # noqa: E402
-from mavvo.estimation.relpose import RelposeOptions, estimate_relpose_known_gravity  # noqa: E402
+from mavvo.estimation.relpose import estimate_relpose_known_gravity  # noqa: E402
+from mavvo.estimation.relpose_types import RelposeOptions
 from mavvo.geometry.camera_model import CameraModel  # noqa: E402
 from mavvo.geometry.frames import R_lvl_cam, angle_between_rad, rotation_angle_rad  # noqa: E402
 from mavvo.odometry.frontend import FrontendOptions  # noqa: E402

@@ -79,7 +79,7 @@ def test_every_state_has_a_code_and_the_codes_are_the_documented_ones():
 
 
 def test_every_relpose_failure_is_a_state_reason():
-    from mavvo.estimation.relpose import RelposeFailure
+    from mavvo.estimation.relpose_types import RelposeFailure
 
     assert {r.value for r in RelposeFailure} <= {r.value for r in StateReason}
 

@@ -8,7 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from mavvo.estimation.relpose import RelposeFailure, _failure
+from mavvo.estimation.relpose import _failure
+from mavvo.estimation.relpose_types import RelposeFailure
 from mavvo.geometry.frames import rot_z
 from mavvo.odometry.filter import FilterOptions, PoseFilter, Update, wrap_angle
 from mavvo.odometry.keyframes import Keyframe, KeyframeOptions, carry_depths, keyframe_reason

@@ -10,12 +10,9 @@ import pytest
 
 import mavvo.estimation.attitude_refine as attitude_refine
 from mavvo.estimation.estimators import upright_e, yaw_of
-from mavvo.estimation.relpose import (
-    RelposeOptions,
-    estimate_relpose_known_gravity,
-    estimate_upright_relpose,
-    required_iterations,
-)
+from mavvo.estimation.ransac import required_iterations
+from mavvo.estimation.relpose import estimate_relpose_known_gravity, estimate_upright_relpose
+from mavvo.estimation.relpose_types import RelposeOptions
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import angle_between_rad, rot_z, rotation_angle_rad
 from mavvo.geometry.refine import refine_upright, tilt_rotation, upright_yaw_variance

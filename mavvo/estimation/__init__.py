@@ -5,19 +5,20 @@ The entry points users call: :func:`estimate_relpose_known_gravity` (matched pix
 gravity) and :func:`estimate_upright_relpose` (level-frame bearings), with :class:`RelposeOptions`.
 """
 
-from mavvo.estimation.relpose import (
+from mavvo.estimation.relpose import estimate_relpose_known_gravity, estimate_upright_relpose
+from mavvo.estimation.relpose_types import (
     CameraRelpose,
     RelposeFailure,
+    RelposeModel,
     RelposeOptions,
     RelposeStats,
     UprightRelpose,
-    estimate_relpose_known_gravity,
-    estimate_upright_relpose,
 )
 
 __all__ = [
     "CameraRelpose",
     "RelposeFailure",
+    "RelposeModel",
     "RelposeOptions",
     "RelposeStats",
     "UprightRelpose",

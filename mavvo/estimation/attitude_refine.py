@@ -59,11 +59,9 @@ _CORRECTION_MIN_COST_DROP = 18.5
 _CAUCHY_NOISE_SIGMAS = 2.385
 # ... and of this many while the attitude rounds' threshold is still widened for the tilt error the
 # hypothesis inherits, where the parallax tells a tilt from a translation: that set holds outliers and
-# the pose is still off, and at 2.385 they pulled the rounds to other fixed points. On nine forward
-# flights' pairs (1431, KLT tracks, roll/pitch exact and 0.2 deg sigma told) median rotation 0.0425 ->
-# 0.0402 deg (PoseLib's defaults 0.0408); on the paper's scenes (2400 trials) at 0.2 deg 0.0994 ->
-# 0.0980 (USAC_MAGSAC 0.0998). Everywhere tighter, the paper's scenes at 0.2 deg lost (0.105): at the
-# threshold their Gaussian noise wants the efficient loss.
+# the pose is still off, and at 2.385 they pulled the rounds to other fixed points (docs/relpose.md has
+# the rotation errors on forward flights' pairs and the paper's scenes). Tighter everywhere, the paper's
+# scenes lost: at the threshold their Gaussian noise wants the efficient loss.
 _CAUCHY_WIDE_NOISE_SIGMAS = 1.0
 # Parallax under this many noise sigmas is noise to a single point (its side, in the sign's vote).
 _PARALLAX_NOISE_SIGMAS = 10.0

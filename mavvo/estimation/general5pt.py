@@ -81,8 +81,8 @@ def estimate_general_start(
     if virtual is None:
         return None
     V1, V2, p1, p2 = virtual
-    # USAC_FAST: the same starts as RANSAC on the benchmark's pairs at a third of the time (0.15 ms
-    # against 0.48 for 120 points); its generator is seeded by its own state, the same on every call.
+    # USAC_FAST: the same starts as RANSAC on the benchmark's pairs at a fraction of the time; its
+    # generator is seeded by its own state, the same on every call.
     E_v, _ = cv2.findEssentialMat(
         p1, p2, focal=1.0, pp=(0.0, 0.0), method=cv2.USAC_FAST, prob=0.99, threshold=max_err_rad
     )

@@ -31,7 +31,6 @@ import math
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import Literal, Mapping
 
 import numpy as np
 
@@ -47,47 +46,28 @@ from mavvo.estimation.attitude_refine import (
 from mavvo.estimation.estimators import (
     SAMPLE_SIZE,
     GroundHomography,
-    MinimalSolver,
-    NonminimalSolver,
     PureRotation,
     UprightEssential,
     yaw_of,
 )
 from mavvo.estimation.general5pt import estimate_general_relpose, sampson_sq_general
-from mavvo.estimation.ransac import RansacOptions, RansacResult, RansacStats, lo_ransac, required_iterations
+from mavvo.estimation.ransac import RansacResult, lo_ransac
+from mavvo.estimation.relpose_types import (
+    CameraRelpose,
+    RelposeFailure,
+    RelposeModel,
+    RelposeOptions,
+    RelposeStats,
+    UprightRelpose,
+)
 from mavvo.geometry import as_bearing_pair, ground_pose_from_homography
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import as_rotation, rot_z
 from mavvo.geometry.refine import kabsch, tilt_rotation
 from mavvo.geometry.residuals import ground_sq, rotation_sq, rotation_sq_point
 from mavvo.jit import kernel
-from mavvo.options import bounded, check_fields
-from mavvo.types import StrEnum
 
-__all__ = [
-    "RelposeFailure",
-    "RelposeOptions",
-    "RelposeStats",
-    "UprightRelpose",
-    "CameraRelpose",
-    "estimate_upright_relpose",
-    "estimate_relpose_known_gravity",
-    "required_iterations",
-]
-
-ModelChoice = Literal["auto", "essential", "ground"]
-ModelName = Literal["essential", "ground", "rotation", "general", "none"]
-
-
-class RelposeFailure(StrEnum):
-    """Why :func:`estimate_upright_relpose` found no pose with a translation direction."""
-
-    NONE = ""
-    TOO_FEW_POINTS = "too_few_points"
-    DEGENERATE_POINTS = "degenerate_points"
-    NO_MODEL = "no_model"
-    PURE_ROTATION = "pure_rotation"  #: ``R_2_1`` holds the yaw, ``t_2_1`` is zero
-
+__all__ = ["estimate_upright_relpose", "estimate_relpose_known_gravity"]
 
 # Bearings this close to the horizon (z of a unit level bearing) count as not on the ground below.
 _MIN_GROUND_Z = 0.02
@@ -95,7 +75,7 @@ _MIN_GROUND_Z = 0.02
 _GRIC_R = 4
 _GRIC_LAMBDA3 = 2.0
 # Manifold dimension d and parameter count k of each model.
-_GRIC_DK = {"essential": (3, 3), "ground": (2, 4), "rotation": (2, 3)}
+_GRIC_DK = {RelposeModel.ESSENTIAL: (3, 3), RelposeModel.GROUND: (2, 4), RelposeModel.ROTATION: (2, 3)}
 # With roll/pitch uncertain, hypotheses are scored allowing this many sigmas of relative tilt error.
 _TILT_SIGMAS = 2.0
 # Fewer tight inliers than this fraction of the points the widened sampling threshold admitted (or
@@ -113,176 +93,13 @@ _NOISE_PARALLAX_POINTS = 75.0
 _NOISE_PARALLAX_MARGIN = 1.5
 
 
-@dataclass(frozen=True)
-class RelposeOptions(RansacOptions):
-    """The relative pose's robust estimation (:func:`estimate_upright_relpose`, ``docs/relpose.md``).
-
-    The loop's settings (:class:`~mavvo.estimation.ransac.RansacOptions`) and the models'; the
-    ``odometry.ransac`` section of the service's configuration; the defaults suit the service.
-    """
-
-    max_err_px: float = bounded(
-        1.5,
-        "inlier threshold on the Sampson error, pixels (as an angle: divided by the mean focal length)",
-        gt=0,
-        le=100,
-    )
-    minimal_solver: MinimalSolver = bounded(
-        "3pt", "hypothesis generator: 3pt (batched, fast), 4pt or linear5pt (one sample per call)"
-    )
-    lo_steps: int = bounded(3, "Gauss-Newton steps per local optimisation", ge=0, le=100)
-    refine_steps: int = bounded(8, "Gauss-Newton steps of the final refinement (0: none)", ge=0, le=100)
-    nonminimal_solver: NonminimalSolver = bounded(
-        "none",
-        "re-fit each new best model on its inliers with the 4pt or linear5pt least squares (kept when it scores better)",
-    )
-    model: ModelChoice = bounded(
-        "auto",
-        "auto: essential matrix or ground homography by GRIC; essential or ground forces one (pure rotation is always checked)",
-    )
-    tilt_sigma_deg: float = bounded(
-        0.0,
-        "let vision correct roll/pitch of both views within this sigma, degrees (0: off; the corrections are reported)",
-        ge=0,
-        le=30,
-    )
-    ground_samples: int = bounded(
-        16,
-        "most 2-point samples for the ground model among the essential inliers (the stopping rule mostly needs a few)",
-        ge=1,
-        le=10000,
-    )
-    min_parallax_ratio: float = bounded(
-        1.0,
-        "median inlier parallax below this many thresholds (or, when less, this many times 1.5 x what noise alone leaves a pure rotation: 3 noise sigmas at 400 inliers, 10 at 15): a pure rotation (translation not observable; 0: GRIC alone decides)",
-        ge=0,
-        le=100,
-    )
-    yaw_prior_tolerance_deg: float = bounded(
-        30.0,
-        "with a yaw prior, hypotheses further from it are dropped (a nadir camera over flat ground sees a twin at yaw + 180 deg)",
-        gt=0,
-        le=180,
-    )
-    attitude_correction: bool = bounded(
-        True,
-        "the odometry corrects roll/pitch of both views under odometry.attitude_sigma_deg (docs/relpose.md: roll/pitch that are not exact)",
-    )
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check_fields(self)
-
-    @property
-    def tilt_sigma_rad(self) -> float | None:
-        """``tilt_sigma_deg`` in radians, None when off."""
-        return math.radians(self.tilt_sigma_deg) if self.tilt_sigma_deg > 0 else None
-
-
-@dataclass(frozen=True)
-class RelposeStats:
-    """How the estimate came about.
-
-    Attributes:
-        sampling: :class:`~mavvo.estimation.ransac.RansacStats` of the essential model's LO-RANSAC
-            (samples, hypotheses, local optimisations, the best inlier ratio, CPU time per phase).
-        noise_sigma_rad: robust estimate of the bearing noise from the inlier residuals.
-        gric: GRIC score of each model considered (lower is better).
-        time_refine_s: CPU time of the final refinement and model selection.
-    """
-
-    sampling: RansacStats = field(default_factory=RansacStats)
-    noise_sigma_rad: float = float("nan")
-    gric: Mapping[str, float] = field(default_factory=dict)
-    time_refine_s: float = 0.0
-
-    @property
-    def sample_inlier_ratio(self) -> float:
-        """The best inlier ratio during sampling (what drove the stopping rule)."""
-        return self.sampling.inlier_ratio
-
-    @property
-    def required_iterations(self) -> int:
-        """Samples the stopping rule asked for at the end."""
-        return self.sampling.required_iterations
-
-    @property
-    def local_optimizations(self) -> int:
-        return self.sampling.local_optimizations
-
-
-@dataclass(frozen=True)
-class UprightRelpose:
-    """Relative pose between two level frames.
-
-    Attributes:
-        success: a pose with a translation direction was found.
-        reason: :class:`RelposeFailure` (``NONE`` on success; ``PURE_ROTATION``: ``R_2_1`` holds the
-            estimated yaw and ``t_2_1`` is zero).
-        model: ``essential``, ``ground`` (all inliers on the horizontal ground plane), ``rotation``,
-            ``general`` (the 5-point without gravity: roll/pitch were worse than their sigma, the
-            tilt corrections say by how much) or ``none``.
-        R_2_1: (3, 3) rotation about z between the (tilt-corrected) level frames.
-        t_2_1: (3,) unit translation in level frame 2 (zeros when unknown).
-        yaw_rad: the yaw of ``R_2_1``.
-        t_2_1_per_height: (3,) for the ground model, the translation divided by the height of view 1
-            above the ground plane: multiplied by a rangefinder height it is metric. None otherwise.
-        inliers: (N,) bool. num_inliers, inlier_ratio: their count and fraction.
-        score: MSAC cost of the final model, in units of ``max_err_rad^2`` per point (0 best, 1 worst).
-        residual_rms_rad: RMS error of the inliers (Sampson for essential, transfer for the others).
-        iterations: samples drawn.
-        tilt1_rad, tilt2_rad: (2,) roll/pitch corrections of each view's level frame (``tilt_sigma_deg``).
-        attitude_corrected: vision corrected roll/pitch; False when they were kept as given (too little
-            parallax for the corrections to fit significantly better, or no attitude sigma): then their error moves
-            the translation by the scene's depth times it.
-        attitude_resolved: the corrections were made with enough parallax to tell a tilt from a
-            translation. Corrected without it (they fitted significantly better), their error is about
-            the prior's, and it moves the translation as if they had been kept as given.
-        stats: :class:`RelposeStats`.
-    """
-
-    success: bool
-    reason: RelposeFailure
-    model: ModelName
-    R_2_1: np.ndarray
-    t_2_1: np.ndarray
-    yaw_rad: float
-    t_2_1_per_height: np.ndarray | None
-    inliers: np.ndarray
-    num_inliers: int
-    inlier_ratio: float
-    score: float
-    residual_rms_rad: float
-    iterations: int
-    tilt1_rad: np.ndarray
-    tilt2_rad: np.ndarray
-    stats: RelposeStats
-    attitude_corrected: bool = False
-    attitude_resolved: bool = False
-
-
-@dataclass(frozen=True)
-class CameraRelpose:
-    """Relative pose between two camera frames: ``x_c2 = R_c2_c1 @ x_c1 + t_c2_c1`` (t unit).
-
-    ``upright`` is the level-frame estimate it came from, with all statistics; the camera frames use
-    the tilt corrections when ``tilt_sigma_deg`` was set.
-    """
-
-    success: bool
-    R_c2_c1: np.ndarray
-    t_c2_c1: np.ndarray
-    inliers: np.ndarray
-    upright: UprightRelpose
-
-
 def _frozen(a: np.ndarray) -> np.ndarray:
     a = np.array(a, copy=True)
     a.setflags(write=False)
     return a
 
 
-def _gric(err_sq: np.ndarray, rows: np.ndarray, sigma_sq: float, model: str) -> float:
+def _gric(err_sq: np.ndarray, rows: np.ndarray, sigma_sq: float, model: RelposeModel) -> float:
     """GRIC of a model with squared errors err_sq (N,) over the points ``rows`` (indices); inf without any."""
     d, k = _GRIC_DK[model]
     return _gric_kernel(err_sq, rows, sigma_sq, d, k)
@@ -364,7 +181,7 @@ def _ground_model(
 class _Fit:
     """One model's answer, before it becomes an :class:`UprightRelpose`."""
 
-    model: ModelName
+    model: RelposeModel
     yaw: float
     t: np.ndarray
     err_sq: np.ndarray  # (N,) on all points
@@ -375,14 +192,14 @@ class _Fit:
 
 
 def _rotation_fit(R: np.ndarray, err_sq: np.ndarray) -> _Fit:
-    return _Fit("rotation", yaw_of(R), np.zeros(3), err_sq)
+    return _Fit(RelposeModel.ROTATION, yaw_of(R), np.zeros(3), err_sq)
 
 
 def _failure(reason: RelposeFailure, n: int, iterations: int = 0, stats: RelposeStats | None = None) -> UprightRelpose:
     return UprightRelpose(
         success=False,
         reason=reason,
-        model="none",
+        model=RelposeModel.NONE,
         R_2_1=_frozen(np.eye(3)),
         t_2_1=_frozen(np.zeros(3)),
         yaw_rad=0.0,
@@ -477,7 +294,7 @@ def estimate_upright_relpose(
     run = lo_ransac(essential, opt, sample_thr, rng)
     t_refine = time.thread_time()
     rs = run.stats
-    sigma, gric = math.nan, dict[str, float]()
+    sigma, gric = math.nan, dict[RelposeModel, float]()
     if run.model is None:
         rot = lo_ransac(
             PureRotation(f1, f2), dataclasses.replace(opt, lo_rounds=2, local_optimization=True), sample_thr, rng
@@ -489,7 +306,7 @@ def estimate_upright_relpose(
         fit, essential, sigma, gric = _select(
             f1, f2, run, opt, max_err_rad, rng, attitude_sigma_rad, sample_thr, yaw_prior_rad
         )
-        if attitude_sigma_rad is not None and fit.model != "rotation":
+        if attitude_sigma_rad is not None and fit.model != RelposeModel.ROTATION:
             fit = _general_if_attitude_is_worse(
                 f1, f2, fit, essential, attitude_sigma_rad, max_err_rad, seed, run.inliers
             )
@@ -507,7 +324,7 @@ def _select(
     attitude_sigma_rad: tuple[float, float] | None,
     sample_thr: float,
     yaw_prior_rad: float | None,
-) -> tuple[_Fit, _Fit, float, dict[str, float]]:
+) -> tuple[_Fit, _Fit, float, dict[RelposeModel, float]]:
     """Refine the essential model found, then choose between it, the ground homography and a pure
     rotation (GRIC) on the bearings with the roll/pitch corrections the refinement found: the chosen
     fit, the refined essential fit (what the attitude is judged by), the noise sigma and the GRIC scores."""
@@ -529,21 +346,30 @@ def _select(
         (f1, f2) if correction == Correction.AS_GIVEN else (f1 @ tilt_rotation(tilt1).T, f2 @ tilt_rotation(tilt2).T)
     )
     sigma = robust_sigma(err_e[err_e < thr_sq], max_err_rad)
-    essential = _Fit("essential", yaw, t, err_e, None, tilt1, tilt2, correction)
+    essential = _Fit(RelposeModel.ESSENTIAL, yaw, t, err_e, None, tilt1, tilt2, correction)
 
     # GRIC runs on the essential inliers only: its outlier cap differs between models (2 for E, 4
     # for the others), so gross outliers, which fit none of them, would otherwise decide the choice.
     sigma_sq = sigma**2
     inl_idx = np.nonzero(err_e < thr_sq)[0]
-    gric = {"essential": _gric(err_e, inl_idx, sigma_sq, "essential")}
+    gric = {RelposeModel.ESSENTIAL: _gric(err_e, inl_idx, sigma_sq, RelposeModel.ESSENTIAL)}
     R_rot = _rotation_model(f1c, f2c, inl_idx, thr_sq)
     rotation = (
         None
         if R_rot is None
-        else _Fit("rotation", yaw_of(R_rot), np.zeros(3), rotation_sq(R_rot, f1c, f2c), None, tilt1, tilt2, correction)
+        else _Fit(
+            RelposeModel.ROTATION,
+            yaw_of(R_rot),
+            np.zeros(3),
+            rotation_sq(R_rot, f1c, f2c),
+            None,
+            tilt1,
+            tilt2,
+            correction,
+        )
     )
     if rotation is not None:
-        gric["rotation"] = _gric(rotation.err_sq, inl_idx, sigma_sq, "rotation")
+        gric[RelposeModel.ROTATION] = _gric(rotation.err_sq, inl_idx, sigma_sq, RelposeModel.ROTATION)
         # Measured about z only: roll and pitch are known, and a free tilt would pass off a nadir
         # camera's image shift as rotation.
         parallax = yaw_parallax_rad(rotation.yaw, f1c, f2c, inl_idx)
@@ -554,26 +380,26 @@ def _select(
         H = _ground_model(f1c, f2c, inl_idx, opt, max_err_rad, rng)
         if H is not None:
             err_g = ground_sq(H, f1c, f2c)
-            gric["ground"] = _gric(err_g, inl_idx, sigma_sq, "ground")
+            gric[RelposeModel.GROUND] = _gric(err_g, inl_idx, sigma_sq, RelposeModel.GROUND)
             R, t_per_h = ground_pose_from_homography(H)
             nt = float(np.linalg.norm(t_per_h))
             if nt > 0:
-                ground = _Fit("ground", yaw_of(R), t_per_h / nt, err_g, t_per_h, tilt1, tilt2, correction)
+                ground = _Fit(RelposeModel.GROUND, yaw_of(R), t_per_h / nt, err_g, t_per_h, tilt1, tilt2, correction)
     if opt.model == "auto":
-        allowed: tuple[str, ...] = ("essential", "ground", "rotation")
-    elif opt.model == "ground" and "ground" in gric:
-        allowed = ("ground", "rotation")
+        allowed: tuple[RelposeModel, ...] = (RelposeModel.ESSENTIAL, RelposeModel.GROUND, RelposeModel.ROTATION)
+    elif opt.model == "ground" and RelposeModel.GROUND in gric:
+        allowed = (RelposeModel.GROUND, RelposeModel.ROTATION)
     else:  # essential asked for, or the ground model is not applicable
-        allowed = ("essential", "rotation")
-    choice = min((m for m in gric if m in allowed), key=gric.__getitem__, default="essential")
+        allowed = (RelposeModel.ESSENTIAL, RelposeModel.ROTATION)
+    choice = min((m for m in gric if m in allowed), key=gric.__getitem__, default=RelposeModel.ESSENTIAL)
     if (
-        choice == "ground"
+        choice == RelposeModel.GROUND
         and ground is not None
         and attitude_sigma_rad is not None
         and correction != Correction.AS_GIVEN
     ):
         ground = _ground_refined(f1, f2, ground, attitude_sigma_rad, max_err_rad, opt.refine_steps)
-    fits = {"essential": essential, "rotation": rotation, "ground": ground}
+    fits = {RelposeModel.ESSENTIAL: essential, RelposeModel.ROTATION: rotation, RelposeModel.GROUND: ground}
     return fits[choice] or essential, essential, sigma, gric
 
 
@@ -588,21 +414,24 @@ def _ground_refined(
     """The ground model's pose, found with the essential fit's roll/pitch corrections held, refined
     with the corrections under the attitude prior on the epipolar (Sampson) error, from that pose and
     at the inlier threshold: the homography decides the model and the basin, the joint refinement the
-    last digits. The homography's transfer error with the corrections held carries their residual error
-    into yaw and translation: on the survey's pairs of ``benchmarks/relpose_flight.py`` (434 tracks,
-    0.2 deg of roll/pitch noise per view) its rotation error was 0.0060 deg against PoseLib's 0.0048,
-    refined 0.0048 (the refined the lower on 71% of those pairs, on 75-77% at 0.5-1 deg). Where
-    roll/pitch are exact the homography is as good or better: with the sigma given, medians level
-    (0.0034 deg), the refined the lower on 20%; taken as exact (no corrections), 0.0005 deg against
-    0.0008 refined, and there it is kept. The sign of the translation and its size per height stay the
-    homography's."""
+    last digits: the homography's transfer error with the corrections held carries their residual
+    error into yaw and translation (docs/relpose.md has the figures). Where roll/pitch are taken as
+    exact (no corrections) the homography is as good or better, and there it is kept (the caller does
+    not refine). The sign of the translation and its size per height stay the homography's."""
     yaw, t, tilt1, tilt2 = refine_at_threshold(
         f1, f2, (ground.yaw, ground.t, ground.tilt1, ground.tilt2), attitude_sigma_rad, max_err_rad, steps
     )
     t = t if np.dot(t, ground.t) >= 0 else -t  # a refinement from the homography's pose keeps its side
     assert ground.t_per_height is not None  # a ground fit has its translation per height
     return _Fit(
-        "ground", yaw, t, ground.err_sq, float(np.linalg.norm(ground.t_per_height)) * t, tilt1, tilt2, ground.correction
+        RelposeModel.GROUND,
+        yaw,
+        t,
+        ground.err_sq,
+        float(np.linalg.norm(ground.t_per_height)) * t,
+        tilt1,
+        tilt2,
+        ground.correction,
     )
 
 
@@ -654,7 +483,7 @@ def _general_if_attitude_is_worse(
     if np.count_nonzero(err < thr_sq) <= _FALLBACK_MARGIN * upright:
         return fit
     yaw, t2, tilt2 = upright_from_general(R, t)
-    return _Fit("general", yaw, t2, err, None, np.zeros(2), tilt2, Correction.RESOLVED)
+    return _Fit(RelposeModel.GENERAL, yaw, t2, err, None, np.zeros(2), tilt2, Correction.RESOLVED)
 
 
 @kernel
@@ -674,7 +503,7 @@ def _result(fit: _Fit, thr_sq: float, iterations: int, stats: RelposeStats) -> U
     inl = err_sq < thr_sq
     k, capped_sum, inlier_sum = _error_sums(err_sq, thr_sq)
     n = len(err_sq)
-    translation = fit.model in ("essential", "ground", "general")
+    translation = fit.model in (RelposeModel.ESSENTIAL, RelposeModel.GROUND, RelposeModel.GENERAL)
     return UprightRelpose(
         success=translation,
         reason=RelposeFailure.NONE if translation else RelposeFailure.PURE_ROTATION,

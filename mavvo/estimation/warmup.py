@@ -15,7 +15,8 @@ import time
 import numpy as np
 
 from mavvo.estimation.general5pt import decompose_homography
-from mavvo.estimation.relpose import RelposeOptions, estimate_relpose_known_gravity, estimate_upright_relpose
+from mavvo.estimation.relpose import estimate_relpose_known_gravity, estimate_upright_relpose
+from mavvo.estimation.relpose_types import RelposeOptions
 from mavvo.geometry import solve_upright_3pt
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.medians import median, weighted_median

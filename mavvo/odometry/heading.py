@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from mavvo.estimation.relpose import RelposeFailure, UprightRelpose
+from mavvo.estimation.relpose_types import RelposeFailure, UprightRelpose
 from mavvo.geometry.refine import upright_yaw_variance
 from mavvo.odometry.filter import wrap_angle
 from mavvo.odometry.options import OdometryOptions

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mavvo.estimation.relpose import RelposeFailure, UprightRelpose
+from mavvo.estimation.relpose_types import RelposeFailure, UprightRelpose
 from mavvo.odometry.keyframes import Keyframe
 from mavvo.odometry.options import OdometryOptions
 from mavvo.odometry.scale import ScaleEstimate

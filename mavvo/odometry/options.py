@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from mavvo.estimation.relpose import RelposeOptions
+from mavvo.estimation.relpose_types import RelposeOptions
 from mavvo.odometry.filter import FilterOptions
 from mavvo.odometry.frontend import FrontendOptions
 from mavvo.odometry.height import HeightOptions

@@ -53,7 +53,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mavvo.estimation.relpose import RelposeFailure, UprightRelpose, estimate_upright_relpose
+from mavvo.estimation.relpose import estimate_upright_relpose
+from mavvo.estimation.relpose_types import RelposeFailure, UprightRelpose
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import R_lvl_body, R_lvl_cam, as_rotation, euler321_from_R
 from mavvo.geometry.medians import median

@@ -256,7 +256,7 @@ def apply_effects(
             raise ValueError("apply_effects: noise_sigma > 0 needs a seeded rng")
         # A window at a random offset into a fixed field of unit Gaussian noise twice the image each way:
         # every pixel's noise is Gaussian and independent of its neighbours', and drawing it costs a slice
-        # instead of a fresh draw of H x W normals (4 ms at 640x480, a third of rendering a frame).
+        # instead of a fresh draw of H x W normals (a large share of rendering a frame).
         h, w = out.shape[:2]
         bank = _noise_field(h, w)
         dy, dx = (int(v) for v in rng.integers(0, (h, w)))
