@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import enum
-import hashlib
 import io
 import json
 import os
@@ -32,7 +30,7 @@ import tempfile
 import threading
 import time
 from collections import Counter
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -40,153 +38,33 @@ import cv2
 import numpy as np
 
 from mavvo.cli import main as cli
-from mavvo.service.daemon import Daemon
 from mavvo.service.link import Link
 from mavvo.service.link_options import LinkOptions
-from mavvo.service.mavlink import mavutil
 from mavvo.service.timing import MonotonicClock
 from mavvo.sim.scenarios.loader import load_scenario
-from mavvo.sim.scenarios.service_run import SimRun, run_daemon_in_sim
+from mavvo.sim.scenarios.service_run import run_daemon_in_sim
 from tools.faults.config_fuzz import mutated_config
+from tools.faults.harness import (
+    FaultRow,
+    Lines,
+    Outcome,
+    estimates_sent,
+    flow_outcome,
+    image_folder,
+    longest_gap_s,
+    lost,
+    run_config,
+    run_mavvo,
+)
+from tools.faults.link_cases import (
+    foreign_sender_udpout,
+    forged_clock,
+    impostor_heartbeat,
+    signing_forgery_and_replay,
+    udp_flood,
+)
 
 __all__ = ["Outcome", "FaultRow", "CASES", "FAST_CASES", "run_cases", "markdown_table", "main"]
-
-_GAP_OK_S = 1.0
-_SIGNING_EPOCH_UNIX_S = 1_420_070_400  # MAVLink signing timestamps count 10 us units from 2015-01-01
-
-
-class Outcome(enum.Enum):
-    SURVIVED = "survived"
-    RESTARTED = "restarted"
-    REFUSED = "refused"
-    FAILED = "failed"
-
-
-@dataclass(frozen=True)
-class FaultRow:
-    """One case of the suite: the input, what came of it, the longest gap in estimates (seconds, NaN
-    where no estimates are involved), what was lost, and the figures behind it."""
-
-    case: str
-    outcome: Outcome
-    longest_gap_s: float
-    data_lost: str
-    details: str
-
-
-# ---------------------------------------------------------------------------------------------- helpers
-
-
-def _gaps(run: SimRun) -> float:
-    """The longest gap between consecutive estimates the flight controller received (exposure times)."""
-    t = np.array([m.usec for m in run.vision_messages], dtype=float) * 1e-6
-    return float(np.max(np.diff(t))) if len(t) >= 2 else float("inf")
-
-
-def _flow_outcome(run: SimRun, gap_s: float) -> Outcome:
-    return Outcome.SURVIVED if len(run.vision_messages) > 20 and gap_s <= _GAP_OK_S else Outcome.FAILED
-
-
-def _lost(counters: dict[str, int], *keys: str) -> str:
-    parts = [f"{k} {counters[k]}" for k in keys if counters.get(k)]
-    return ", ".join(parts) or "nothing"
-
-
-def _hover(duration_s: float):
-    return replace(load_scenario("hover"), duration_s=duration_s)
-
-
-def _attitude(mav, boot_ms: int, roll: float = 0.0) -> bytes:
-    m = mavutil().mavlink
-    return bytes(m.MAVLink_attitude_message(boot_ms, roll, 0.0, 0.0, 0.0, 0.0, 0.0).pack(mav))
-
-
-def _heartbeat(mav) -> bytes:
-    m = mavutil().mavlink
-    return bytes(
-        m.MAVLink_heartbeat_message(
-            m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, m.MAV_STATE_ACTIVE, 3
-        ).pack(mav)
-    )
-
-
-def _mavvo(*args: str, preexec: Callable[[], None] | None = None) -> subprocess.Popen[str]:
-    return subprocess.Popen(
-        [sys.executable, "-m", "mavvo", *args],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        preexec_fn=preexec,
-    )
-
-
-class _Lines:
-    """A subprocess's stderr, collected line by line on a thread."""
-
-    def __init__(self, proc: subprocess.Popen[str]) -> None:
-        self.proc = proc
-        self.lines: list[str] = []
-        self._t = threading.Thread(target=lambda: self.lines.extend(iter(proc.stderr.readline, "")), daemon=True)  # type: ignore[union-attr]
-        self._t.start()
-
-        self.peak_rss_mb = float("nan")
-
-    def _exited(self) -> bool:
-        """Whether the process has ended, without reaping it (so :meth:`finish` gets its resource use)."""
-        return os.waitid(os.P_PID, self.proc.pid, os.WEXITED | os.WNOHANG | os.WNOWAIT) is not None
-
-    def wait_for(self, text: str, timeout_s: float = 60.0) -> bool:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if any(text in line for line in self.lines):
-                return True
-            if self._exited():
-                self._t.join(5)
-                return any(text in line for line in self.lines)
-            time.sleep(0.05)
-        return False
-
-    def finish(self, timeout_s: float = 60.0) -> tuple[int, str, str]:
-        """Wait for the end (killing it after ``timeout_s``): (exit code, stdout, stderr); the peak
-        resident memory of this process alone goes to ``peak_rss_mb``."""
-        deadline = time.monotonic() + timeout_s
-        while self.proc.returncode is None:  # (send_signal may have reaped it already: then no resource use)
-            pid, status, usage = os.wait4(self.proc.pid, os.WNOHANG)
-            if pid:
-                self.proc.returncode = os.waitstatus_to_exitcode(status)
-                self.peak_rss_mb = usage.ru_maxrss / 1024
-                break
-            if time.monotonic() > deadline:
-                self.proc.kill()
-                deadline = float("inf")
-            time.sleep(0.05)
-        out = self.proc.stdout.read() if self.proc.stdout is not None else ""
-        self._t.join(10)
-        return self.proc.returncode, out, "".join(self.lines)
-
-
-def _image_folder(folder: Path, n: int, period_s: float, huge: Sequence[int] = ()) -> None:
-    """``n`` small random frames listed in timestamps.txt; the frames at ``huge`` are 20000 x 20000."""
-    folder.mkdir(parents=True)
-    rng = np.random.default_rng(0)
-    lines = []
-    for i in range(n):
-        name = f"{i:04d}.png"
-        if i in huge:
-            cv2.imwrite(str(folder / name), np.zeros((20000, 20000), np.uint8), [cv2.IMWRITE_PNG_COMPRESSION, 9])
-        else:
-            cv2.imwrite(str(folder / name), rng.integers(0, 255, (48, 64), dtype=np.uint8))
-        lines.append(f"{i * period_s:.3f} {name}")
-    (folder / "timestamps.txt").write_text("\n".join(lines) + "\n")
-
-
-def _run_config(tmp: Path, text: str) -> Path:
-    cfg = tmp / "mavvo.yaml"
-    cfg.write_text(text)
-    return cfg
-
-
-# ---------------------------------------------------------------------------------------------- the cases
 
 
 def undistortable_corners(tmp: Path) -> FaultRow:
@@ -195,13 +73,13 @@ def undistortable_corners(tmp: Path) -> FaultRow:
     sc = load_scenario("figure_eight")
     sc = replace(sc, camera=replace(sc.camera, distortion=(0.3, -0.8, 0.0, 0.0)), duration_s=20.0)
     run = run_daemon_in_sim(sc)
-    gap = _gaps(run)
+    gap = longest_gap_s(run)
     c = run.daemon.counters
     return FaultRow(
         "lens with undistortable corners (k1 0.3, k2 -0.8)",
-        _flow_outcome(run, gap),
+        flow_outcome(run, gap),
         gap,
-        _lost(c, "odometry_errors", "bad_frames"),
+        lost(c, "odometry_errors", "bad_frames"),
         f"{len(run.vision_messages)} estimates, ATE {run.evaluation.ate_se3_m['rmse']:.2f} m" if run.evaluation else "",
     )
 
@@ -222,206 +100,8 @@ def pymavlink_imported_first(tmp: Path) -> FaultRow:
         "pymavlink imported before mavvo",
         Outcome.SURVIVED if ok else Outcome.FAILED,
         float("nan"),
-        _lost(s["counters"], "errors", "link_send_dropped"),
+        lost(s["counters"], "errors", "link_send_dropped"),
         f"{s['estimates_received']} estimates received as MAVLink 2",
-    )
-
-
-def udp_flood(tmp: Path) -> FaultRow:
-    """20 000 garbage datagrams a second for 10 s at the port the service listens on."""
-    sent = Counter[str]()
-
-    def flood(daemon: Daemon, address: tuple[str, int]) -> None:
-        rng = np.random.default_rng(3)
-        garbage = [bytes(rng.integers(0, 256, 64, dtype=np.uint8)) for _ in range(200)]
-        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        s.setblocking(False)
-        time.sleep(5.0)  # the flight controller is chosen and estimates flow by then
-        t0 = time.monotonic()
-        while (t := time.monotonic() - t0) < 10.0 and not daemon.stop_event.is_set():
-            for g in garbage:  # 200 per 10 ms
-                try:
-                    s.sendto(g, address)
-                    sent["datagrams"] += 1
-                except OSError:
-                    sent["refused"] += 1
-            time.sleep(max(0.0, 0.01 * (int(t / 0.01) + 1) - (time.monotonic() - t0)))
-        s.close()
-
-    run = run_daemon_in_sim(_hover(20.0), realtime=True, service_listens=True, during=flood)
-    gap = _gaps(run)
-    c = run.daemon.counters
-    return FaultRow(
-        "20k garbage datagrams/s for 10 s on the service's UDP port",
-        _flow_outcome(run, gap),
-        gap,
-        _lost(c, "link_stale_dropped", "skipped_attitude_stale", "skipped_attitude_missing"),
-        f"{sent['datagrams']} sent, {c.get('link_bad_data', 0)} read as bad data, {run.received.get('HEARTBEAT', 0)} HEARTBEATs sent",
-    )
-
-
-def forged_clock(tmp: Path) -> FaultRow:
-    """A forged TIMESYNC answer, an ATTITUDE stamped 1 s ahead and one 5 ms ahead, from another sender."""
-
-    def forge(daemon: Daemon, address: tuple[str, int]) -> None:
-        m = mavutil().mavlink
-        mav = m.MAVLink(None, srcSystem=1, srcComponent=1)
-        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        time.sleep(6.0)
-        boot_ms = int(daemon.clock.now_s() * 1000)  # about the flight controller's boot clock in the simulator
-        now_ns = int(daemon.clock.now_s() * 1e9)
-        s.sendto(bytes(m.MAVLink_timesync_message(now_ns + 10**9, now_ns - 10**6).pack(mav)), address)
-        s.sendto(_attitude(mav, boot_ms + 1000, roll=0.9), address)
-        s.sendto(_attitude(mav, boot_ms + 5, roll=0.9), address)
-        s.close()
-
-    run = run_daemon_in_sim(_hover(16.0), realtime=True, service_listens=True, during=forge)
-    gap = _gaps(run)
-    c = run.daemon.counters
-    return FaultRow(
-        "forged TIMESYNC answer; ATTITUDE stamped 1 s and 5 ms ahead",
-        _flow_outcome(run, gap),
-        gap,
-        _lost(c, "fc_attitude_implausible", "fc_timesync_implausible", "skipped_attitude_wait"),
-        "dropped by the sender filter (the flight controller's address is pinned); the plausibility checks behind it are tested alone",
-    )
-
-
-def impostor_heartbeat(tmp: Path) -> FaultRow:
-    """HEARTBEATs from another system id before (and while) the real flight controller's come (before:
-    the first one was followed for the whole run, 0 of 700 genuine ATTITUDE accepted)."""
-    seen: dict[str, int | None] = {}
-
-    def impostor(daemon: Daemon, address: tuple[str, int]) -> None:
-        mav = mavutil().mavlink.MAVLink(None, srcSystem=42, srcComponent=1)
-        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        daemon.link.connected.wait(30)  # the service's socket exists
-        sent = 0
-        while daemon.link.fc_component_id is None and not daemon.stop_event.is_set():
-            s.sendto(_heartbeat(mav), address)
-            sent += 1
-            time.sleep(0.01)
-        s.close()
-        seen["system"], seen["sent"] = daemon.link.fc_system_id, sent
-
-    run = run_daemon_in_sim(_hover(8.0), service_listens=True, during=impostor)  # lockstep
-    gap = _gaps(run)
-    c = run.daemon.counters
-    ok = _flow_outcome(run, gap) is Outcome.SURVIVED and seen.get("system") == 1 and (seen.get("sent") or 0) > 0
-    return FaultRow(
-        "HEARTBEATs from another system id before the flight controller's",
-        Outcome.SURVIVED if ok else Outcome.FAILED,
-        gap,
-        _lost(c, "skipped_attitude_missing"),
-        f"{seen.get('sent')} impostor HEARTBEATs; followed system {seen.get('system')}; {c.get('fc_attitude', 0)} ATTITUDE accepted",
-    )
-
-
-def foreign_sender_udpout(tmp: Path) -> FaultRow:
-    """``udpout``: datagrams from another sender than the flight controller (before: accepted from anyone)."""
-    seen: dict[str, object] = {}
-
-    def stranger(daemon: Daemon, address: tuple[str, int]) -> None:
-        mav = mavutil().mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
-        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        seen["bound_to"] = address[0]
-        sent = 0
-        for i in range(2000):
-            sent += s.sendto(b"\x00garbage" if i % 2 else _attitude(mav, 10**6 + i, roll=0.9), address) > 0
-        seen["sent"] = sent
-        s.close()
-
-    run = run_daemon_in_sim(_hover(10.0), during=stranger)
-    gap = _gaps(run)
-    c = run.daemon.counters
-    ok = (
-        _flow_outcome(run, gap) is Outcome.SURVIVED
-        and c.get("link_bad_data", 0) == 0
-        and seen.get("bound_to") == "127.0.0.1"
-        and seen.get("sent") == 2000
-    )
-    return FaultRow(
-        "udpout: 2000 datagrams from a stranger",
-        Outcome.SURVIVED if ok else Outcome.FAILED,
-        gap,
-        _lost(c, "link_bad_data", "fc_attitude_implausible"),
-        f"{seen.get('sent')} sent to {seen.get('bound_to')}, none read (the socket is connected to the flight controller)",
-    )
-
-
-def signing_forgery_and_replay(tmp: Path) -> FaultRow:
-    """Signing on: one frame with a wrong signature and a huge timestamp, then a genuine frame from
-    another link id 5 s old with a boot time 60 s back (before: genuine traffic refused for 3.3 s; the
-    replay faked a reboot)."""
-    key_file = tmp / "signing.key"
-    key_file.write_text("a passphrase\n")
-    key_file.chmod(0o600)
-    key = hashlib.sha256(b"a passphrase").digest()
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
-    got: list[int] = []
-
-    class Listener:
-        def on_attitude(self, t_fc_ms, *args, **kw):
-            got.append(t_fc_ms)
-
-        def __getattr__(self, name):
-            return lambda *a, **k: None
-
-    link = Link(
-        LinkOptions(url=f"udpin:127.0.0.1:{port}", signing_key_file=str(key_file), fc_system_id=1),
-        MonotonicClock(),
-        Listener(),
-    )
-    stop = threading.Event()
-    t = threading.Thread(target=link.run, args=(stop,), daemon=True)
-    t.start()
-
-    def signer(link_id: int, timestamp: int):
-        mav = mavutil().mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
-        mav.signing.secret_key, mav.signing.sign_outgoing, mav.signing.link_id, mav.signing.timestamp = (
-            key,
-            True,
-            link_id,
-            timestamp,
-        )
-        return mav
-
-    fc = signer(0, int((time.time() - _SIGNING_EPOCH_UNIX_S) * 100_000))
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    try:
-        link.connected.wait(30)
-        s.sendto(_heartbeat(fc), ("127.0.0.1", port))
-        boot_ms = 100_000
-        genuine = 0
-        for i in range(40):
-            if i == 20:
-                forged = bytearray(_attitude(fc, boot_ms + 5))
-                forged[-12:-6] = (2**47).to_bytes(6, "little")  # far ahead; the signature no longer matches
-                s.sendto(bytes(forged), ("127.0.0.1", port))
-            boot_ms += 10
-            s.sendto(_attitude(fc, boot_ms), ("127.0.0.1", port))
-            genuine += 1
-        s.sendto(_attitude(signer(1, fc.signing.timestamp - 500_000), boot_ms - 60_000), ("127.0.0.1", port))
-        boot_ms += 10
-        s.sendto(_attitude(fc, boot_ms), ("127.0.0.1", port))
-        genuine += 1
-        deadline = time.monotonic() + 30
-        while len(got) < genuine and time.monotonic() < deadline:
-            time.sleep(0.02)
-    finally:
-        s.close()
-        stop.set()
-        t.join(10)
-    c = link.counters
-    ok = len(got) == genuine and c["signature_bad"] == 1 and c["signature_replayed"] == 1 and c["reboots"] == 0
-    return FaultRow(
-        "signing: a forged frame with a huge timestamp; a replay from another link id",
-        Outcome.SURVIVED if ok else Outcome.FAILED,
-        float("nan"),
-        f"{genuine - len(got)} of {genuine} genuine frames",
-        f"signature_bad {c['signature_bad']}, signature_replayed {c['signature_replayed']}, reboots {c['reboots']}",
     )
 
 
@@ -436,7 +116,7 @@ def full_disk_and_sighup(tmp: Path) -> FaultRow:
     rec = tmp / "rec"
     sc = load_scenario("hover")
     cam = sc.camera
-    cfg = _run_config(
+    cfg = run_config(
         tmp,
         (
             f"camera: {{source: 'sim:hover', rate_hz: {cam.rate_hz}, width_px: {cam.width_px}, height_px: {cam.height_px}, fx_px: {cam.fx_px}, "
@@ -451,23 +131,23 @@ def full_disk_and_sighup(tmp: Path) -> FaultRow:
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, (60_000, 60_000))
 
-    fc = _Lines(_mavvo("sim", "--fc-only", "--scenario", "hover", "--mavlink", f"udpin:127.0.0.1:{port}"))
+    fc = Lines(run_mavvo("sim", "--fc-only", "--scenario", "hover", "--mavlink", f"udpin:127.0.0.1:{port}"))
     try:
         fc.wait_for("simulated flight controller on", 60)
-        lines = _Lines(_mavvo("run", "--config", str(cfg), preexec=limit))
+        lines = Lines(run_mavvo("run", "--config", str(cfg), preexec=limit))
         hup = lines.wait_for("-> tracking", 120)
         if hup:
             lines.proc.send_signal(signal.SIGHUP)
         stopped = lines.wait_for("recording stopped", 120)
         lines.wait_for("health:", 30)
-        sent_at_stop = _estimates_sent(lines.lines)
+        sent_at_stop = estimates_sent(lines.lines)
         time.sleep(2.0)  # vision goes on after the recording stopped
         lines.proc.send_signal(signal.SIGTERM)
         code, _, err = lines.finish(120)
     finally:
         fc.proc.send_signal(signal.SIGTERM)
         fc.finish(60)
-    sent = _estimates_sent(err.splitlines())
+    sent = estimates_sent(err.splitlines())
     folders = list(rec.iterdir()) if rec.is_dir() else []
     readable = (
         sum(1 for p in (folders[0] / "frames").glob("*.jpg") if cv2.imread(str(p), cv2.IMREAD_UNCHANGED) is not None)
@@ -492,23 +172,15 @@ def full_disk_and_sighup(tmp: Path) -> FaultRow:
     )
 
 
-def _estimates_sent(lines: Sequence[str]) -> int:
-    """``estimates_sent`` of the last health line in a ``mavvo run`` log."""
-    for line in reversed(lines):
-        if m := re.search(r"estimates_sent (\d+)", line):
-            return int(m.group(1))
-    return 0
-
-
 def huge_images(tmp: Path) -> FaultRow:
     """Three 20000 x 20000 image files in an image-folder source (before: 149 MB -> 1263 MB, no
     estimates for 11 s)."""
     folder = tmp / "frames"
-    _image_folder(folder, 40, 0.1, huge=(10, 20, 30))
-    cfg = _run_config(
+    image_folder(folder, 40, 0.1, huge=(10, 20, 30))
+    cfg = run_config(
         tmp, f"camera: {{source: '{folder}'}}\nlink: {{url: 'udpout:127.0.0.1:9'}}\nservice: {{state_file: ''}}\n"
     )
-    lines = _Lines(_mavvo("run", "--config", str(cfg)))
+    lines = Lines(run_mavvo("run", "--config", str(cfg)))
     code, _, err = lines.finish(120)
     peak_mb = lines.peak_rss_mb
     final = [line for line in err.splitlines() if "final:" in line]
@@ -527,13 +199,13 @@ def huge_images(tmp: Path) -> FaultRow:
 def folder_vanishes(tmp: Path) -> FaultRow:
     """The image folder disappears mid-run (before: the service exited 0; systemd did not restart it)."""
     folder = tmp / "frames"
-    _image_folder(folder, 60, 0.1)
-    cfg = _run_config(
+    image_folder(folder, 60, 0.1)
+    cfg = run_config(
         tmp,
         f"camera: {{source: '{folder}', lost_after_s: 2.0, reconnect_max_s: 0.5}}\nlink: {{url: 'udpout:127.0.0.1:9'}}\n"
         "service: {health_log_interval_s: 0.2, state_file: ''}\n",
     )
-    lines = _Lines(_mavvo("run", "--config", str(cfg)))
+    lines = Lines(run_mavvo("run", "--config", str(cfg)))
     started = lines.wait_for("skipped_attitude_missing 3", 60)
     for p in folder.iterdir():
         p.unlink()
@@ -555,14 +227,14 @@ def port_in_use(tmp: Path) -> FaultRow:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
     folder = tmp / "frames"
-    _image_folder(folder, 300, 0.1)
-    cfg = _run_config(
+    image_folder(folder, 300, 0.1)
+    cfg = run_config(
         tmp, f"camera: {{source: '{folder}'}}\nlink: {{url: 'udpin:127.0.0.1:{port}'}}\nservice: {{state_file: ''}}\n"
     )
-    first = _Lines(_mavvo("run", "--config", str(cfg)))
+    first = Lines(run_mavvo("run", "--config", str(cfg)))
     try:
         first.wait_for("mavvo running", 60)
-        code, _, err = _Lines(_mavvo("run", "--config", str(cfg))).finish(60)
+        code, _, err = Lines(run_mavvo("run", "--config", str(cfg))).finish(60)
     finally:
         first.proc.send_signal(signal.SIGTERM)
         first.finish(60)
