@@ -709,7 +709,8 @@ def test_the_attitude_is_judged_by_the_upright_essential_not_by_the_model_gric_c
     other pose, a 10 deg tilt and a vertical translation, in the faults flight). The attitude is judged
     by the upright essential fit, which explains the scene with the roll/pitch as given."""
     from mavvo.estimation.estimators import upright_e
-    from mavvo.estimation.relpose import _Fit, _general_if_attitude_is_worse
+    from mavvo.estimation.model_selection import Fit as _Fit
+    from mavvo.estimation.model_selection import general_if_attitude_is_worse as _general_if_attitude_is_worse
     from mavvo.geometry.residuals import sampson_sq_upright
 
     scene, outlier = _scene(31, n=300, outliers=0.1, motion="sideways", depth_fraction=1.0)

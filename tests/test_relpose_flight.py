@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import mavvo.estimation.attitude_refine as attitude_refine
-import mavvo.estimation.relpose as relpose
+import mavvo.estimation.model_selection as model_selection
 from mavvo.estimation.relpose import estimate_relpose_known_gravity
 from mavvo.geometry.frames import R_lvl_cam, angle_between_rad, rotation_angle_rad
 from mavvo.odometry.frontend import FrontendOptions
@@ -177,7 +177,7 @@ def test_the_ground_models_pose_is_refined_with_the_corrections(monkeypatch) -> 
         return out
 
     refined = ground_errors()
-    monkeypatch.setattr(relpose, "_ground_refined", lambda f1, f2, ground, *args: ground)
+    monkeypatch.setattr(model_selection, "_ground_refined", lambda f1, f2, ground, *args: ground)
     held = ground_errors()
     assert [k for k, _, _ in refined] == [k for k, _, _ in held]  # the same pairs took the ground model
     assert len(refined) >= 100, len(refined)

@@ -151,6 +151,22 @@ def ground_depth(points_lvl: np.ndarray, weights: np.ndarray, min_points: int) -
     return d, spread
 
 
+def _carried_scale(options: ScaleOptions, carried_depth_m: np.ndarray, depth_unit: np.ndarray) -> ScaleEstimate | None:
+    """The scale that makes the points' depths now (baseline units) the metric ones carried into the
+    keyframe: the median ratio, after dropping those further than ``max_depth_ratio`` from it."""
+    if len(depth_unit) < options.min_points:
+        return None
+    r = np.log(carried_depth_m / depth_unit)
+    med = median(r)
+    ok = np.abs(r - med) < np.log(options.max_depth_ratio)
+    if np.count_nonzero(ok) < options.min_points:
+        return None
+    med = median(r[ok])
+    return ScaleEstimate(
+        float(np.exp(med)), ScaleSource.CARRIED, int(np.count_nonzero(ok)), median(np.abs(r[ok] - med))
+    )
+
+
 def estimate_scale(
     options: ScaleOptions,
     *,
@@ -209,17 +225,7 @@ def estimate_scale(
         return from_height(height_m, ScaleSource.ALTITUDE, options.altitude_sigma_m)
 
     def carried() -> ScaleEstimate | None:
-        if len(depth_unit) < options.min_points:
-            return None
-        r = np.log(carried_depth_m / depth_unit)
-        med = median(r)
-        ok = np.abs(r - med) < np.log(options.max_depth_ratio)
-        if np.count_nonzero(ok) < options.min_points:
-            return None
-        med = median(r[ok])
-        return ScaleEstimate(
-            float(np.exp(med)), ScaleSource.CARRIED, int(np.count_nonzero(ok)), median(np.abs(r[ok] - med))
-        )
+        return _carried_scale(options, carried_depth_m, depth_unit)
 
     def fixed() -> ScaleEstimate | None:
         return from_height(options.fixed_height_m, ScaleSource.FIXED, 0.0)
