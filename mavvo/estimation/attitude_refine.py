@@ -224,39 +224,30 @@ def _second_start(
 ) -> Pose:
     """``pose`` (refined under the attitude prior from the sampling's hypothesis), or the pose refined
     from a start that roll/pitch cannot have misled, when that is a better one (over the ground, only
-    when it is also another answer).
+    when it is also another answer). docs/relpose.md (Roll/pitch that are not exact) has the cases and
+    the figures.
 
     A 3-point hypothesis made with roll/pitch off by a few tenths of a degree can take the tilt's share
-    of the flow for translation and refine into a local minimum of its own. Over flat ground a tilt
-    and a sideways translation explain the same flow to first order: on the survey pairs of
-    ``benchmarks/relpose_flight.py`` with 0.5 deg per view, translations 40-90 deg off at 2-80x the
-    cost of the refinement started from the truth. There, with ``ground`` (the tilt's share of the
-    flow large), the start is the ground homography's pose
+    of the flow for translation and refine into a local minimum of its own: over flat ground a tilt and
+    a sideways translation explain the same flow to first order. There, with ``ground`` (the tilt's
+    share of the flow large), the start is the ground homography's pose
     (:func:`~mavvo.estimation.general5pt.estimate_ground_plane_relpose`), taken where its translation
     makes ``_PLANE_START_NOISE_SIGMAS`` noise sigmas of parallax or the threshold
-    (:func:`_min_parallax_rad`; taken at any parallax, in a spin on the spot, noise starts of 1.6-3.9
-    sigmas put 4 of the 72 windows of ``yaw_spin`` draw 102 outside the 99% ellipse instead of one;
-    at ten sigmas (the pure-rotation rule's then) survey pair 134 of ``benchmarks/relpose_flight.py``, 9.9
-    sigmas with 0.5 deg of roll/pitch bias, refined into the plane's other pose). Where the scene is
-    not mostly below the horizon, with ``general`` (parallax enough for a translation, and a relative
-    attitude sigma of a threshold or more: with less, the tilt error a hypothesis inherits is within
-    the noise the threshold allows, and on the paper's scenes at 0.05 deg per view the start changed
-    no answer while doubling the time), the start is the general 5-point's pose
-    (:func:`~mavvo.estimation.general5pt.estimate_general_start`; forward pair 2 at 0.5 deg per view
-    refined 42 deg off, at 4.6x the cost of the refinement from the truth). Over a plane the 5-point's
-    two poses fit alike: as a start there it lost 5 survey pairs of 156.
+    (:func:`_min_parallax_rad`: noise starts in a spin on the spot would be taken at any parallax, and
+    at the pure-rotation rule's ten sigmas a real one was missed). Where the scene is not mostly below
+    the horizon, with ``general`` (parallax enough for a translation, and a relative attitude sigma of
+    a threshold or more: with less, the tilt error a hypothesis inherits is within the noise the
+    threshold allows), the start is the general 5-point's pose
+    (:func:`~mavvo.estimation.general5pt.estimate_general_start`). Over a plane the 5-point's two
+    poses fit alike, so it is no start there.
 
     Refined from the start under the same prior, the answer replaces ``pose`` when its yaw keeps to
     the prior and its posterior cost is lower, and over the ground only when its translation is another
-    answer, ``_OTHER_ANSWER_DEG`` away: closer, the two are one answer and the first is kept (taking
-    the cheaper moved the simulated take-off's ATE from 6.4 to 8.7 cm: a choice between two refinements
-    of one answer is noise). The 5-point's start is refined however close it is: the hypothesis was made
-    with roll/pitch as given, and the refinement's re-selected inliers keep something of where it
-    started; from the 5-point's start, which roll/pitch did not mislead, the paper's scenes at 0.2 deg
-    per view came out at 0.0915 deg of median rotation error instead of 0.0980 (2400 trials;
-    USAC_MAGSAC 0.0998), at 0.5 deg 0.0926 instead of 0.0963 (0.0971), when it was refined only from
-    3 deg away. The start's translation sign is decided by cheirality first (the refinement counts
-    points behind a view as outliers)."""
+    answer, ``_OTHER_ANSWER_DEG`` away: closer, the two are one answer and the first is kept (a choice
+    between two refinements of one answer is noise). The 5-point's start is refined however close it
+    is: the hypothesis was made with roll/pitch as given, and the refinement's re-selected inliers keep
+    something of where it started. The start's translation sign is decided by cheirality first (the
+    refinement counts points behind a view as outliers)."""
     t = pose[1]
     c1, c2 = f1[candidates], f2[candidates]
     on_ground = sees_ground(c1, c2)
@@ -454,8 +445,8 @@ def _corrected_err_sq(x: np.ndarray, f1: np.ndarray, f2: np.ndarray, max_err_rad
 
     A track can slide along its epipolar line the wrong way (a corner that is no point of the scene,
     where a texture meets the haze at the horizon): the Sampson error misses it and cheirality does not.
-    On the forward camera's pairs of ``benchmarks/relpose_flight.py`` 9% of the tracks were such, and
-    refined on, they moved the translation by 0.06 deg of a median 0.54. Cheirality rejects tracks,
+    The forward camera's pairs of ``benchmarks/relpose_flight.py`` have such tracks, and refined on,
+    they move the translation (docs/relpose.md). Cheirality rejects tracks,
     not the pose: where it would reject most of the inliers, the pose is a twin (over flat ground with
     a pixel of parallax, a vertical translation with the yaw off by pi fits as well), which the pure
     rotation rule and the decomposition deal with, and the errors are left as they are."""

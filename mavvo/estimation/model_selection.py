@@ -184,21 +184,7 @@ def select_model(
     sigma_sq = sigma**2
     inl_idx = np.nonzero(err_e < thr_sq)[0]
     gric = {RelposeModel.ESSENTIAL: _gric(err_e, inl_idx, sigma_sq, RelposeModel.ESSENTIAL)}
-    R_rot = _rotation_model(f1c, f2c, inl_idx, thr_sq)
-    rotation = (
-        None
-        if R_rot is None
-        else Fit(
-            RelposeModel.ROTATION,
-            yaw_of(R_rot),
-            np.zeros(3),
-            rotation_sq(R_rot, f1c, f2c),
-            None,
-            tilt1,
-            tilt2,
-            correction,
-        )
-    )
+    rotation = _rotation_fit_corrected(f1c, f2c, inl_idx, thr_sq, essential)
     if rotation is not None:
         gric[RelposeModel.ROTATION] = _gric(rotation.err_sq, inl_idx, sigma_sq, RelposeModel.ROTATION)
         # Measured about z only: roll and pitch are known, and a free tilt would pass off a nadir
@@ -214,13 +200,7 @@ def select_model(
             gric[RelposeModel.GROUND] = _gric(ground.err_sq, inl_idx, sigma_sq, RelposeModel.GROUND)
             if ground.t_per_height is None:  # no translation: the homography's pose is no ground model
                 ground = None
-    if opt.model == "auto":
-        allowed: tuple[RelposeModel, ...] = (RelposeModel.ESSENTIAL, RelposeModel.GROUND, RelposeModel.ROTATION)
-    elif opt.model == "ground" and RelposeModel.GROUND in gric:
-        allowed = (RelposeModel.GROUND, RelposeModel.ROTATION)
-    else:  # essential asked for, or the ground model is not applicable
-        allowed = (RelposeModel.ESSENTIAL, RelposeModel.ROTATION)
-    choice = min((m for m in gric if m in allowed), key=gric.__getitem__, default=RelposeModel.ESSENTIAL)
+    choice = _gric_choice(gric, opt.model)
     if (
         choice == RelposeModel.GROUND
         and ground is not None
@@ -230,6 +210,37 @@ def select_model(
         ground = _ground_refined(f1, f2, ground, attitude_sigma_rad, max_err_rad, opt.refine_steps)
     fits = {RelposeModel.ESSENTIAL: essential, RelposeModel.ROTATION: rotation, RelposeModel.GROUND: ground}
     return fits[choice] or essential, essential, sigma, gric
+
+
+def _rotation_fit_corrected(
+    f1c: np.ndarray, f2c: np.ndarray, rows: np.ndarray, thr_sq: float, essential: Fit
+) -> Fit | None:
+    """The pure rotation fitted on the corrected bearings' ``rows``, with the essential fit's corrections."""
+    R = _rotation_model(f1c, f2c, rows, thr_sq)
+    if R is None:
+        return None
+    err_sq = rotation_sq(R, f1c, f2c)
+    return Fit(
+        RelposeModel.ROTATION,
+        yaw_of(R),
+        np.zeros(3),
+        err_sq,
+        None,
+        essential.tilt1,
+        essential.tilt2,
+        essential.correction,
+    )
+
+
+def _gric_choice(gric: dict[RelposeModel, float], asked: str) -> RelposeModel:
+    """The model of lowest GRIC among those ``model`` (the option) allows."""
+    if asked == "auto":
+        allowed: tuple[RelposeModel, ...] = (RelposeModel.ESSENTIAL, RelposeModel.GROUND, RelposeModel.ROTATION)
+    elif asked == "ground" and RelposeModel.GROUND in gric:
+        allowed = (RelposeModel.GROUND, RelposeModel.ROTATION)
+    else:  # essential asked for, or the ground model is not applicable
+        allowed = (RelposeModel.ESSENTIAL, RelposeModel.ROTATION)
+    return min((m for m in gric if m in allowed), key=gric.__getitem__, default=RelposeModel.ESSENTIAL)
 
 
 def _ground_fit(H: np.ndarray, f1c: np.ndarray, f2c: np.ndarray, essential: Fit) -> Fit:

@@ -145,13 +145,7 @@ def estimate_upright_relpose(
     if _all_alike(f1, f2, 1e-9):
         return _failure(RelposeFailure.DEGENERATE_POINTS, n)
 
-    attitude_sigma_rad = _attitude_sigmas(attitude_sigma_rad, opt)
-    # A hypothesis from roll/pitch off by d1 and d2 misplaces every bearing by up to their relative error.
-    sample_thr = (
-        max_err_rad
-        if attitude_sigma_rad is None
-        else math.hypot(max_err_rad, _TILT_SIGMAS * math.hypot(*attitude_sigma_rad))
-    )
+    attitude_sigma_rad, sample_thr = _attitude_sigmas(attitude_sigma_rad, opt, max_err_rad)
 
     rng = np.random.default_rng(seed)
     thr_sq = float(max_err_rad) ** 2
@@ -209,16 +203,20 @@ def _pure_rotation(
     return rotation_fit(rot.model[0], rotation_sq(rot.model[0], f1, f2))
 
 
-def _attitude_sigmas(attitude_sigma_rad: tuple[float, float] | None, opt: RelposeOptions) -> tuple[float, float] | None:
-    """The views' roll/pitch sigmas to refine under: as given, else ``opt.tilt_sigma_deg`` for both;
-    None where both are 0 (roll/pitch taken as exact). ValueError for a negative or non-finite one."""
+def _attitude_sigmas(
+    attitude_sigma_rad: tuple[float, float] | None, opt: RelposeOptions, max_err_rad: float
+) -> tuple[tuple[float, float] | None, float]:
+    """The views' roll/pitch sigmas to refine under (as given, else ``opt.tilt_sigma_deg`` for both;
+    None where both are 0: roll/pitch taken as exact), and the threshold hypotheses are scored with.
+    ValueError for a negative or non-finite sigma."""
     if attitude_sigma_rad is None and opt.tilt_sigma_rad is not None:
         attitude_sigma_rad = (opt.tilt_sigma_rad, opt.tilt_sigma_rad)
     if attitude_sigma_rad is not None and not all(np.isfinite(x) and x >= 0 for x in attitude_sigma_rad):
         raise ValueError(f"attitude_sigma_rad: expected two angles >= 0, got {attitude_sigma_rad}")
-    if attitude_sigma_rad is not None and max(attitude_sigma_rad) <= 0:
-        return None
-    return attitude_sigma_rad
+    if attitude_sigma_rad is None or max(attitude_sigma_rad) <= 0:
+        return None, max_err_rad
+    # A hypothesis from roll/pitch off by d1 and d2 misplaces every bearing by up to their relative error.
+    return attitude_sigma_rad, math.hypot(max_err_rad, _TILT_SIGMAS * math.hypot(*attitude_sigma_rad))
 
 
 @kernel

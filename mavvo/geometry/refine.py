@@ -294,8 +294,8 @@ def _upright_rows(
         j6 = q2 * a0 - q0 * a2
         # The Sampson scale moves with the pose too: r = n / sqrt(den), so dr = (dn - n/(2 den) dden) / sqrt(den).
         # With unit t, g and f2c, den = 2 - (t.g)^2 - (t.f2c)^2 - 2 n^2. Held fixed instead, the steps
-        # settle where sum n dn / den = 0, off the Sampson minimum by the n^2 dden terms: on the
-        # forward flight's pairs 0.40 deg of median translation error where the minimum has 0.36.
+        # settle where sum n dn / den = 0, off the Sampson minimum by the n^2 dden terms (measurably
+        # worse translations on the forward flight's pairs).
         h = n / (2.0 * den)
         j0 -= h * (-2.0 * tg * (g0 * t1 - g1 * t0) - 4.0 * n * j0)  # d(t.g)/d yaw = (g x t)_z
         j1 -= h * (

@@ -271,22 +271,7 @@ class Odometry:
         """The frame's pose against the keyframe, or the reason there is none."""
         opt = self.options
         f1, f2 = kf.f_lvl[i_kf], f_lvl[i_cur]
-        if math.isfinite(kf.fc_yaw_rad) and math.isfinite(frame.yaw_rad):
-            prior = wrap_angle(kf.fc_yaw_rad - frame.yaw_rad)
-        else:
-            prior = self._last_yaw_2_1
-        # With attitude correction on, the relative pose corrects both views' roll/pitch under the
-        # flight controller's uncertainty, and what follows works in the corrected level frames.
-        sigmas = self._view_attitude_sigmas_rad(kf, frame) if opt.ransac.attitude_correction else None
-        rp = estimate_upright_relpose(
-            f1,
-            f2,
-            max_err_rad=self._max_err_rad,
-            seed=frame.seq,
-            options=opt.ransac,
-            yaw_prior_rad=prior,
-            attitude_sigma_rad=sigmas,
-        )
+        rp = self._relpose(frame, kf, f1, f2)
         if not rp.success and rp.reason != RelposeFailure.PURE_ROTATION:
             return NoPose(StateReason(rp.reason.value))
         if rp.num_inliers < opt.min_inliers:
@@ -347,6 +332,49 @@ class Odometry:
         yaw_var = relative_yaw_var(rp, f1[inl], f2[inl])
         return Measurement(p, yaw, rp, scale, c2, parallax_px, depth2, par, (roll2, pitch2), yaw_var)
 
+    def _relpose(self, frame: PairedFrame, kf: Keyframe, f1: np.ndarray, f2: np.ndarray) -> UprightRelpose:
+        """The relative pose of the frame's level bearings ``f2`` against the keyframe's ``f1``, its yaw
+        expected from the flight controller's (else the last frame's against this keyframe)."""
+        if math.isfinite(kf.fc_yaw_rad) and math.isfinite(frame.yaw_rad):
+            prior = wrap_angle(kf.fc_yaw_rad - frame.yaw_rad)
+        else:
+            prior = self._last_yaw_2_1
+        # With attitude correction on, the relative pose corrects both views' roll/pitch under the
+        # flight controller's uncertainty, and what follows works in the corrected level frames.
+        opt = self.options
+        sigmas = self._view_attitude_sigmas_rad(kf, frame) if opt.ransac.attitude_correction else None
+        return estimate_upright_relpose(
+            f1,
+            f2,
+            max_err_rad=self._max_err_rad,
+            seed=frame.seq,
+            options=opt.ransac,
+            yaw_prior_rad=prior,
+            attitude_sigma_rad=sigmas,
+        )
+
+    def _degraded_reason(self, frame: PairedFrame, m: Measurement) -> StateReason:
+        """Why the frame's pose is trusted less (NONE: it is not)."""
+        rp = m.relpose
+        if rp.reason == RelposeFailure.PURE_ROTATION and abs(rp.yaw_rad) >= _STATIONARY_YAW_RAD:
+            return StateReason.PURE_ROTATION
+        if m.scale is not None and not self._trusted(m.scale):
+            return _UNTRUSTED_SCALE_REASON[m.scale.source]
+        if rp.num_inliers < self.options.keyframes.min_inliers:
+            return StateReason.FEW_INLIERS
+        if frame.interpolation_sigma_rad > self._att_sigma_rad:
+            return StateReason.ATTITUDE_INTERPOLATED
+        return StateReason.NONE
+
+    def _remember_good(self, frame: PairedFrame) -> None:
+        """The frame's pose was accepted: where a re-initialisation anchors, and the distance flown."""
+        f = self.filter
+        self._good = _Good(frame.t_exposure_s, f.position_ned_m, f.velocity_ned_m_s, f.yaw_rad, frame.yaw_rad)
+        d = self._drift
+        if d.last_p_ned_m is not None:
+            d.flown_m += float(np.linalg.norm(self._good.p_ned_m - d.last_p_ned_m))
+        d.last_p_ned_m = self._good.p_ned_m
+
     def _accept(
         self,
         frame: PairedFrame,
@@ -359,15 +387,7 @@ class Odometry:
     ) -> PoseEstimate:
         opt = self.options
         rp = m.relpose
-        reason = StateReason.NONE
-        if rp.reason == RelposeFailure.PURE_ROTATION and abs(rp.yaw_rad) >= _STATIONARY_YAW_RAD:
-            reason = StateReason.PURE_ROTATION
-        elif m.scale is not None and not self._trusted(m.scale):
-            reason = _UNTRUSTED_SCALE_REASON[m.scale.source]
-        elif rp.num_inliers < opt.keyframes.min_inliers:
-            reason = StateReason.FEW_INLIERS
-        elif frame.interpolation_sigma_rad > self._att_sigma_rad:
-            reason = StateReason.ATTITUDE_INTERPOLATED
+        reason = self._degraded_reason(frame, m)
         degraded = reason != StateReason.NONE
         quality = self._quality(rp, degraded=degraded)
         p_meas, noise_cov = position_noise(
@@ -410,17 +430,7 @@ class Odometry:
             # (docs/odometry.md, Position noise at close range).
             self.filter.commit_position_noise(pos_cov)
         if accepted:
-            self._good = _Good(
-                frame.t_exposure_s,
-                self.filter.position_ned_m,
-                self.filter.velocity_ned_m_s,
-                self.filter.yaw_rad,
-                frame.yaw_rad,
-            )
-            d = self._drift
-            if d.last_p_ned_m is not None:
-                d.flown_m += float(np.linalg.norm(self._good.p_ned_m - d.last_p_ned_m))
-            d.last_p_ned_m = self._good.p_ned_m
+            self._remember_good(frame)
         diag = VoDiagnostics(
             state=VisionState.DEGRADED if degraded else VisionState.TRACKING,
             reason=reason,

@@ -191,27 +191,59 @@ def tilt_error_deg(attitude: np.ndarray, t_truth_s: np.ndarray, R_lvl_body_truth
     return {"median": round(float(np.median(err)), 3), "p95": round(float(np.percentile(err, 95)), 3)}
 
 
+def _camera(sensor_yaml: Path) -> tuple[np.ndarray, dict[str, Any]]:
+    """The camera's pose on the IMU, T_imu_cam (4, 4), and its ``camera:`` settings, from cam0's sensor.yaml."""
+    cam = _sensor_yaml(sensor_yaml)
+    try:
+        T_imu_cam = np.array(cam["T_BS"]["data"], dtype=float).reshape(4, 4)
+        fu, fv, cu, cv = (float(x) for x in cam["intrinsics"])
+        width, height = (int(x) for x in cam["resolution"])
+        dist = [float(x) for x in cam.get("distortion_coefficients", ())]
+        rate = float(cam.get("rate_hz", 20.0))
+    except (KeyError, TypeError, ValueError) as e:
+        raise ConfigError(
+            f"{sensor_yaml}: expected T_BS (4x4), intrinsics [fu, fv, cu, cv], resolution [w, h]: {e}"
+        ) from e
+    if cam.get("distortion_model", "radial-tangential") != "radial-tangential":
+        raise ConfigError(
+            f"{sensor_yaml}: distortion_model: expected radial-tangential, got {cam.get('distortion_model')!r}"
+        )
+    settings = {"source": "euroc", "width_px": width, "height_px": height, "rate_hz": rate}
+    settings.update({"fx_px": fu, "fy_px": fv, "cx_px": cu, "cy_px": cv, "model": "pinhole", "distortion": dist})
+    return T_imu_cam, settings
+
+
+def _truth_attitude(gt: np.ndarray, R_imu_body: np.ndarray, noise_deg: float, rng: np.random.Generator) -> np.ndarray:
+    """Rows (t_s, roll, pitch, yaw) at ATTITUDE_RATE_HZ from the ground truth's orientation, roll and pitch
+    with ``noise_deg`` of Gaussian noise."""
+    att = []
+    for row in gt[:: max(int(round(len(gt) / ((gt[-1, 0] - gt[0, 0]) * 1e-9 * ATTITUDE_RATE_HZ))), 1)]:
+        r, p, y = euler321_from_R(_D @ R_from_quat_wxyz(row[4:8]) @ R_imu_body)
+        n = np.radians(noise_deg) * rng.standard_normal(2)
+        att.append((row[0] * 1e-9, r + n[0], p + n[1], y))
+    return np.array(att)
+
+
+def _frames(cam0: Path, gap_s: float, problems: list[str]) -> list[ReplayFrame]:
+    """cam0's frames as data.csv lists them, up to the first missing image (named in ``problems``)."""
+    frames = []
+    for k, (t_ns, name) in enumerate(_frame_rows(cam0 / "data.csv")):
+        path = cam0 / "data" / name
+        if not path.is_file():
+            problems.append(f"{path}: missing; the frames after it are not replayed")
+            break
+        t = int(t_ns) * 1e-9
+        frames.append(ReplayFrame(k, t, t + gap_s, None, image_loader(path)))
+    return frames
+
+
 def load_euroc(
     root: Path, overrides: dict[str, Any], *, attitude: str = "imu", attitude_noise_deg: float = 0.1, seed: int = 0
 ) -> ReplayInput:
     """The dataset at ``root`` (the folder holding mav0, or mav0 itself); ``overrides``: settings that
     replace the ones derived from the dataset."""
     mav0 = root if root.name == "mav0" else root / "mav0"
-    cam = _sensor_yaml(mav0 / "cam0" / "sensor.yaml")
-    try:
-        T_imu_cam = np.array(cam["T_BS"]["data"], dtype=float).reshape(4, 4)
-        fu, fv, cu, cv = (float(x) for x in cam["intrinsics"])
-        width, height = (int(x) for x in cam["resolution"])
-        dist = tuple(float(x) for x in cam.get("distortion_coefficients", ()))
-        rate = float(cam.get("rate_hz", 20.0))
-    except (KeyError, TypeError, ValueError) as e:
-        raise ConfigError(
-            f"{mav0 / 'cam0' / 'sensor.yaml'}: expected T_BS (4x4), intrinsics [fu, fv, cu, cv], resolution [w, h]: {e}"
-        ) from e
-    if cam.get("distortion_model", "radial-tangential") != "radial-tangential":
-        raise ConfigError(
-            f"{mav0 / 'cam0' / 'sensor.yaml'}: distortion_model: expected radial-tangential, got {cam.get('distortion_model')!r}"
-        )
+    T_imu_cam, camera = _camera(mav0 / "cam0" / "sensor.yaml")
     imu = _csv(mav0 / "imu0" / "data.csv", 7)
     if len(imu) < 10:
         raise ConfigError(f"{mav0 / 'imu0' / 'data.csv'}: expected IMU samples, found {len(imu)}")
@@ -222,18 +254,7 @@ def load_euroc(
     lever = R_imu_body.T @ t_imu_cam
     data = merge(
         {
-            "camera": {
-                "source": "euroc",
-                "width_px": width,
-                "height_px": height,
-                "rate_hz": rate,
-                "fx_px": fu,
-                "fy_px": fv,
-                "cx_px": cu,
-                "cy_px": cv,
-                "model": "pinhole",
-                "distortion": list(dist),
-            },
+            "camera": camera,
             "mounting": {"R_body_cam": R_body_cam.round(9).tolist(), "lever_arm_m": lever.round(6).tolist()},
             "odometry": {"scale": {"source": "altitude"}},
         },
@@ -266,12 +287,7 @@ def load_euroc(
     if attitude == "truth":
         if gt is None:
             raise ConfigError(f"{gt_path}: missing; --attitude truth needs the ground truth")
-        att = []
-        for row in gt[:: max(int(round(len(gt) / ((gt[-1, 0] - gt[0, 0]) * 1e-9 * ATTITUDE_RATE_HZ))), 1)]:
-            r, p, y = euler321_from_R(_D @ R_from_quat_wxyz(row[4:8]) @ R_imu_body)
-            n = np.radians(attitude_noise_deg) * rng.standard_normal(2)
-            att.append((row[0] * 1e-9, r + n[0], p + n[1], y))
-        attitude_rows = np.array(att)
+        attitude_rows = _truth_attitude(gt, R_imu_body, attitude_noise_deg, rng)
         notes["attitude_noise_deg"] = attitude_noise_deg
     else:
         attitude_rows = imu_attitude(imu, R_imu_body)
@@ -287,17 +303,8 @@ def load_euroc(
         reference = PoseSeries(t_gt, p_cam, np.array([quat_wxyz_from_R(R @ R_imu_body) for R in R_lvl_imu]))
         notes["attitude_tilt_error_deg"] = tilt_error_deg(attitude_rows, t_gt, R_lvl_imu @ R_imu_body)
     series = FcSeries(str(root), "euroc", attitude_rows, np.zeros((0, 2)), heights)
-    frames_csv = _frame_rows(mav0 / "cam0" / "data.csv")
     problems: list[str] = []
-    frames = []
-    gap = config.timing.max_attitude_gap_s
-    for k, (t_ns, name) in enumerate(frames_csv):
-        path = mav0 / "cam0" / "data" / name
-        if not path.is_file():
-            problems.append(f"{path}: missing; the frames after it are not replayed")
-            break
-        t = int(t_ns) * 1e-9
-        frames.append(ReplayFrame(k, t, t + gap, None, image_loader(path)))
+    frames = _frames(mav0 / "cam0", config.timing.max_attitude_gap_s, problems)
     return ReplayInput(
         "euroc",
         str(root),

@@ -36,6 +36,39 @@ def merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _indexed_frames(p: Path, index: Path, problems: list[str]) -> list[ReplayFrame]:
+    """The frames one index (frames-*.csv) of recording ``p`` lists, up to a malformed row or a missing
+    file (named in ``problems``)."""
+    frames: list[ReplayFrame] = []
+    with index.open(newline="", encoding="utf-8") as f:
+        rows = csv.reader(f)
+        header = next(rows, None)
+        if header is None or tuple(header) != FRAME_COLUMNS:
+            problems.append(f"{index}: expected the header {','.join(FRAME_COLUMNS)}, got {header}")
+            return frames
+        for n, row in enumerate(rows, 2):
+            try:
+                rec = dict(zip(FRAME_COLUMNS, row, strict=True))
+                t_paired = float(rec["t_paired_s"])
+                fr = ReplayFrame(
+                    int(rec["seq"]),
+                    float(rec["t_exposure_s"]),
+                    t_paired,
+                    int(rec["fc_version"]),
+                    image_loader(p / "frames" / rec["file"]),
+                )
+            except ValueError as e:
+                problems.append(f"{index}:{n}: malformed row ({e}); stopped reading this index")
+                break
+            if not (p / "frames" / rec["file"]).is_file():
+                problems.append(
+                    f"{index}:{n}: frame file frames/{rec['file']} is missing; the frames after it are not replayed"
+                )
+                break
+            frames.append(fr)
+    return frames
+
+
 def load_recording(path: str | Path, overrides: dict[str, Any] | None = None) -> ReplayInput:
     """The recording in folder ``path``; ``overrides``: settings replacing the recorded ones (tuning)."""
     p = Path(path)
@@ -82,34 +115,7 @@ def load_recording(path: str | Path, overrides: dict[str, Any] | None = None) ->
     if not inbound:
         problems.append(f"{p}: no message from the flight controller in the recording")
 
-    frames: list[ReplayFrame] = []
-    for index in sorted(p.glob("frames-*.csv")):
-        with index.open(newline="", encoding="utf-8") as f:
-            rows = csv.reader(f)
-            header = next(rows, None)
-            if header is None or tuple(header) != FRAME_COLUMNS:
-                problems.append(f"{index}: expected the header {','.join(FRAME_COLUMNS)}, got {header}")
-                continue
-            for n, row in enumerate(rows, 2):
-                try:
-                    rec = dict(zip(FRAME_COLUMNS, row, strict=True))
-                    t_paired = float(rec["t_paired_s"])
-                    fr = ReplayFrame(
-                        int(rec["seq"]),
-                        float(rec["t_exposure_s"]),
-                        t_paired,
-                        int(rec["fc_version"]),
-                        image_loader(p / "frames" / rec["file"]),
-                    )
-                except ValueError as e:
-                    problems.append(f"{index}:{n}: malformed row ({e}); stopped reading this index")
-                    break
-                if not (p / "frames" / rec["file"]).is_file():
-                    problems.append(
-                        f"{index}:{n}: frame file frames/{rec['file']} is missing; the frames after it are not replayed"
-                    )
-                    break
-                frames.append(fr)
+    frames = [fr for index in sorted(p.glob("frames-*.csv")) for fr in _indexed_frames(p, index, problems)]
     if not frames:
         problems.append(f"{p}: no frames in the recording")
     reference, label = None, ""

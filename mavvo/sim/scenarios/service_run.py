@@ -180,24 +180,7 @@ def run_daemon_in_sim(
     listens. ``during(daemon, (host, port))`` runs on its own thread while the daemon runs (the fault
     suite's attacker), given the UDP address the daemon reads from. ``forward_url``: the flight
     controller forwards what the service sends it there (``mavvo monitor``'s port)."""
-    if service_listens:
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-            probe.bind(("127.0.0.1", 0))
-            service_address = probe.getsockname()[:2]
-        sim = Simulation(
-            scenario,
-            f"udpout:127.0.0.1:{service_address[1]}",
-            realtime=realtime,
-            duration_s=duration_s,
-            forward_url=forward_url,
-        )
-        url = f"udpin:127.0.0.1:{service_address[1]}"
-    else:
-        sim = Simulation(
-            scenario, "udpin:127.0.0.1:0", realtime=realtime, duration_s=duration_s, forward_url=forward_url
-        )
-        host, port = sim.fc.address
-        url = f"udpout:{host}:{port}"
+    sim, url, service_address = _simulation(scenario, realtime, duration_s, forward_url, service_listens)
     config = config_for(scenario, base or ServiceConfig(), url)
     stop_fc = threading.Event()
     fc_thread = None
@@ -210,7 +193,7 @@ def run_daemon_in_sim(
         if during is not None:
 
             def attack(d: Daemon = daemon) -> None:  # the udpout socket exists once the link has connected
-                during(d, service_address if service_listens else daemon_address(d))
+                during(d, service_address or daemon_address(d))
 
             threading.Thread(target=attack, name="sim-during", daemon=True).start()
         if realtime:
@@ -225,7 +208,40 @@ def run_daemon_in_sim(
             fc_thread.join(2.0)
         sim.fc.poll()  # what the daemon sent last
         sim.close()
-    wall = time.perf_counter() - wall0
+    return _sim_run(scenario, sim, daemon, summary, time.perf_counter() - wall0, lockstep, out_dir)
+
+
+def _simulation(
+    scenario: Scenario, realtime: bool, duration_s: float | None, forward_url: str | None, service_listens: bool
+) -> tuple[Simulation, str, tuple[str, int] | None]:
+    """The simulated flight, the service's link.url to it, and the address the service listens on
+    (``service_listens``: the flight controller sends to the service; else the service sends first)."""
+    if not service_listens:
+        sim = Simulation(
+            scenario, "udpin:127.0.0.1:0", realtime=realtime, duration_s=duration_s, forward_url=forward_url
+        )
+        host, port = sim.fc.address
+        return sim, f"udpout:{host}:{port}", None
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        address = probe.getsockname()[:2]
+    sim = Simulation(
+        scenario, f"udpout:127.0.0.1:{address[1]}", realtime=realtime, duration_s=duration_s, forward_url=forward_url
+    )
+    return sim, f"udpin:127.0.0.1:{address[1]}", address
+
+
+def _sim_run(
+    scenario: Scenario,
+    sim: Simulation,
+    daemon: Daemon,
+    summary: DaemonSummary,
+    wall: float,
+    lockstep: _Lockstep | None,
+    out_dir: str | Path | None,
+) -> SimRun:
+    """What the flight controller received, against the truth: the run's record (and its report files)."""
+    realtime = lockstep is None
     vpe = [r for r in sim.fc.received if r.type == "VISION_POSITION_ESTIMATE"]
     est = vision_estimates(sim.fc.received, "usec")
     truth = sim.truth_at(est.timestamps_s)

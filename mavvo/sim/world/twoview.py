@@ -156,19 +156,56 @@ def _draw(
     axis1 = R_ned_cam1[:, 2]
     baseline_m = baseline_fraction * distance_m
 
-    if motion == "sideways":
-        direction = _unit(np.cross(axis1, _unit(rng.normal(size=3))))
-    elif motion == "forward":
-        direction = axis1
-    elif motion == "random":
-        direction = _unit(rng.normal(size=3))
-    elif motion == "vertical":
-        direction = np.array([0.0, 0.0, rng.choice([-1.0, 1.0])])
-    elif motion == "none":
-        direction, baseline_m = np.zeros(3), 0.0
-    else:
-        raise ValueError(f"motion: expected sideways, forward, random, vertical or none, got {motion!r}")
+    direction = _motion_direction(motion, axis1, rng)
+    if motion == "none":
+        baseline_m = 0.0
     p2 = baseline_m * direction
+    X = _points(
+        rng,
+        n_points,
+        structure,
+        R_ned_cam1,
+        distance_m,
+        depth_fraction,
+        fov_half_rad,
+        direction,
+        baseline_m,
+        line_along_baseline,
+    )
+    return _scene_from_points(
+        rng, X, att, R_body_cam, R_ned_cam1, p2, baseline_m, pixel_noise_px, imu_noise_rad, focal_px
+    )
+
+
+def _motion_direction(motion: Motion, axis1: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The unit direction of camera 2 from camera 1 (NED; zeros for ``none``)."""
+    if motion == "sideways":
+        return _unit(np.cross(axis1, _unit(rng.normal(size=3))))
+    if motion == "forward":
+        return axis1
+    if motion == "random":
+        return _unit(rng.normal(size=3))
+    if motion == "vertical":
+        return np.array([0.0, 0.0, rng.choice([-1.0, 1.0])])
+    if motion == "none":
+        return np.zeros(3)
+    raise ValueError(f"motion: expected sideways, forward, random, vertical or none, got {motion!r}")
+
+
+def _points(
+    rng: np.random.Generator,
+    n_points: int,
+    structure: Structure,
+    R_ned_cam1: np.ndarray,
+    distance_m: float,
+    depth_fraction: float,
+    fov_half_rad: float,
+    direction: np.ndarray,
+    baseline_m: float,
+    line_along_baseline: bool,
+) -> np.ndarray:
+    """(n_points, 3) scene points in NED, camera 1 at the origin (see :func:`make_scene`)."""
+    axis1 = R_ned_cam1[:, 2]
 
     def rays(n: int) -> np.ndarray:
         # Directions within the field of view of camera 1, in NED.
@@ -200,7 +237,23 @@ def _draw(
         X = anchor + np.outer(rng.uniform(-0.4, 0.4, n_points) * distance_m, along)
     else:
         raise ValueError(f"structure: expected volume, ground, plane or line, got {structure!r}")
+    return X
 
+
+def _scene_from_points(
+    rng: np.random.Generator,
+    X: np.ndarray,
+    att: list[tuple[float, float, float]],
+    R_body_cam: np.ndarray,
+    R_ned_cam1: np.ndarray,
+    p2: np.ndarray,
+    baseline_m: float,
+    pixel_noise_px: float,
+    imu_noise_rad: float,
+    focal_px: float,
+) -> TwoViewScene | None:
+    """The two views of points ``X`` from attitudes ``att`` (roll, pitch, yaw each), camera 2 at ``p2``;
+    None when a point is behind a camera."""
     R_ned_cam2 = R_from_euler321(*att[1]) @ R_body_cam
     x1 = X @ R_ned_cam1  # rows R_cam1_ned @ X
     x2 = (X - p2) @ R_ned_cam2
