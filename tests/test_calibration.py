@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from mavvo.calibration.boards import BoardSpec, detect, parse_board
+from mavvo.calibration.boards import BoardSpec, Detection, detect, parse_board
 from mavvo.calibration.formats import camera_section_yaml, read_intrinsics
 from mavvo.calibration.solve import CalibrationError, calibrate, coverage, select_views
 from mavvo.cli import main
@@ -41,9 +41,11 @@ def _texture(board: BoardSpec) -> tuple[np.ndarray, float]:
     return img, board.square_m / sq
 
 
-def render_views(board: BoardSpec, n: int, seed: int, K: np.ndarray = K_TRUE) -> list[np.ndarray]:
-    """``n`` grey 640x480 views of ``board`` at seeded poses (0.35-0.8 m away, tilted up to 35 deg,
-    spread over the image), through a distortion-free pinhole ``K``."""
+def render_views(
+    board: BoardSpec, n: int, seed: int, K: np.ndarray = K_TRUE, max_tilt_rad: float = 0.6
+) -> list[np.ndarray]:
+    """``n`` grey 640x480 views of ``board`` at seeded poses (0.35-0.8 m away, tilted up to
+    ``max_tilt_rad`` about each image axis, spread over the image), through a distortion-free pinhole ``K``."""
     tex, m_per_px = _texture(board)
     # Texture pixel -> board frame (metres): the first inner corner, two squares in, at the origin.
     origin_m = 2 * _PX_PER_SQUARE * m_per_px
@@ -52,7 +54,7 @@ def render_views(board: BoardSpec, n: int, seed: int, K: np.ndarray = K_TRUE) ->
     rng = np.random.default_rng(seed)
     views = []
     while len(views) < n:
-        rvec = rng.uniform(-0.6, 0.6, 3) * np.array([1.0, 1.0, 0.5])
+        rvec = rng.uniform(-1.0, 1.0, 3) * np.array([max_tilt_rad, max_tilt_rad, 0.3])
         R, _ = cv2.Rodrigues(rvec)
         z = rng.uniform(0.35, 0.8)
         target = np.array([rng.uniform(60, W - 60), rng.uniform(60, H - 60)])
@@ -131,6 +133,7 @@ def test_the_command_writes_a_camera_section_that_check_config_accepts(tmp_path,
     )
     err = capsys.readouterr().err
     assert "24 frames read, board found in 24" in err and "reprojection RMS" in err
+    assert "warning" not in err  # tilted views over the image: nothing to warn of
     cam = yaml.safe_load(out.read_text())["camera"]
     assert cam["fx_px"] == pytest.approx(612.0, rel=0.01) and cam["width_px"] == 640
     assert main(["check-config", str(out)]) == 0
@@ -194,3 +197,80 @@ def test_other_tools_files_are_read(tmp_path):
         read_intrinsics(tmp_path / "other.yaml")
     section = camera_section_yaml(want)
     assert yaml.safe_load(section)["camera"]["distortion"] == list(want.distortion)
+
+
+def test_a_view_far_off_the_rest_is_dropped_and_the_rest_solved_again(views):
+    """One frame's corners 3 px off (a blurred frame, a grid misread): dropped, the intrinsics as before."""
+    detections = [detect(v, BOARD) for v in views]
+    rng = np.random.default_rng(1)
+    bad = detections[5]
+    detections[5] = Detection(bad.image_px + rng.normal(0.0, 3.0, bad.image_px.shape), bad.board_m)
+    result = calibrate(detections, (W, H))
+    assert result.views_dropped == (5,) and 5 not in result.views_used
+    assert result.intrinsics.fx_px == pytest.approx(612.0, rel=0.01) and result.rms_px < 0.2
+
+
+def test_corners_that_fit_no_camera_are_refused(views):
+    """Three views in five with their corners matched to the wrong board corners (a grid read across two
+    printed sheets): no camera fits; refused, naming --board, instead of intrinsics that are not."""
+    rng = np.random.default_rng(3)
+    detections = [detect(v, BOARD) for v in views]
+    mixed = [
+        Detection(d.image_px[rng.permutation(len(d.image_px))], d.board_m) if k % 5 < 3 else d
+        for k, d in enumerate(detections)
+    ]
+    with pytest.raises(CalibrationError, match=r"reprojection RMS .* the corners do not fit one camera; is --board"):
+        calibrate(mixed, (W, H))
+
+
+def test_a_principal_point_outside_the_image_is_refused(views, monkeypatch):
+    """A solve that puts the principal point outside the image (real floor views whose grids spanned two
+    printed sheets did): a calibration error that says what to change, not the camera model's ValueError."""
+    import mavvo.calibration.solve as solve
+
+    real = solve._solve
+
+    def off_centre(*args, **kwargs):
+        s = real(*args, **kwargs)
+        K = s.K.copy()
+        K[0, 2] = 700.0
+        return solve._Solve(K, s.D, s.rvecs, s.tvecs, s.fx_sigma_px)
+
+    monkeypatch.setattr(solve, "_solve", off_centre)
+    with pytest.raises(
+        CalibrationError, match=r"no camera of this image has \(cx_px, cy_px: .* got \(700\.0, .*one printed board"
+    ):
+        calibrate([detect(v, BOARD) for v in views], (W, H))
+
+
+def test_a_broken_grid_from_the_detector_is_no_detection(views, monkeypatch):
+    """What OpenCV may return for a frame: found, but corners outside the image, not finite, or too few."""
+    good = cv2.findChessboardCornersSB(views[0], (9, 6))[1]
+    for broken in (good * 5.0, np.where(np.arange(len(good))[:, None, None] == 3, np.nan, good), good[:20]):
+        monkeypatch.setattr(cv2, "findChessboardCornersSB", lambda *a, broken=broken, **k: (True, broken))
+        assert detect(views[0], BOARD) is None
+    monkeypatch.setattr(cv2, "findChessboardCornersSB", lambda *a, **k: (True, good))
+    assert detect(views[0], BOARD) is not None
+
+
+def test_an_existing_out_file_is_refused_before_any_frame_is_read(tmp_path, capsys):
+    out = tmp_path / "camera.yaml"
+    out.write_text("camera: {}\n")
+    missing = tmp_path / "no-such-folder"
+    assert main(["calibrate", str(missing), "--board", "9x6", "--square-m", "0.03", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"--out {out}: exists" in err and "no-such-folder" not in err
+
+
+def test_views_seen_face_on_warn_that_the_focal_length_is_loose(tmp_path, capsys):
+    """Boards tilted at most 3 deg: the focal length and the distance trade off (OpenCV's sigma of fx over
+    1%); the command says so and how to fix it. The tilted views of the other tests do not warn."""
+    folder = tmp_path / "flat"
+    folder.mkdir()
+    for k, v in enumerate(render_views(BOARD, 16, seed=11, max_tilt_rad=0.05)):
+        cv2.imwrite(str(folder / f"{k:03d}.png"), v)
+    assert (
+        main(["calibrate", str(folder), "--board", "9x6", "--square-m", "0.03", "--out", str(tmp_path / "c.yaml")]) == 0
+    )
+    err = capsys.readouterr().err
+    assert "warning: the focal length is poorly pinned down" in err and "tilt the board 20-45 deg" in err

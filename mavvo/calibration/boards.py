@@ -74,16 +74,29 @@ def parse_board(text: str) -> tuple[int, int]:
 
 def detect(image: np.ndarray, board: BoardSpec) -> Detection | None:
     """The board in a grey (or BGR) image, corners refined to sub-pixel; None when it is not seen
-    whole (checkerboard) or with fewer than 6 corners (ChArUco)."""
+    whole (checkerboard) or with fewer than 6 corners (ChArUco), or when what the detector returned is
+    no grid of this board (corners outside the image or not finite, a wrong count, unknown or repeated
+    ChArUco ids): one frame's broken detection must not end the calibration."""
     grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-    if board.charuco:
-        corners, ids, _, _ = cv2.aruco.CharucoDetector(board.charuco_board()).detectBoard(grey)
-        if ids is None or len(ids) < 6:
-            return None
-        return Detection(corners.reshape(-1, 2).astype(np.float64), board.corners_m()[ids.ravel()])
-    found, corners = cv2.findChessboardCornersSB(
-        grey, (board.cols, board.rows), flags=cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY
-    )
-    if not found:
+    board_m = board.corners_m()
+    try:
+        if board.charuco:
+            corners, ids, _, _ = cv2.aruco.CharucoDetector(board.charuco_board()).detectBoard(grey)
+            if ids is None or len(ids) < 6:
+                return None
+            ids = ids.ravel()
+            if ids.min() < 0 or ids.max() >= len(board_m) or len(np.unique(ids)) != len(ids):
+                return None
+            d = Detection(np.asarray(corners, np.float64).reshape(-1, 2), board_m[ids])
+        else:
+            found, corners = cv2.findChessboardCornersSB(
+                grey, (board.cols, board.rows), flags=cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY
+            )
+            if not found or corners is None:
+                return None
+            d = Detection(np.asarray(corners, np.float64).reshape(-1, 2), board_m)
+    except (cv2.error, ValueError):
         return None
-    return Detection(corners.reshape(-1, 2).astype(np.float64), board.corners_m())
+    h, w = grey.shape[:2]
+    inside = np.all(np.isfinite(d.image_px)) and np.all((d.image_px >= -0.5) & (d.image_px <= [w - 0.5, h - 0.5]))
+    return d if len(d.image_px) == len(d.board_m) and inside else None

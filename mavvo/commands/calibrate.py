@@ -23,6 +23,8 @@ _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".tif", ".tiff")
 _PROGRESS_EVERY = 25
 _GOOD_RMS_PX = 1.0
 _GOOD_COVERAGE = 0.5
+_GOOD_FX_SIGMA = 0.01  # fx's standard deviation over fx above this: the views do not pin it down
+_GOOD_TILT_DEG = 20.0  # (fisheye) boards all nearer face-on than this: focal length and distance trade off
 
 
 def add_parser(sub: Any) -> None:
@@ -116,59 +118,95 @@ def _frames(source: str, max_frames: int, every: int) -> Iterator[np.ndarray]:
 
 
 def _plot(result: CalibrationResult, path: Path) -> None:
+    """Where the corners were (coverage), how far each missed its reprojection, and each view's RMS."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     w, h = result.intrinsics.width_px, result.intrinsics.height_px
-    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.5))
+    fig, (a, b, c) = plt.subplots(1, 3, figsize=(15, 4.5), gridspec_kw={"width_ratios": [4, 3, 3]})
     a.scatter(result.corners_px[:, 0], result.corners_px[:, 1], s=3, c="tab:blue")
     for x in np.linspace(0, w, GRID[0] + 1):
         a.axvline(x, color="0.85", lw=0.5)
     for y in np.linspace(0, h, GRID[1] + 1):
         a.axhline(y, color="0.85", lw=0.5)
-    a.set(
-        xlim=(0, w),
-        ylim=(h, 0),
-        aspect="equal",
-        title=f"corners of the {len(result.views_used)} views used: {100 * result.coverage:.0f}% of the cells",
-    )
-    scale = 0.25 * w / max(float(np.max(np.abs(result.residuals_px))), 1e-6)
-    b.quiver(
-        result.corners_px[:, 0],
-        result.corners_px[:, 1],
-        result.residuals_px[:, 0] * scale,
-        -result.residuals_px[:, 1] * scale,
-        angles="xy",
-        scale_units="xy",
-        scale=1,
-        width=0.002,
-    )
-    b.set(
-        xlim=(0, w),
-        ylim=(h, 0),
-        aspect="equal",
-        title=f"reprojection residuals (RMS {result.rms_px:.2f} px, arrows x{scale:.0f})",
-    )
+    a.set(xlim=(0, w), ylim=(h, 0), aspect="equal", xlabel="x (px)", ylabel="y (px)")
+    a.set_title(f"corners of the {len(result.views_used)} views used: {100 * result.coverage:.0f}% of the cells")
+    r = result.residuals_px
+    b.scatter(r[:, 0], r[:, 1], s=2, alpha=0.4, c="tab:blue")
+    b.add_patch(plt.Circle((0, 0), result.rms_px, fill=False, color="tab:red", label=f"RMS {result.rms_px:.3f} px"))
+    lim = 1.1 * max(float(np.max(np.abs(r))), result.rms_px)
+    b.set(xlim=(-lim, lim), ylim=(lim, -lim), aspect="equal", xlabel="dx (px)", ylabel="dy (px)")
+    b.set_title("each corner: observed minus reprojected")
+    b.legend(loc="upper right")
+    c.bar(range(len(result.view_rms_px)), result.view_rms_px, color="tab:blue")
+    c.set(xlabel="view (in the order used)", ylabel="RMS (px)")
+    dropped = f"; {len(result.views_dropped)} dropped as outliers" if result.views_dropped else ""
+    c.set_title(f"reprojection RMS per view{dropped}")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def _check_out(out: Path | None, force: bool) -> None:
+    if out is not None and out.exists() and not force:
+        raise ConfigError(
+            f"--out {out}: exists; expected a new file (or --force to overwrite; merge the camera: section into your settings by hand)"
+        )
 
 
 def _write(text: str, out: Path | None, force: bool) -> None:
     if out is None:
         sys.stdout.write(text)
         return
-    if out.exists() and not force:
-        raise ConfigError(
-            f"--out {out}: exists; expected a new file (or --force to overwrite; merge the camera: section into your settings by hand)"
-        )
+    _check_out(out, force)
     out.write_text(text, encoding="utf-8")
     print(f"camera: section written to {out}", file=sys.stderr)
 
 
+def _report(result: CalibrationResult, n_found: int) -> None:
+    """The result on stderr, with a warning for each way it may be less than it looks."""
+    i = result.intrinsics
+    sigma = f" +- {result.fx_sigma_px:.2f}" if np.isfinite(result.fx_sigma_px) else ""
+    print(
+        f"calibrate: {len(result.views_used)} of {n_found} views used; reprojection RMS {result.rms_px:.3f} px; coverage "
+        f"{100 * result.coverage:.0f}% of the image; board tilted up to {result.max_tilt_deg:.0f} deg\n"
+        f"  fx {i.fx_px:.2f}{sigma}  fy {i.fy_px:.2f}  cx {i.cx_px:.2f}  cy {i.cy_px:.2f}  {i.model} "
+        f"distortion {', '.join(f'{x:.5f}' for x in i.distortion)}",
+        file=sys.stderr,
+    )
+    warnings = []
+    if result.views_dropped:
+        warnings.append(
+            f"{len(result.views_dropped)} view(s) dropped as outliers (their corners far off the rest's fit): "
+            f"frames {', '.join(str(k + 1) for k in result.views_dropped)} of those with the board"
+        )
+    if result.rms_px > _GOOD_RMS_PX:
+        warnings.append(
+            f"RMS {result.rms_px:.2f} px is high (expected under {_GOOD_RMS_PX} px): blurred or bent board?"
+        )
+    if result.coverage < _GOOD_COVERAGE:
+        warnings.append(
+            f"the corners cover {100 * result.coverage:.0f}% of the image: distortion near the edges is a guess; "
+            "show the board in the corners too"
+        )
+    # OpenCV's sigma where the model gives one (pinhole); the boards' tilt where it does not (fisheye).
+    if (
+        result.fx_sigma_px > _GOOD_FX_SIGMA * i.fx_px
+        if np.isfinite(result.fx_sigma_px)
+        else result.max_tilt_deg < _GOOD_TILT_DEG
+    ):
+        warnings.append(
+            f"the focal length is poorly pinned down (fx{sigma} px, the board tilted at most {result.max_tilt_deg:.0f} deg): "
+            f"tilt the board {_GOOD_TILT_DEG:.0f}-45 deg toward and away from the camera in some views"
+        )
+    for text in warnings:
+        print(f"calibrate: warning: {text}", file=sys.stderr)
+
+
 def main(args: argparse.Namespace) -> int:
+    _check_out(args.out, args.force)  # before a capture is spent
     if args.import_file is not None:
         intr = read_intrinsics(args.import_file)
         _write(camera_section_yaml(intr, f"from {args.import_file}"), args.out, args.force)
@@ -201,29 +239,13 @@ def main(args: argparse.Namespace) -> int:
     if size is None:
         raise CameraError(f"{args.source}: no frames")
     result = calibrate(detections, size, args.model, k3=args.k3)
-    i = result.intrinsics
-    print(
-        f"calibrate: {len(result.views_used)} of {len(detections)} views used; reprojection RMS {result.rms_px:.3f} px; coverage "
-        f"{100 * result.coverage:.0f}% of the image\n  fx {i.fx_px:.2f}  fy {i.fy_px:.2f}  cx {i.cx_px:.2f}  cy {i.cy_px:.2f}  {i.model} "
-        f"distortion {', '.join(f'{x:.5f}' for x in i.distortion)}",
-        file=sys.stderr,
-    )
-    if result.rms_px > _GOOD_RMS_PX:
-        print(
-            f"calibrate: warning: RMS {result.rms_px:.2f} px is high (expected under {_GOOD_RMS_PX} px): blurred or bent board?",
-            file=sys.stderr,
-        )
-    if result.coverage < _GOOD_COVERAGE:
-        print(
-            f"calibrate: warning: the corners cover {100 * result.coverage:.0f}% of the image: distortion near the edges is a guess; "
-            "show the board in the corners too",
-            file=sys.stderr,
-        )
+    _report(result, len(detections))
     if args.plot is not None:
         _plot(result, args.plot)
     _write(
         camera_section_yaml(
-            i, f"mavvo calibrate {args.source}: RMS {result.rms_px:.3f} px, coverage {100 * result.coverage:.0f}%"
+            result.intrinsics,
+            f"mavvo calibrate {args.source}: RMS {result.rms_px:.3f} px, coverage {100 * result.coverage:.0f}%",
         ),
         args.out,
         args.force,
