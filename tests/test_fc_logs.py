@@ -202,3 +202,43 @@ def test_a_damaged_ulog_keeps_what_it_can_and_says_so(tmp_path, capfd):
     s = read_fc_log(tmp_path / "d.ulg")
     assert capfd.readouterr() == ("", "")
     assert len(s.attitude) > 150 and any("damaged" in p for p in s.problems), s.problems
+
+
+def test_attitude_records_without_a_time_take_the_logs_other_clock(tmp_path):
+    """ArduCopter 3.1's text logs: ATT has no time column, IMU has TimeMS. Before: the ATT records were all
+    stamped 0, collapsed into one, and the log was refused as having no attitude ("found 1")."""
+    lines = [
+        "FMT, 128, 89, FMT, BBnNZ, Type,Length,Name,Format,Columns",
+        "FMT, 9, 23, ATT, ccCcc, RollIn,Roll,PitchIn,Pitch,Yaw",
+        "FMT, 1, 23, IMU, Iffffff, TimeMS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ",
+    ]
+    for k, r in enumerate(ROLL_DEG):
+        lines += [f"IMU, {1000 + 20 * k}, 0, 0, 0, 0, 0, -9.8", f"ATT, 0, {r}, 0, 0.5, 90"]
+    log = tmp_path / "ac31.log"
+    log.write_text("\n".join(lines) + "\n")
+    s = read_fc_log(log)
+    assert np.allclose(s.attitude[:, 0], [1.0, 1.02, 1.04, 1.06]) and np.allclose(
+        np.degrees(s.attitude[:, 1]), ROLL_DEG
+    )
+    assert any("carry no time of their own" in p and "(IMU)" in p for p in s.problems)
+    (tmp_path / "none.log").write_text("\n".join([*lines[:2], *(f"ATT, 0, {r}, 0, 0.5, 90" for r in ROLL_DEG)]) + "\n")
+    with pytest.raises(ConfigError, match="none.log: the ATT records carry no time .* cannot be placed in time"):
+        read_fc_log(tmp_path / "none.log")
+
+
+def test_a_log_the_reader_cannot_parse_is_refused_without_pythons_words(tmp_path):
+    """A text log whose GPS line has an empty time field makes pymavlink's reader raise at the start.
+    Before: "not a readable dataflash log (text): invalid literal for int() with base 10: ''"."""
+    log = tmp_path / "old.log"
+    log.write_text(
+        "FMT, 128, 89, FMT, BBnNZ, Type,Length,Name,Format,Columns\n"
+        "FMT, 1, 23, IMU, Iffffff, TimeMS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ\n"
+        "FMT, 2, 23, GPS, BIHBcLLeeEe, Status,TimeMS,Week,NSats,HDop,Lat,Lng,RelAlt,Alt,Spd,GCrs\n"
+        "IMU, 1000, 0, 0, 0, 0, 0, -9.8\n"
+        "GPS, 3, , 1800, 8, 1.2, -35.3, 149.1, 10, 600, 0, 0\n"
+    )
+    with pytest.raises(ConfigError) as e:
+        read_fc_log(log)
+    text = str(e.value)
+    assert text.startswith(f"{log}: not a readable dataflash log (text): pymavlink's reader could not make sense")
+    assert "invalid literal" not in text and "int()" not in text

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import logging
 import os
 import sys
 import tempfile
@@ -33,6 +34,8 @@ from mavvo.service.mavlink import dfreader, mavutil
 from mavvo.service.tlog import read_tlog
 
 __all__ = ["FcSeries", "read_fc_log", "series_messages"]
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -181,6 +184,26 @@ def _df_time_s(m: Any) -> float:
     return float(t_ms) * 1e-3 if t_ms is not None else float(m._timestamp)
 
 
+_TIME_COLUMNS = ("TimeUS", "TimeMS")
+
+
+def _clock_types(reader: Any, p: Path) -> list[str]:
+    """Where the log's attitude records carry no time of their own (ArduCopter 3.1's ATT has none), the
+    types that do: read alongside, they move pymavlink's clock, which then stamps each attitude record
+    with the time of the timed record before it. ConfigError when no record type in the log has a time."""
+    formats = {f.name: f.columns for f in reader.formats.values()}
+    untimed = [n for n in _DF_ATTITUDE if n in formats and not set(_TIME_COLUMNS) & set(formats[n])]
+    if not untimed or any(n in formats and set(_TIME_COLUMNS) & set(formats[n]) for n in _DF_ATTITUDE):
+        return []
+    timed = sorted(n for n, cols in formats.items() if set(_TIME_COLUMNS) & set(cols))
+    if not timed:
+        raise ConfigError(
+            f"{p}: the {', '.join(untimed)} records carry no time (their format has no TimeMS or TimeUS column) and no "
+            "other record type in the log has one: the attitude cannot be placed in time"
+        )
+    return timed
+
+
 def _read_dataflash(p: Path) -> FcSeries:
     """An ArduPilot dataflash log, binary (.bin) or text (.log, as the LogAnalyzer examples are), of
     any firmware age. pymavlink's reader prints every bad header it skips: that goes into ``problems``
@@ -203,12 +226,22 @@ def _read_dataflash(p: Path) -> FcSeries:
                 else DFReader.DFReader_binary(str(p), zero_time_base=True)
             )
         except Exception as e:  # DFReader raises assorted errors on a file that is not a log
+            log.debug("%s: pymavlink's DFReader: %r", p, e)  # the Python detail, for a developer's -v
             raise ConfigError(
-                f"{p}: not a readable dataflash log ({'text' if text else 'binary'}): {' '.join(str(e).split())[:200]}"
+                f"{p}: not a readable dataflash log ({'text' if text else 'binary'}): pymavlink's reader could not make "
+                "sense of its format (FMT) records or of the times of its first records; a text log must begin with FMT lines"
             ) from e
+        wanted = [*_DF_ATTITUDE, "RFND", "BARO", "XKF1", "CAM"]
+        clocks = _clock_types(reader, p)
+        wanted += clocks
+        if clocks:
+            problems.append(
+                f"{p}: the attitude records carry no time of their own: each takes the time of the timed record "
+                f"before it ({', '.join(clocks)})"
+            )
         while True:
             try:
-                m = reader.recv_match(type=[*_DF_ATTITUDE, "RFND", "BARO", "XKF1", "CAM"])
+                m = reader.recv_match(type=wanted)
             except Exception as e:  # a corrupt record: keep what came before
                 problems.append(f"{p}: unreadable record: {e}")
                 break
@@ -275,8 +308,9 @@ def _read_ulog(p: Path) -> FcSeries:
         try:
             ulog = ULog(str(p), _ULOG_TOPICS)
         except Exception as e:  # pyulog raises its ULogException, struct and index errors on a file that is not a log
+            log.debug("%s: pyulog: %r", p, e)  # the Python detail, for a developer's -v
             raise ConfigError(
-                f"{p}: not a readable PX4 ULog (expected the 'ULog' header and definitions): {' '.join(str(e).split())[:200]}"
+                f"{p}: not a readable PX4 ULog (expected the 'ULog' header and the message definitions after it)"
             ) from e
     if printed or ulog.file_corruption:
         problems.append(
