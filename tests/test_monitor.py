@@ -8,6 +8,7 @@ import sys
 
 import pytest
 
+from mavvo.cli import main
 from mavvo.service.mavlink import mavutil
 from mavvo.service.monitor import Monitor, render
 from tests.conftest import free_port
@@ -55,6 +56,7 @@ def test_the_view_follows_what_mavvo_sends():
     assert s.resets == 1 and s.estimates_per_s == pytest.approx(10.0) and s.texts == ((1.2, "mavvo: tracking"),)
     text = render(s, "udpin:0.0.0.0:14550")
     assert "tracking" in text and "inliers 143" in text and "resets 1" in text and "mavvo: tracking" in text
+    assert "drift 0.31 m (1 sigma since the origin)" in text
     assert len(mon.timeline) == 1 and mon.timeline[0].quality == 87.0
     assert "SILENT" in render(mon.snapshot(10.0), "x")
 
@@ -108,3 +110,18 @@ def test_mavvo_monitor_shows_a_running_sim(tmp_path):
     final = out[out.rindex("mavvo monitor on") :]
     assert "state        tracking" in final and "quality" in final and "mavvo: tracking" in final, out
     assert (tmp_path / "t.png").stat().st_size > 10_000
+
+
+def test_a_port_another_process_holds_is_refused_before_listening(capsys):
+    """Before: pymavlink bound it too (SO_REUSEADDR), and the two processes split the datagrams in silence."""
+    import socket
+
+    holder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    holder.bind(("127.0.0.1", 0))
+    port = holder.getsockname()[1]
+    try:
+        assert main(["monitor", "--mavlink", f"udpin:127.0.0.1:{port}", "--duration", "1"]) == 1
+    finally:
+        holder.close()
+    err = capsys.readouterr().err
+    assert f"cannot listen on 127.0.0.1:{port}" in err and "another process has the port?" in err

@@ -64,6 +64,10 @@ def test_checks_name_what_is_wrong_and_what_to_set():
     assert by_name["EK3_SRC1_POSXY"].set_to == 6 and by_name["EKF origin"].verdict is Verdict.BLOCK
     assert by_name["VISO_DELAY_MS"].verdict is Verdict.WARN and by_name["VISO_DELAY_MS"].set_to == 45
     assert by_name["VISO_POS_X"].set_to == pytest.approx(0.1) and by_name["VISO_POS_Y"].verdict is Verdict.OK
+    # No latency measured yet: 0 ms (the parameter's default) cannot be right; a plausible value passes.
+    unmeasured = {c.name: c for c in checks("ardupilot", {**ready, "VISO_DELAY_MS": 0}, cfg)}["VISO_DELAY_MS"]
+    assert unmeasured.verdict is Verdict.WARN and "as if taken when it arrives" in unmeasured.advice
+    assert {c.name: c for c in checks("ardupilot", ready, cfg)}["VISO_DELAY_MS"].verdict is Verdict.OK
     # No GPS: GPS sources for velocity or yaw block (before: warnings, and --fix left them).
     gps = {**ready, "EK3_SRC1_VELXY": 3, "EK3_SRC1_YAW": 2}
     no_gps = {c.name: c for c in checks("ardupilot", gps, cfg)}

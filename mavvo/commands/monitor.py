@@ -11,8 +11,9 @@ from pathlib import Path
 from typing import Any
 
 from mavvo.errors import ConfigError, LinkError
-from mavvo.service.link_options import parse_url
+from mavvo.service.link_options import check_udp_port_free, parse_url
 from mavvo.service.mavlink import mavutil
+from mavvo.service.messages import STATE_CODES
 from mavvo.service.monitor import Monitor, render
 
 _REFRESH_S = 1.0
@@ -57,16 +58,21 @@ def _plot(monitor: Monitor, path: Path) -> None:
     for ax, (label, values) in zip(
         axes,
         (
-            ("state (-1 standby, 0 init, 1 tracking, 2 degraded, 3 failed)", [p.state_code for p in tl]),
+            ("state", [p.state_code for p in tl]),
             ("quality", [p.quality for p in tl]),
             ("inliers", [p.inliers for p in tl]),
-            ("latency ms", [p.latency_ms for p in tl]),
-            ("drift m", [p.drift_m for p in tl]),
+            ("latency, ms", [p.latency_ms for p in tl]),
+            ("drift (1 sigma), m", [p.drift_m for p in tl]),
         ),
     ):
-        ax.plot(t, values, drawstyle="steps-post" if label.startswith("state") else "default")
+        ax.plot(t, values, drawstyle="steps-post" if label == "state" else "default")
         ax.set_ylabel(label, fontsize=8)
         ax.grid(alpha=0.3)
+    # The state axis names its states: whole codes only, each labelled (messages.STATE_CODES).
+    codes = sorted(STATE_CODES.items(), key=lambda kv: kv[1])
+    axes[0].set_yticks([c for _, c in codes], [str(state) for state, _ in codes], fontsize=7)
+    axes[0].set_ylim(codes[0][1] - 0.5, codes[-1][1] + 0.5)
+    fig.align_ylabels(axes)
     axes[-1].set_xlabel("monitor time, s")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
@@ -75,6 +81,9 @@ def _plot(monitor: Monitor, path: Path) -> None:
 
 def main(args: argparse.Namespace) -> int:
     parse_url(args.mavlink)  # ConfigError naming the URL when it is none of the forms
+    # pymavlink binds with SO_REUSEADDR: on a port another process holds (a ground station, the flight
+    # controller's own) both would start and split the datagrams, silently. Said before opening.
+    check_udp_port_free(args.mavlink)
     if args.duration is not None and not args.duration > 0:
         raise ConfigError(f"--duration: expected a positive number of seconds, got {args.duration}")
     try:

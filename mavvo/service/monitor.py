@@ -148,7 +148,7 @@ def render(s: MonitorSnapshot, source: str) -> str:
         f"  state        {s.state or '-'}   (HEARTBEAT {s.system_status or '-'})",
         f"  quality      {_num(s.quality, '.0f')}   inliers {_num(s.inliers, '.0f')}",
         f"  estimates    {s.estimates_per_s:.1f} /s   resets {s.resets}",
-        f"  latency      {_num(s.latency_ms, '.0f')} ms   drift {_num(s.drift_m, '.2f')} m",
+        f"  latency      {_num(s.latency_ms, '.0f')} ms   drift {_num(s.drift_m, '.2f')} m (1 sigma since the origin)",
         f"  flight controller  {s.ekf or '(EKF status not forwarded)'}",
         "  messages:",
     ] + [f"    {t:6.1f} s  {text}" for t, text in s.texts]

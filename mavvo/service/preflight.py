@@ -102,15 +102,26 @@ def _lever(names: Sequence[str], params: Mapping[str, float], lever_m: Sequence[
     return out
 
 
+_MIN_PLAUSIBLE_DELAY_MS = 5.0  # below this no camera pipeline delivers: the parameter was never set
+
+
 def _delay(name: str, params: Mapping[str, float], advised_ms: float | None) -> Check:
     v = params.get(name)
     if advised_ms is None:
+        # Nothing measured yet: a value can only be judged plausible. A camera's capture-to-send is
+        # tens of milliseconds; 0 (the default) has the EKF fuse each estimate as if taken on arrival.
+        plausible = v is not None and v >= _MIN_PLAUSIBLE_DELAY_MS
         return Check(
             name,
             _fmt(v),
             "the latency mavvo measures",
-            Verdict.OK if v is not None else Verdict.WARN,
-            "run the service and preflight again to compare with its measured latency" if v is not None else "missing",
+            Verdict.OK if plausible else Verdict.WARN,
+            "run the service and preflight again to compare with its measured latency"
+            if plausible
+            else "missing"
+            if v is None
+            else f"{_fmt(v)} ms has the EKF fuse each estimate as if taken when it arrives; run mavvo and set "
+            "what its health line prints (capture-to-send is tens of ms)",
         )
     ok = v is not None and abs(v - advised_ms) <= _DELAY_TOLERANCE_MS
     return Check(
