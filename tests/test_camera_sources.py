@@ -83,3 +83,16 @@ def test_sim_scheme_renders_the_scenario_on_the_host_clock():
         assert t_open_s <= f.t_exposure_s <= clock.now_s()
     finally:
         src.close()
+
+
+def test_a_camera_that_is_not_there_is_named_in_mavvos_words_only(tmp_path, capfd):
+    """Before: OpenCV's own '[ WARN ] ... can't be used to capture by name' line stood beside mavvo's error."""
+    from mavvo.service.camera import V4L2Source
+
+    with pytest.raises(CameraError, match=r"video7: no such device \(is the camera plugged in\?"):
+        V4L2Source(str(tmp_path / "video7"), CameraOptions(), StillClock())
+    not_a_camera = tmp_path / "video8"
+    not_a_camera.write_bytes(b"")
+    with pytest.raises(CameraError, match=r"video8: cannot open the V4L2 device \(busy, no permission"):
+        V4L2Source(str(not_a_camera), CameraOptions(), StillClock())
+    assert "WARN" not in capfd.readouterr().err

@@ -73,6 +73,8 @@ def _warm(cache: Path | None) -> subprocess.CompletedProcess:
         timeout=900,
     )
     assert proc.returncode == 0 and "mavvo kernels ready" in proc.stderr, proc.stderr
+    # Said before the work, so a first run's minute of compiling is not a silent one.
+    assert proc.stderr.splitlines()[0].startswith("mavvo kernels: loading, or compiling"), proc.stderr
     return proc
 
 

@@ -67,6 +67,13 @@ def warm_kernels() -> float:
 
 
 def main() -> int:
+    # Said first: on a cold cache (the first run after an install or a change of the kernels' sources)
+    # the compilation takes about a minute with nothing else on screen.
+    print(
+        "mavvo kernels: loading, or compiling where the cache has none (the first time: about a minute) ...",
+        file=sys.stderr,
+        flush=True,
+    )
     seconds = warm_kernels()
     print(f"mavvo kernels ready ({seconds:.1f} s)", file=sys.stderr)
     return 0

@@ -15,14 +15,16 @@ registers ``sim:SCENARIO``, the simulator's rendered camera). Devices are reopen
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import math
+import os
 import queue
 import threading
 import time
 from pathlib import Path
-from typing import Callable, Protocol, runtime_checkable
+from typing import Callable, Iterator, Protocol, runtime_checkable
 
 import cv2
 import numpy as np
@@ -146,14 +148,32 @@ class InjectedSource:
         self._ended = True
 
 
+@contextlib.contextmanager
+def _opencv_quiet() -> Iterator[None]:
+    """OpenCV's log at errors only, for a call whose failure mavvo reports in its own words."""
+    previous = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    try:
+        yield
+    finally:
+        cv2.utils.logging.setLogLevel(previous)
+
+
 class V4L2Source:
     """A V4L2 camera through OpenCV, grey frames, stamped as ``options.timestamps`` says."""
 
     def __init__(self, device: str, options: CameraOptions, clock: Clock) -> None:
         self.device, self.options, self.clock = device, options, clock
-        cap = cv2.VideoCapture(device, cv2.CAP_V4L2)
+        if not os.path.exists(device):
+            raise CameraError(
+                f"camera.source {device}: no such device (is the camera plugged in? mavvo camera lists the ones here)"
+            )
+        with _opencv_quiet():  # OpenCV's own [ WARN ] lines would stand beside mavvo's error
+            cap = cv2.VideoCapture(device, cv2.CAP_V4L2)
         if not cap.isOpened():
-            raise CameraError(f"camera.source {device}: cannot open the V4L2 device")
+            raise CameraError(
+                f"camera.source {device}: cannot open the V4L2 device (busy, no permission: the video group, or no capture device)"
+            )
         cap.set(cv2.CAP_PROP_FRAME_WIDTH, options.width_px)
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, options.height_px)
         cap.set(cv2.CAP_PROP_FPS, options.rate_hz)

@@ -221,6 +221,7 @@ class Daemon:
         """Load (or, on a cold cache, compile) the relative pose's kernels before READY=1, so the first
         frame is not held up by them and the watchdog is not asked to wait through a compilation."""
         sdnotify.notify("STATUS=loading the compiled kernels")
+        log.info("loading the compiled kernels (compiled first where the cache has none: about a minute)")
         t0 = self._wall.now_s()
         warm_kernels()
         took_s = self._wall.now_s() - t0
