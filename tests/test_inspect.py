@@ -97,3 +97,24 @@ def test_what_is_not_a_source_is_one_line_exit_2(tmp_path, capsys):
     (tmp_path / "bad.ulg").write_bytes(b"\x00" * 100)
     code, _, err = _inspect(capsys, tmp_path / "bad.ulg")
     assert code == 2 and "bad.ulg: not a readable PX4 ULog" in err
+
+
+def test_columns_widen_for_long_names_and_stay_aligned():
+    """Before: fixed widths (16 and 36 characters); a long source pushed its row's numbers out of line."""
+    import numpy as np
+
+    from mavvo.commands.inspect import series_table
+    from mavvo.offline.inspect import series_info
+
+    t = np.arange(0.0, 2.0, 0.02)
+    rows = series_table(
+        [
+            series_info("attitude", "ATT", t),
+            series_info("range", "distance_sensor.current_distance (orientation 25, downward facing)", t[::5]),
+        ]
+    )
+    assert rows[0].startswith("series ") and rows[2].startswith("range ")
+    ends = {len(r) for r in rows}  # the last column right-aligned: every row ends at the same column
+    assert len(ends) == 1, rows
+    count_end = rows[0].index("count") + len("count")
+    assert rows[1][:count_end].endswith(" 100") and rows[2][:count_end].endswith(" 20"), rows

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 
 def add_parser(sub: Any) -> None:
@@ -53,6 +53,30 @@ def _fmt(x: float | None, unit: str = "", digits: int = 3) -> str:
     return "-" if x is None else f"{x:.{digits}f}{unit}"
 
 
+def series_table(series: Sequence[Any]) -> list[str]:
+    """The series as aligned text rows under a header, each column as wide as its longest cell (a PX4
+    topic's field path or a long dataflash message name must not push the numbers out of line)."""
+    header = ("series", "source", "count", "rate", "from", "to", "longest gap")
+    rows = [header] + [
+        (
+            s.name,
+            s.source,
+            str(s.count),
+            _fmt(s.rate_hz, " Hz", 1),
+            _fmt(s.start_s, " s"),
+            _fmt(s.end_s, " s"),
+            _fmt(s.longest_gap_s, " s"),
+        )
+        for s in series
+    ]
+    widths = [max(len(r[k]) for r in rows) for k in range(len(header))]
+    left = 2  # names left-aligned, numbers right-aligned
+    return [
+        " ".join(c.ljust(w) if k < left else c.rjust(w) for k, (c, w) in enumerate(zip(r, widths))).rstrip()
+        for r in rows
+    ]
+
+
 def main(args: argparse.Namespace) -> int:
     from mavvo.offline.inspect import inspect_source
 
@@ -61,12 +85,8 @@ def main(args: argparse.Namespace) -> int:
         print(json.dumps(ins.to_dict()))
         return 0 if ins.replayable else 1
     print(f"{ins.path}: {ins.kind}")
-    print(f"  {'series':<16} {'source':<36} {'count':>7} {'rate':>10} {'from':>14} {'to':>14} {'longest gap':>12}")
-    for s in ins.series:
-        print(
-            f"  {s.name:<16} {s.source:<36} {s.count:>7} {_fmt(s.rate_hz, ' Hz', 1):>10} {_fmt(s.start_s, ' s'):>14} {_fmt(s.end_s, ' s'):>14} "
-            f"{_fmt(s.longest_gap_s, ' s'):>12}"
-        )
+    for line in series_table(ins.series):
+        print(f"  {line}")
     for key, value in ins.facts.items():
         print(f"  {key}: {value}")
     for problem in ins.problems:
