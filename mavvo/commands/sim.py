@@ -167,6 +167,10 @@ def _sim_service(scenario: Any, args: argparse.Namespace) -> int:
     print(f"plot: {summary['plot']}")
     if run.recording is not None:
         print(f"recording: {run.recording} (replay it: mavvo replay {run.recording})")
+        dropped = {k: v for k, v in run.daemon.counters.items() if k.startswith("record_dropped") and v}
+        if dropped:  # only in real time: in lockstep the recorder holds the simulation back instead
+            what = ", ".join(f"{v} {k.removeprefix('record_dropped_')}" for k, v in dropped.items())
+            print(f"recording: {what} dropped (the disk did not keep up); its replay will differ from this flight")
     return 0
 
 

@@ -13,7 +13,8 @@ A recording is a folder (``record.dir``/YYYYmmdd-HHMMSS) holding:
 - ``meta.json``: format version, clocks, what was written and dropped, why recording stopped.
 
 Recording never holds the service up: the link and the worker hand items to bounded queues and a
-writer thread does the disk work; when a queue is full the item is dropped and counted. Recording
+writer thread does the disk work; when a queue is full the item is dropped and counted. On a simulated
+(lockstep) clock the producers wait for room instead, holding the simulation back: nothing is lost. Recording
 stops (counted, logged, reported through ``on_stop``) when the recording reaches ``max_total_mb``, the
 disk's free space falls below ``min_free_mb``, or a write fails (disk full, medium gone); what was
 written stays readable, and the service goes on. The .tlog and frame index start a new segment every
@@ -68,6 +69,9 @@ FRAME_COLUMNS = (
 _MB = 1 << 20
 _FREE_CHECK_S = 1.0
 _CLOSE_DRAIN_S = 5.0
+
+
+_LOCKSTEP_PUT_TIMEOUT_S = 30.0  # real seconds a lockstep producer waits for the disk at most
 
 
 @dataclass(frozen=True)
@@ -170,7 +174,13 @@ class Recorder:
             self.counters[drop_counter] += 1
             return
         try:
-            q.put_nowait(item)
+            if self.clock.realtime:
+                q.put_nowait(item)  # in flight the service never waits for the disk
+            else:
+                # Lockstep (a simulated clock): waiting holds the simulation back instead of losing the
+                # item, so a recording of a simulated flight is whole however slow the disk or busy the
+                # machine. Bounded, should the writer be stuck: then dropped and counted as in flight.
+                q.put(item, timeout=_LOCKSTEP_PUT_TIMEOUT_S)
         except queue.Full:
             self.counters[drop_counter] += 1
 
