@@ -339,3 +339,22 @@ def test_a_slow_disk_holds_a_lockstep_recording_back_instead_of_losing_frames(tm
     assert meta["counters"]["frames"] == run.daemon.counters["frames"]
     inp = load_recording(run.recording)
     assert inp.problems == [] and len(inp.frames) == run.daemon.counters["frames"]
+
+
+def test_euroc_replay_starts_at_the_first_frame_and_ends_at_the_last(tmp_path, capsys):
+    """Before: the first second of frames went to waiting for a settled yaw (there is no EKF to settle),
+    and the replay played the IMU for as long as it ran after the camera stopped, logging health lines
+    and ending 'failed (no_frames)'. Here the IMU runs 30 s past the last frame."""
+    root = make_euroc(tmp_path, duration_s=5.0)
+    imu = root / "mav0" / "imu0" / "data.csv"
+    lines = imu.read_text().splitlines()
+    last_ns, rest = int(lines[-1].split(",")[0]), lines[-1].split(",", 1)[1]
+    imu.write_text("\n".join(lines + [f"{last_ns + k * 5_000_000},{rest}" for k in range(1, 6001)]) + "\n")
+    over = tmp_path / "over.yaml"
+    over.write_text(yaml.safe_dump({"odometry": {"scale": {"source": "fixed", "fixed_height_m": 8.0}}}))
+    code, s, err = _replay_cli(capsys, root, "--config", over, "--out", tmp_path / "a")  # attitude from the IMU
+    assert code == 0, err
+    assert s["counters"].get("waiting_for_heading", 0) == 0  # no frame waits for a yaw to settle
+    # The IMU's 30 s tail is read but not played: before, all of it, and the run ended 'failed'.
+    assert s["final_state"] == "tracking" and s["counters"]["link_rx"] < s["messages"] / 2, s["counters"]
+    assert "height" in s["notes"] and "no rangefinder" in s["notes"]["height"]

@@ -178,6 +178,9 @@ def empty_result() -> ReplayResult:
     )
 
 
+_TAIL_S = 0.5  # flight-controller messages replayed after the last frame (under the service's 1 s of no estimate)
+
+
 def _wait(pred: Callable[[], bool], timeout_s: float, stop: threading.Event) -> bool:
     deadline = time.monotonic() + timeout_s
     while not pred():
@@ -246,7 +249,10 @@ class _Driver:
             if self.progress is not None and time.monotonic() >= next_progress:
                 next_progress = time.monotonic() + _PROGRESS_EVERY_S
                 self.progress(k + 1, len(self.inp.frames))
-        while i < len(msgs) and not stop.is_set():
+        # After the last frame, only a short tail: a log that runs on (EuRoC's IMU for minutes after the
+        # camera stopped) would have the service report no frames, fail, and log health for nothing.
+        end_us = round((self.inp.frames[-1].t_release_s + _TAIL_S) * 1e6) if self.inp.frames else None
+        while i < len(msgs) and not stop.is_set() and (end_us is None or msgs[i][0] <= end_us):
             self._send(*msgs[i])
             i += 1
 

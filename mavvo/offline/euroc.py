@@ -257,6 +257,9 @@ def load_euroc(
             "camera": camera,
             "mounting": {"R_body_cam": R_body_cam.round(9).tolist(), "lever_arm_m": lever.round(6).tolist()},
             "odometry": {"scale": {"source": "altitude"}},
+            # The attitude comes from the IMU (or the truth), not from an EKF converging after boot:
+            # there is no yaw to wait for, and a short set would lose its first second of frames.
+            "service": {"heading_wait_max_s": 0.0},
         },
         overrides,
     )
@@ -298,6 +301,10 @@ def load_euroc(
         step = max(int(round(len(gt) / ((t_gt[-1] - t_gt[0]) * HEIGHT_RATE_HZ))), 1)
         z = gt[::step, 3]
         heights = np.column_stack([t_gt[::step], z - z[0] + HEIGHT_NOISE_M * rng.standard_normal(len(z))])
+        notes["height"] = (
+            f"the ground truth's height over its start with {HEIGHT_NOISE_M:g} m of noise, as the flight "
+            "controller's altitude (odometry.scale.source: altitude); EuRoC has no rangefinder"
+        )
         R_lvl_imu = np.array([_D @ R_from_quat_wxyz(q) for q in gt[:, 4:8]])
         p_cam = gt[:, 1:4] @ _D.T + R_lvl_imu @ t_imu_cam  # the camera centre: what mavvo estimates
         reference = PoseSeries(t_gt, p_cam, np.array([quat_wxyz_from_R(R @ R_imu_body) for R in R_lvl_imu]))
