@@ -193,7 +193,9 @@ def make_log_flight(
     times = np.arange(0.0, duration_s, 0.01)
     ts = traj.truth_series(times, sc.camera.lever_arm_m)
     write_tum(truth, PoseSeries(times + BOOT_S, ts.positions_xyz_m, ts.orientations_quat_wxyz))
-    return LogFlight(log, out, config, BOOT_S + video_start_s, duration_s, truth)
+    # The log's time at the video's time zero: a video file's first frame, or the folder's listed 0.
+    offset_s = BOOT_S + video_start_s - (5.0 if video == "folder" else 0.0)
+    return LogFlight(log, out, config, offset_s, duration_s, truth)
 
 
 EUROC_T0_NS = 1_403_636_579_763_555_584

@@ -358,3 +358,28 @@ def test_euroc_replay_starts_at_the_first_frame_and_ends_at_the_last(tmp_path, c
     # The IMU's 30 s tail is read but not played: before, all of it, and the run ended 'failed'.
     assert s["final_state"] == "tracking" and s["counters"]["link_rx"] < s["messages"] / 2, s["counters"]
     assert "height" in s["notes"] and "no rangefinder" in s["notes"]["height"]
+
+
+def test_an_image_folder_stamped_on_the_flight_controllers_clock_replays_with_offset_0(tmp_path, capsys):
+    """Before: timestamps.txt was read relative to its first line, so frames already stamped with the
+    flight controller's boot time still needed --offset-s (their first time) to replay."""
+    lf = make_log_flight(tmp_path, kind="tlog", video="folder", duration_s=8.0)
+    index = lf.video / "timestamps.txt"
+    rows = [line.split() for line in index.read_text().splitlines()]
+    index.write_text("".join(f"{float(t) + lf.true_offset_s!r} {name}\n" for t, name in rows))  # the log's clock
+    code, s, err = _replay_cli(
+        capsys,
+        lf.log,
+        "--video",
+        lf.video,
+        "--config",
+        lf.config,
+        "--offset-s",
+        0,
+        "--ground-truth",
+        lf.truth,
+        "--out",
+        tmp_path / "out",
+    )
+    assert code == 0, err
+    assert s["estimates_received"] > 100 and s["evaluation"]["ate_se3_m"]["rmse"] < 0.15

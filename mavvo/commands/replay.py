@@ -49,7 +49,7 @@ def add_parser(sub: Any) -> None:
         type=float,
         default=None,
         metavar="S",
-        help="log: the log's time (s since boot) at the video's time zero; default: estimated from the rotation the camera sees",
+        help="log: the log's time (s since boot) at the video's time zero (a video file: its first frame; an image folder's timestamps.txt: its own clock, so 0 when it lists the flight controller's times); default: estimated from the rotation the camera sees",
     )
     rp.add_argument(
         "--ground-truth",

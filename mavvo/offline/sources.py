@@ -40,10 +40,10 @@ def _grey(img: np.ndarray) -> np.ndarray:
 
 
 class VideoFrames:
-    """The frames of a video file or an image folder with their times (seconds from the first frame).
-
-    An image folder lists its frames in ``timestamps.txt`` (``TIME_S FILENAME`` lines, as ``camera.source``
-    reads) or is taken in name order at ``fps``. ``problems``: a video that ends before the frame count
+    """The frames of a video file or an image folder with their times on the video's own clock: seconds
+    from the first frame for a video file or a folder taken at ``fps``, the listed times for a folder with
+    a ``timestamps.txt`` (``TIME_S FILENAME`` lines, as ``camera.source`` reads), so that frames stamped on
+    the flight controller's clock replay with an offset of 0. ``problems``: a video that ends before the frame count
     its header gives, listed images that are missing.
     """
 
@@ -76,7 +76,7 @@ class VideoFrames:
                     break
                 times.append(t)
                 files.append(path)
-            return np.array(times) - (times[0] if times else 0.0), files
+            return np.array(times), files  # as listed: 0 offset when they are on the log's clock already
         if fps is None or not fps > 0:
             raise ConfigError(f"--video {folder}: an image folder without timestamps.txt needs --fps")
         files = sorted(p for p in folder.iterdir() if p.suffix.lower() in _IMAGE_EXTENSIONS)
