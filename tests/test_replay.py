@@ -61,6 +61,9 @@ def test_round_trip_replays_the_recorded_flight_bit_for_bit(recorded, tmp_path, 
     assert code == 0, err
     assert summary["identical_to_recording"] is True and summary["estimates_received"] == len(live)
     assert summary["evaluation"]["ate_se3_m"]["rmse"] < 0.1
+    # The odometry's own CPU per frame: one thread's time, so within the replay's wall time.
+    cpu_s = summary["odometry_cpu_ms_per_frame"] * 1e-3 * summary["frames_replayed"]
+    assert 0.0 < cpu_s <= summary["wall_s"]
     for name in ("estimate.tum", "quality.csv", "quality.png", "evaluation.png", "summary.json"):
         assert (tmp_path / "out" / name).is_file(), name
     quality = (tmp_path / "out" / "quality.csv").read_text().splitlines()

@@ -19,6 +19,7 @@ _METRICS = (
     "failed_frames",
     "coverage",
     "cpu_ms_per_frame",
+    "odometry_cpu_ms_per_frame",
 )
 
 

@@ -111,6 +111,11 @@ def main(args: argparse.Namespace) -> int:
         print(
             f"{inp.kind} {inp.source}: {summary['frames_replayed']} of {summary['frames']} frames, {summary['estimates_received']} estimates, "
             f"{summary['resets']} resets; {summary['duration_s']:.1f} s replayed in {summary['wall_s']:.1f} s"
+            + (
+                f"; odometry {summary['odometry_cpu_ms_per_frame']:.1f} ms of CPU a frame"
+                if summary["odometry_cpu_ms_per_frame"] is not None
+                else ""
+            )
         )
         if summary["identical_to_recording"] is not None:
             same = "identical to" if summary["identical_to_recording"] else "DIFFERENT from"

@@ -197,6 +197,11 @@ def write_replay_report(out_dir: str | Path, inp: ReplayInput, res: ReplayResult
         "duration_s": round(res.duration_s, 3),
         "wall_s": round(res.wall_s, 3),
         "speed_x_real_time": round(res.duration_s / res.wall_s, 2) if res.wall_s > 0 else None,
+        # The odometry alone (the worker thread's CPU in tracking, pose and filter), not the replay's
+        # driver, link and sockets, which a batch row's CPU per frame counts too.
+        "odometry_cpu_ms_per_frame": None
+        if res.daemon.odometry_cpu_ms_per_frame is None
+        else round(res.daemon.odometry_cpu_ms_per_frame, 2),
         "final_state": res.daemon.state,
         "complete": not res.stopped,
         "identical_to_recording": identical,

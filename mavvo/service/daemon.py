@@ -138,6 +138,7 @@ class Daemon:
         self._ahead = TrackAhead(lambda image: self.odometry.track(image), thread=config.service.track_ahead)
         self._next_frame: Frame | None = None  # taken from the queue by the worker, its tracking started
         self._failure_lock = threading.Lock()
+        self._odometry_cpu_s = 0.0  # the worker thread's CPU time in the odometry (thread_time)
         self._heading_wait = HeadingWait(config.service.heading_wait_max_s, self.reports.warn)
         self.publisher = Publisher(
             config.output,
@@ -461,6 +462,7 @@ class Daemon:
             self.counters["waiting_for_heading"] += 1
             self._track_only(frame)
             return
+        cpu0 = time.thread_time()
         try:
             est = self.odometry.step(paired_frame(frame, p), self._tracks(frame))
         except ValueError as e:  # a malformed image (wrong size, not grey 8-bit)
@@ -472,6 +474,8 @@ class Daemon:
             self._log_error("odometry", e, traceback=True)
             self.odometry.restart()
             return
+        finally:
+            self._odometry_cpu_s += time.thread_time() - cpu0
         self.counters["paired"] += 1
         if est is not None:
             self.publisher.publish(est)
@@ -485,11 +489,14 @@ class Daemon:
         return (t_in - t_exposure_s) + (self._wall.now_s() - wall_in)
 
     def _track_only(self, frame: Frame) -> None:
+        cpu0 = time.thread_time()
         try:
             self._tracks(frame)
         except ValueError as e:
             self.counters["bad_frames"] += 1
             self._log_error("frame", e)
+        finally:
+            self._odometry_cpu_s += time.thread_time() - cpu0
 
     def _tracks(self, frame: Frame) -> Tracks:
         """The frame's tracks; then the next queued frame, if one is there, is taken from the queue
@@ -537,4 +544,4 @@ class Daemon:
         return dict(sorted(c.items()))
 
     def summary(self) -> DaemonSummary:
-        return DaemonSummary(self.health(), self.state, self.latency.stats(), self._failure)
+        return DaemonSummary(self.health(), self.state, self.latency.stats(), self._failure, self._odometry_cpu_s)

@@ -59,13 +59,20 @@ class LockstepProgress:
 
 @dataclass(frozen=True)
 class DaemonSummary:
-    """How a run went: every counter, the last state, the capture-to-send latency, and why the
-    service could not go on (``failure``; empty after a clean stop)."""
+    """How a run went: every counter, the last state, the capture-to-send latency, why the service
+    could not go on (``failure``; empty after a clean stop), and the odometry's CPU time."""
 
     counters: dict[str, int]
     state: VisionState
     latency: LatencyStats | None
     failure: str = ""
+    odometry_cpu_s: float = 0.0  # CPU time of the worker thread in the odometry (tracking, pose, filter)
+
+    @property
+    def odometry_cpu_ms_per_frame(self) -> float | None:
+        """The odometry's CPU time per frame it saw (paired, or only tracked), ms; None before a frame."""
+        n = self.counters.get("frames", 0)
+        return 1e3 * self.odometry_cpu_s / n if n else None
 
     @property
     def latency_ms(self) -> float | None:
