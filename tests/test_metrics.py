@@ -10,7 +10,7 @@ import pytest
 
 from mavvo.errors import ConfigError
 from mavvo.evaluation.metrics import PoseSeries, align_umeyama, associate, evaluate
-from mavvo.evaluation.report import read_tum, write_report, write_tum
+from mavvo.evaluation.report import plot_evaluation, read_tum, write_report, write_tum
 from mavvo.geometry.frames import R_from_euler321
 from mavvo.sim.world.trajectories import LawnmowerSpec, make_trajectory
 
@@ -119,3 +119,18 @@ def test_pose_series_rejects_bad_input():
         PoseSeries(np.zeros(3), np.zeros((2, 3)), np.zeros((3, 4)))
     with pytest.raises(ValueError, match="must not decrease"):
         PoseSeries(np.array([1.0, 0.0]), np.zeros((2, 3)), np.tile([1.0, 0, 0, 0], (2, 1)))
+
+
+def test_the_evaluation_plot_draws_the_estimate_as_sent_and_its_error(tmp_path):
+    """Before: only the SE(3)-aligned estimate was drawn, which hides a constant offset the vehicle flies
+    with. Drawn now in tab:blue, path and error, beside the aligned one (tab:orange)."""
+    gt = _truth(step_s=0.5)
+    shifted = PoseSeries(gt.timestamps_s, gt.positions_xyz_m + [0.0, 5.0, 0.0], gt.orientations_quat_wxyz)
+    ev, aligned = evaluate(shifted, gt)
+
+    def blue_pixels(**kw) -> int:
+        path = plot_evaluation(tmp_path / f"e{len(kw)}.png", aligned, gt, ev, **kw)
+        bgr = cv2.imread(str(path)).astype(int)
+        return int(np.count_nonzero(np.abs(bgr - [180, 119, 31]).sum(axis=2) < 40))
+
+    assert blue_pixels() < 20 and blue_pixels(as_sent=shifted) > 300

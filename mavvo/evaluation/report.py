@@ -92,14 +92,23 @@ def write_report(out_dir: str | Path, est: PoseSeries, gt: PoseSeries, *, title:
     write_tum(out / "estimate.tum", est)
     write_tum(out / "truth.tum", gt)
     (out / "summary.json").write_text(json.dumps({"title": title, **ev.to_dict()}, indent=2) + "\n", encoding="utf-8")
-    plot_evaluation(out / "evaluation.png", aligned, gt, ev, title=title)
+    plot_evaluation(out / "evaluation.png", aligned, gt, ev, title=title, as_sent=est)
     return ev
 
 
 def plot_evaluation(
-    path: str | Path, aligned: PoseSeries, gt: PoseSeries, ev: Evaluation, *, title: str = "mavvo"
+    path: str | Path,
+    aligned: PoseSeries,
+    gt: PoseSeries,
+    ev: Evaluation,
+    *,
+    title: str = "mavvo",
+    as_sent: PoseSeries | None = None,
 ) -> Path:
-    """PNG: top view of both paths (north up, east right) and the position error over time."""
+    """PNG: top view of the paths (north up, east right) and the position error over time. ``as_sent``:
+    the estimate as the flight controller got it (matched to ``gt``, in its frame): drawn and its error
+    plotted beside the aligned one's, because that error, not the aligned one, is what the vehicle flies
+    with."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -116,6 +125,15 @@ def plot_evaluation(
         lw=1.2,
         label="estimate (SE(3)-aligned)",
     )
+    if as_sent is not None:
+        ax1.plot(
+            as_sent.positions_xyz_m[:, 1],
+            as_sent.positions_xyz_m[:, 0],
+            "-",
+            color="tab:blue",
+            lw=1.0,
+            label="estimate as sent (no alignment)",
+        )
     ax1.plot(gt.positions_xyz_m[0, 1], gt.positions_xyz_m[0, 0], "go", label="start")
     ax1.set_xlabel("east [m]")
     ax1.set_ylabel("north [m]")
@@ -124,15 +142,20 @@ def plot_evaluation(
     ax1.legend(loc="best", fontsize=8)
     ax1.set_title(f"{title}: top view")
     t = gt.timestamps_s - gt.timestamps_s[0]
-    ax2.plot(t, err, color="tab:red", lw=1.0)
+    ax2.plot(t, err, color="tab:orange", lw=1.0, label="SE(3)-aligned")
+    heading = (
+        f"ATE {ev.ate_se3_m['rmse']:.3f} m RMSE ({ev.ate_se3_rmse_percent_of_path:.2f}% of {ev.path_length_m:.0f} m); "
+        f"Sim(3) {ev.ate_sim3_m['rmse']:.3f} m"
+    )
+    if as_sent is not None:
+        sent_err = np.linalg.norm(as_sent.positions_xyz_m - gt.positions_xyz_m, axis=1)
+        ax2.plot(t, sent_err, color="tab:blue", lw=1.0, label="as sent (what the vehicle flies with)")
+        heading += f"\nas sent: {sent_err[-1]:.3f} m at the end, {sent_err.max():.3f} m at most"
+        ax2.legend(loc="best", fontsize=8)
     ax2.set_xlabel("time [s]")
     ax2.set_ylabel("position error [m]")
     ax2.grid(True, alpha=0.3)
-    ax2.set_title(
-        f"ATE {ev.ate_se3_m['rmse']:.3f} m RMSE ({ev.ate_se3_rmse_percent_of_path:.2f}% of {ev.path_length_m:.0f} m); "
-        f"Sim(3) {ev.ate_sim3_m['rmse']:.3f} m",
-        fontsize=9,
-    )
+    ax2.set_title(heading, fontsize=9)
     fig.tight_layout()
     p = Path(path)
     fig.savefig(p, dpi=90)

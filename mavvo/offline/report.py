@@ -173,9 +173,19 @@ def write_replay_report(out_dir: str | Path, inp: ReplayInput, res: ReplayResult
     if inp.reference is not None and len(est) >= 3:
         keep, ref = reference_at(inp.reference, est.timestamps_s)
         if len(keep) >= 3:
-            evaluation, aligned = evaluate(_subset(est, keep), ref)
+            matched = _subset(est, keep)
+            evaluation, aligned = evaluate(matched, ref)
             write_tum(out / "reference.tum", ref)
-            plot_evaluation(out / "evaluation.png", aligned, ref, evaluation, title=f"{title} vs {inp.reference_label}")
+            # As sent, where the reference is in the flight controller's frame (a data set's truth has its own).
+            as_sent = None if inp.kind == "euroc" else matched
+            plot_evaluation(
+                out / "evaluation.png",
+                aligned,
+                ref,
+                evaluation,
+                title=f"{title} vs {inp.reference_label}",
+                as_sent=as_sent,
+            )
             files += ["reference.tum", "evaluation.png"]
     elif len(est) >= 2:
         _plot_path(out / "trajectory.png", est, title)
