@@ -38,6 +38,8 @@ import cv2
 import numpy as np
 
 from mavvo.cli import main as cli
+from mavvo.fleet.engine import Outcome as TaskOutcome
+from mavvo.fleet.engine import run_tasks
 from mavvo.service.link import Link
 from mavvo.service.link_options import LinkOptions
 from mavvo.service.timing import MonotonicClock
@@ -322,15 +324,31 @@ CASES: dict[str, Callable[[Path], FaultRow]] = {
 FAST_CASES = ("impostor_heartbeat", "foreign_sender", "signing", "folder_vanishes", "port_in_use", "send_after_stop")
 
 
-def run_cases(names: Sequence[str], progress: Callable[[str], None] | None = None) -> list[FaultRow]:
-    """Run the named cases, each in a fresh temporary folder."""
-    rows = []
-    for name in names:
+def _run_case(name: str) -> FaultRow:
+    """One case in a fresh temporary folder (an engine task: module level, so it pickles)."""
+    with tempfile.TemporaryDirectory(prefix=f"mavvo-fault-{name}-") as d:
+        return CASES[name](Path(d))
+
+
+def run_cases(names: Sequence[str], progress: Callable[[str], None] | None = None, jobs: int = 1) -> list[FaultRow]:
+    """Run the named cases on the sweep engine (mavvo.fleet.engine, as make draws and mavvo batch do),
+    ``jobs`` worker processes at once (1 by default: the cases measure the service's gaps and would
+    disturb each other side by side). A case that raises, or whose worker dies twice, is a failed row
+    with its reason; the rows come in the order of ``names``."""
+
+    rows: dict[str, FaultRow] = {}
+
+    def record(o: TaskOutcome) -> None:
+        name = str(o.key)
+        if o.error is not None:
+            rows[name] = FaultRow(name, Outcome.FAILED, float("nan"), "-", f"the case itself failed: {o.error}")
+        else:
+            rows[name] = o.result
         if progress is not None:
-            progress(name)
-        with tempfile.TemporaryDirectory(prefix=f"mavvo-fault-{name}-") as d:
-            rows.append(CASES[name](Path(d)))
-    return rows
+            progress(f"{name}: {rows[name].outcome.value}")
+
+    run_tasks(_run_case, [(n, n) for n in names], record, workers=jobs)
+    return [rows[n] for n in names if n in rows]
 
 
 def markdown_table(rows: Sequence[FaultRow]) -> str:
@@ -357,13 +375,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         metavar="FILE",
         help=f"also write the table into FILE between {_BEGIN} and {_END}",
     )
+    p.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        metavar="N",
+        help="cases at once, each in its own worker process (default 1: side by side they disturb the gaps they measure)",
+    )
     args = p.parse_args(argv)
+    if args.jobs < 1:
+        p.error(f"--jobs: expected 1 or more, got {args.jobs}")
     unknown = [c for c in args.cases if c not in CASES]
     if unknown:
         p.error(f"unknown case(s) {', '.join(unknown)}; expected some of {', '.join(CASES)}")
     names = args.cases or list(CASES)
     t0 = time.monotonic()
-    rows = run_cases(names, progress=lambda n: print(f"fault suite: {n} ...", file=sys.stderr, flush=True))
+    rows = run_cases(names, progress=lambda n: print(f"fault suite: {n}", file=sys.stderr, flush=True), jobs=args.jobs)
     table = markdown_table(rows)
     print(table)
     if args.markdown is not None:
