@@ -386,3 +386,18 @@ def test_an_image_folder_stamped_on_the_flight_controllers_clock_replays_with_of
     )
     assert code == 0, err
     assert s["estimates_received"] > 100 and s["evaluation"]["ate_se3_m"]["rmse"] < 0.15
+
+
+def test_euroc_with_the_truths_attitude_needs_no_imu_folder(tmp_path, capsys):
+    """Before: imu0/ was required even with --attitude truth (it only told which way is up)."""
+    import shutil
+
+    root = make_euroc(tmp_path, duration_s=4.0)
+    shutil.rmtree(root / "mav0" / "imu0")
+    over = tmp_path / "over.yaml"
+    over.write_text(yaml.safe_dump({"odometry": {"scale": {"source": "fixed", "fixed_height_m": 8.0}}}))
+    code, s, err = _replay_cli(capsys, root, "--attitude", "truth", "--config", over, "--out", tmp_path / "a")
+    assert code == 0, err
+    assert s["estimates_received"] > 40 and s["evaluation"]["ate_se3_m"]["rmse"] < 0.1
+    code, _, err = _replay_cli(capsys, root, "--config", over, "--out", tmp_path / "b")  # the IMU's attitude
+    assert code == 2 and "imu0/data.csv" in err

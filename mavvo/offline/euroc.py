@@ -244,12 +244,22 @@ def load_euroc(
     replace the ones derived from the dataset."""
     mav0 = root if root.name == "mav0" else root / "mav0"
     T_imu_cam, camera = _camera(mav0 / "cam0" / "sensor.yaml")
-    imu = _csv(mav0 / "imu0" / "data.csv", 7)
-    if len(imu) < 10:
-        raise ConfigError(f"{mav0 / 'imu0' / 'data.csv'}: expected IMU samples, found {len(imu)}")
+    gt_path = mav0 / "state_groundtruth_estimate0" / "data.csv"
+    gt = _csv(gt_path, 8) if gt_path.is_file() else None
+    imu_path = mav0 / "imu0" / "data.csv"
+    imu = None
+    if imu_path.is_file() or attitude != "truth" or gt is None:
+        imu = _csv(imu_path, 7)
+        if len(imu) < 10:
+            raise ConfigError(f"{imu_path}: expected IMU samples, found {len(imu)}")
+        first_s = imu[:, 0] * 1e-9 <= imu[0, 0] * 1e-9 + 1.0
+        specific_force, t0_s = imu[first_s, 4:7].mean(axis=0), imu[0, 0] * 1e-9
+    else:
+        # With the truth's attitude the IMU only says which way is up in its frame: the truth says it too.
+        R_lvl_imu = _D @ R_from_quat_wxyz(gt[0, 4:8])
+        specific_force, t0_s = R_lvl_imu.T @ np.array([0.0, 0.0, -9.81]), gt[0, 0] * 1e-9
     R_imu_cam, t_imu_cam = T_imu_cam[:3, :3], T_imu_cam[:3, 3]
-    first_s = imu[:, 0] * 1e-9 <= imu[0, 0] * 1e-9 + 1.0
-    R_imu_body = _body_from_imu(imu[first_s, 4:7].mean(axis=0), R_imu_cam)
+    R_imu_body = _body_from_imu(specific_force, R_imu_cam)
     R_body_cam = R_imu_body.T @ R_imu_cam
     lever = R_imu_body.T @ t_imu_cam
     data = merge(
@@ -263,8 +273,6 @@ def load_euroc(
         },
         overrides,
     )
-    gt_path = mav0 / "state_groundtruth_estimate0" / "data.csv"
-    gt = _csv(gt_path, 8) if gt_path.is_file() else None
     warnings: list[str] = []
     if gt is None:
         # The height for scale comes from the ground truth: without it, a height from the configuration.
@@ -293,6 +301,7 @@ def load_euroc(
         attitude_rows = _truth_attitude(gt, R_imu_body, attitude_noise_deg, rng)
         notes["attitude_noise_deg"] = attitude_noise_deg
     else:
+        assert imu is not None  # read above: the attitude is the IMU's
         attitude_rows = imu_attitude(imu, R_imu_body)
     heights = np.zeros((0, 2))
     reference = None
@@ -316,7 +325,7 @@ def load_euroc(
         "euroc",
         str(root),
         config,
-        series_messages(series, boot_epoch_s=float(np.floor(imu[0, 0] * 1e-9))),
+        series_messages(series, boot_epoch_s=float(np.floor(t0_s))),
         frames,
         reference,
         "ground truth" if reference is not None else "",
