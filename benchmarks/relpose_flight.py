@@ -35,7 +35,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -46,7 +46,8 @@ import cv2  # noqa: E402
 from benchmarks.common import load_average, machine, publish  # noqa: E402
 from benchmarks.compare import BEST_PEER_HEADER, YAW_PRIOR_NOISE_DEG, TrialErrors, best_peer_cells  # noqa: E402
 from mavvo.estimation.relpose import estimate_relpose_known_gravity  # noqa: E402
-from mavvo.estimation.relpose_types import RelposeOptions
+from mavvo.estimation.relpose_types import RelposeOptions  # noqa: E402
+from mavvo.fleet.engine import Outcome, run_tasks  # noqa: E402
 from mavvo.geometry.camera_model import CameraModel  # noqa: E402
 from mavvo.geometry.frames import R_lvl_cam, angle_between_rad, rotation_angle_rad  # noqa: E402
 from mavvo.odometry.frontend import FrontendOptions  # noqa: E402
@@ -163,44 +164,77 @@ def evaluate(
     }
 
 
-def run(quick: bool, plots: Path | None) -> str:
+def _flight_task(task: tuple[str, float, int]) -> tuple[list, Any]:
+    """One rendered flight's tracked pairs and its camera: an engine task."""
+    cv2.setNumThreads(1)
+    name, duration, variant = task
+    return tracked_pairs(name, duration, frontend_options=FRONTEND, variant=variant)
+
+
+def _methods(camera: Any) -> dict[str, Method]:
+    methods: dict[str, Method] = {
+        "mavvo, roll/pitch exact": mavvo(camera, False),
+        "mavvo, attitude sigma": mavvo(camera, True),
+        "OpenCV USAC_MAGSAC": opencv(camera),
+    }
+    if poselib is not None:
+        methods["PoseLib p=0.99"] = poselib_method(camera, False)
+        methods["PoseLib defaults"] = poselib_method(camera, True)
+    return methods
+
+
+def _level_task(task: tuple[list, Any, str, float]) -> dict[str, tuple[Any, float]]:
+    """Every method on every pair at one roll/pitch noise level (the methods take turns pair by pair in
+    this one thread, so their per-thread CPU times compare): an engine task."""
+    cv2.setNumThreads(1)
+    pairs, camera, kind, level = task
+    return evaluate(pairs, _methods(camera), kind, level, seed=int(level * 100) + (7 if kind == "correlated" else 0))
+
+
+def run(quick: bool, plots: Path | None, jobs: int = 1) -> str:
+    """The flights are rendered and the noise levels evaluated as independent tasks on the sweep engine
+    (mavvo.fleet.engine; ``jobs`` worker processes, 1 by default: a quiet core for the timings)."""
     cv2.setNumThreads(1)
     scenarios = {"survey": 20.0 if quick else 40.0, "forward": 20.0 if quick else 40.0}
+    flights: dict[tuple[str, int], tuple[list, Any]] = {}
+
+    def keep(store: dict) -> Callable[[Outcome], None]:
+        def record(o: Outcome) -> None:
+            if o.error is not None:
+                raise SystemExit(f"relpose_flight: task {o.key} failed: {o.error}")
+            store[o.key] = o.result
+
+        return record
+
+    variants = range(1 if quick else FLIGHTS)
+    tasks = [((n, v), (n, d, v)) for n, d in scenarios.items() for v in variants]
+    run_tasks(_flight_task, tasks, keep(flights), workers=jobs)
     rows = []
-    method_names: list[str] = []
+    method_names = list(_methods(flights[(next(iter(scenarios)), 0)][1]))
     n_pairs = {}
-    for name, duration in scenarios.items():
-        flights = [
-            tracked_pairs(name, duration, frontend_options=FRONTEND, variant=v) for v in range(1 if quick else FLIGHTS)
-        ]
-        camera = flights[0][1]  # the scenario's camera: the same in every flight
-        pairs = [p for flight, _ in flights for p in flight]
+    levels = [
+        (kind, level) for kind, ls in (("independent", INDEPENDENT_DEG), ("correlated", CORRELATED_DEG)) for level in ls
+    ]
+    for name in scenarios:
+        camera = flights[(name, 0)][1]  # the scenario's camera: the same in every flight
+        pairs = [p for v in variants for p in flights[(name, v)][0]]
         n_pairs[name] = (len(pairs), int(np.median([len(p.uv1) for p in pairs])))
-        methods: dict[str, Method] = {
-            "mavvo, roll/pitch exact": mavvo(camera, False),
-            "mavvo, attitude sigma": mavvo(camera, True),
-            "OpenCV USAC_MAGSAC": opencv(camera),
-        }
-        if poselib is not None:
-            methods["PoseLib p=0.99"] = poselib_method(camera, False)
-            methods["PoseLib defaults"] = poselib_method(camera, True)
-        method_names = list(methods)
-        for kind, levels in (("independent", INDEPENDENT_DEG), ("correlated", CORRELATED_DEG)):
-            for level in levels:
-                res = evaluate(pairs, methods, kind, level, seed=int(level * 100) + (7 if kind == "correlated" else 0))
-                for m, (errors, us) in res.items():
-                    rows.append(
-                        {
-                            "scenario": name,
-                            "kind": kind,
-                            "level": level,
-                            "method": m,
-                            "errors": errors,
-                            "us": us,
-                            "pairs": len(pairs),
-                        }
-                    )
-                print(f"  {name} {kind} {level} deg done", file=sys.stderr)
+        results: dict[tuple[str, float], dict] = {}
+        run_tasks(_level_task, [((k, lv), (pairs, camera, k, lv)) for k, lv in levels], keep(results), workers=jobs)
+        for kind, level in levels:
+            for m, (errors, us) in results[(kind, level)].items():
+                rows.append(
+                    {
+                        "scenario": name,
+                        "kind": kind,
+                        "level": level,
+                        "method": m,
+                        "errors": errors,
+                        "us": us,
+                        "pairs": len(pairs),
+                    }
+                )
+        print(f"  {name} done", file=sys.stderr)
     lines = [
         BEGIN,
         "## Relative pose on flight-like pairs (`benchmarks/relpose_flight.py`)",
@@ -293,8 +327,9 @@ def main(argv: list[str] | None = None) -> int:
         "--markdown", type=Path, default=None, help="write the table into this file between the relpose-flight markers"
     )
     ap.add_argument("--plots", type=Path, default=None, help="write the success plot into this folder")
+    ap.add_argument("--jobs", type=int, default=1, help="tasks at once on the sweep engine (default 1: quiet timings)")
     args = ap.parse_args(argv)
-    section = run(args.quick, args.plots)
+    section = run(args.quick, args.plots, args.jobs)
     publish(section, args.markdown, BEGIN, END)
     return 0
 
