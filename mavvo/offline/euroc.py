@@ -237,6 +237,45 @@ def _frames(cam0: Path, gap_s: float, problems: list[str]) -> list[ReplayFrame]:
     return frames
 
 
+def _imu_at_rest(imu_path: Path, gt: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray, float]:
+    """The IMU's samples (None where not needed), its specific force over the first second (which way
+    is up in its frame) and the first time, s. With ``gt`` (the truth's attitude is used) and no IMU
+    folder, the truth's first orientation says where up is."""
+    if imu_path.is_file() or gt is None:
+        imu = _csv(imu_path, 7)
+        if len(imu) < 10:
+            raise ConfigError(f"{imu_path}: expected IMU samples, found {len(imu)}")
+        first_s = imu[:, 0] * 1e-9 <= imu[0, 0] * 1e-9 + 1.0
+        return imu, imu[first_s, 4:7].mean(axis=0), imu[0, 0] * 1e-9
+    R_lvl_imu = _D @ R_from_quat_wxyz(gt[0, 4:8])
+    return None, R_lvl_imu.T @ np.array([0.0, 0.0, -9.81]), gt[0, 0] * 1e-9
+
+
+def _from_truth(
+    gt: np.ndarray,
+    R_imu_body: np.ndarray,
+    t_imu_cam: np.ndarray,
+    attitude_rows: np.ndarray,
+    rng: np.random.Generator,
+    notes: dict[str, Any],
+) -> tuple[np.ndarray, PoseSeries]:
+    """From the ground truth: the heights (t_s, m) the flight controller is given, and the camera's
+    reference trajectory; what they are goes into ``notes``."""
+    t_gt = gt[:, 0] * 1e-9
+    step = max(int(round(len(gt) / ((t_gt[-1] - t_gt[0]) * HEIGHT_RATE_HZ))), 1)
+    z = gt[::step, 3]
+    heights = np.column_stack([t_gt[::step], z - z[0] + HEIGHT_NOISE_M * rng.standard_normal(len(z))])
+    notes["height"] = (
+        f"the ground truth's height over its start with {HEIGHT_NOISE_M:g} m of noise, as the flight "
+        "controller's altitude (odometry.scale.source: altitude); EuRoC has no rangefinder"
+    )
+    R_lvl_imu = np.array([_D @ R_from_quat_wxyz(q) for q in gt[:, 4:8]])
+    p_cam = gt[:, 1:4] @ _D.T + R_lvl_imu @ t_imu_cam  # the camera centre: what mavvo estimates
+    reference = PoseSeries(t_gt, p_cam, np.array([quat_wxyz_from_R(R @ R_imu_body) for R in R_lvl_imu]))
+    notes["attitude_tilt_error_deg"] = tilt_error_deg(attitude_rows, t_gt, R_lvl_imu @ R_imu_body)
+    return heights, reference
+
+
 def load_euroc(
     root: Path, overrides: dict[str, Any], *, attitude: str = "imu", attitude_noise_deg: float = 0.1, seed: int = 0
 ) -> ReplayInput:
@@ -246,18 +285,7 @@ def load_euroc(
     T_imu_cam, camera = _camera(mav0 / "cam0" / "sensor.yaml")
     gt_path = mav0 / "state_groundtruth_estimate0" / "data.csv"
     gt = _csv(gt_path, 8) if gt_path.is_file() else None
-    imu_path = mav0 / "imu0" / "data.csv"
-    imu = None
-    if imu_path.is_file() or attitude != "truth" or gt is None:
-        imu = _csv(imu_path, 7)
-        if len(imu) < 10:
-            raise ConfigError(f"{imu_path}: expected IMU samples, found {len(imu)}")
-        first_s = imu[:, 0] * 1e-9 <= imu[0, 0] * 1e-9 + 1.0
-        specific_force, t0_s = imu[first_s, 4:7].mean(axis=0), imu[0, 0] * 1e-9
-    else:
-        # With the truth's attitude the IMU only says which way is up in its frame: the truth says it too.
-        R_lvl_imu = _D @ R_from_quat_wxyz(gt[0, 4:8])
-        specific_force, t0_s = R_lvl_imu.T @ np.array([0.0, 0.0, -9.81]), gt[0, 0] * 1e-9
+    imu, specific_force, t0_s = _imu_at_rest(mav0 / "imu0" / "data.csv", gt if attitude == "truth" else None)
     R_imu_cam, t_imu_cam = T_imu_cam[:3, :3], T_imu_cam[:3, 3]
     R_imu_body = _body_from_imu(specific_force, R_imu_cam)
     R_body_cam = R_imu_body.T @ R_imu_cam
@@ -303,21 +331,9 @@ def load_euroc(
     else:
         assert imu is not None  # read above: the attitude is the IMU's
         attitude_rows = imu_attitude(imu, R_imu_body)
-    heights = np.zeros((0, 2))
-    reference = None
+    heights, reference = np.zeros((0, 2)), None
     if gt is not None:
-        t_gt = gt[:, 0] * 1e-9
-        step = max(int(round(len(gt) / ((t_gt[-1] - t_gt[0]) * HEIGHT_RATE_HZ))), 1)
-        z = gt[::step, 3]
-        heights = np.column_stack([t_gt[::step], z - z[0] + HEIGHT_NOISE_M * rng.standard_normal(len(z))])
-        notes["height"] = (
-            f"the ground truth's height over its start with {HEIGHT_NOISE_M:g} m of noise, as the flight "
-            "controller's altitude (odometry.scale.source: altitude); EuRoC has no rangefinder"
-        )
-        R_lvl_imu = np.array([_D @ R_from_quat_wxyz(q) for q in gt[:, 4:8]])
-        p_cam = gt[:, 1:4] @ _D.T + R_lvl_imu @ t_imu_cam  # the camera centre: what mavvo estimates
-        reference = PoseSeries(t_gt, p_cam, np.array([quat_wxyz_from_R(R @ R_imu_body) for R in R_lvl_imu]))
-        notes["attitude_tilt_error_deg"] = tilt_error_deg(attitude_rows, t_gt, R_lvl_imu @ R_imu_body)
+        heights, reference = _from_truth(gt, R_imu_body, t_imu_cam, attitude_rows, rng, notes)
     series = FcSeries(str(root), "euroc", attitude_rows, np.zeros((0, 2)), heights)
     problems: list[str] = []
     frames = _frames(mav0 / "cam0", config.timing.max_attitude_gap_s, problems)
