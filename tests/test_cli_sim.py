@@ -105,6 +105,7 @@ def test_sim_seed_replaces_the_scenarios_own(monkeypatch):
     assert flown[0] == dataclasses.replace(own, seed=7)  # nothing else changed
 
 
+@pytest.mark.slow  # 8 s of real time, load-sensitive: make soak (make test flies lockstep: tests/test_readme.py)
 def test_sim_realtime_json_summary(tmp_path):
     proc = subprocess.run(
         [
