@@ -340,7 +340,7 @@ def test_a_new_keyframe_goes_where_the_filter_puts_its_frame_when_that_is_the_be
             np.zeros(0),
             np.zeros(0),
             (0.0, 0.0),
-            0.0,
+            (np.zeros((0, 3)), np.zeros((0, 3))),
         )  # type: ignore[arg-type]
 
     def filtered_at(p_ned_m: list[float]) -> None:
@@ -393,7 +393,7 @@ def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_
             np.zeros(0),
             np.zeros(0),
             (0.0, 0.0),
-            0.0,
+            (np.zeros((0, 3)), np.zeros((0, 3))),
         )
         p, cov = position_noise(
             opt,

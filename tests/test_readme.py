@@ -1,7 +1,7 @@
 """The README's quoted output of ``make sim`` against what ``mavvo sim`` prints now, so the page cannot go
 stale: the same lines word for word; counts within 2% (a quoted 0 exactly); measured figures within what
-another CPU's rounding or a small change moves them (a quarter, or 0.02 of the unit); the wall time and
-the plot's folder free."""
+another CPU's rounding or a small change moves them (a quarter, or 0.02 of the unit, 0.1 deg); the wall
+time and the plot's folder free."""
 
 from __future__ import annotations
 
@@ -44,8 +44,10 @@ def differences(quoted: list[str], printed: list[str]) -> list[str]:
                 continue  # the wall time
             a, b = float(mq.group()), float(mp.group())
             # Counts and percentages (integers): within 2% (an estimate more or less on another CPU), a
-            # quoted 0 exactly (no reset); figures: within a quarter or 0.02.
-            tol = (max(0.02 * abs(a), 1.0) if a else 0.0) if "." not in mq.group() else max(0.25 * abs(a), 0.02)
+            # quoted 0 exactly (no reset); figures: within a quarter or 0.02 of their unit, angles 0.1 deg
+            # (a heading error of hundredths is rounding's to move).
+            floor = 0.1 if q[mq.end() :].startswith(" deg") else 0.02
+            tol = (max(0.02 * abs(a), 1.0) if a else 0.0) if "." not in mq.group() else max(0.25 * abs(a), floor)
             if abs(a - b) > tol:
                 out.append(f"{mq.group()} quoted, {mp.group()} printed: {p!r}")
     return out
@@ -58,6 +60,8 @@ def test_the_check_finds_a_stale_line() -> None:
     assert differences(q, [q[0].replace("0 resets", "1 resets"), q[1]]) != []  # a quoted 0
     assert differences(q, [q[0], "ATE 0.090 m RMSE"]) != []  # a figure off by more than a quarter
     assert differences(q, [q[0], "ATE 0.047 m RMS error"]) != []  # the words
+    h = ["heading 0.00 deg off"]
+    assert differences(h, ["heading 0.08 deg off"]) == [] and differences(h, ["heading 0.20 deg off"]) != []
 
 
 def test_make_sims_quoted_output_is_what_mavvo_sim_prints(tmp_path, capsys) -> None:

@@ -44,7 +44,9 @@ class Measurement:
     depth2_m: np.ndarray  # (matched,) metric depths along the current bearings, NaN where none
     parallax_rad: np.ndarray  # (matched,)
     roll_pitch_rad: tuple[float, float]  # the frame's, corrected by vision (the relative pose's tilt of view 2)
-    yaw_var_rad2: float  # variance of the relative yaw (mavvo.odometry.heading.relative_yaw_var)
+    # (K,3) each: the inliers' corrected level bearings in the keyframe's view and the frame's, for the
+    # relative yaw's variance, worked out only when the frame becomes a keyframe (heading.relative_yaw_var).
+    inlier_bearings: tuple[np.ndarray, np.ndarray]
 
 
 def _along(direction: np.ndarray, sigma_m: float) -> np.ndarray:

@@ -329,8 +329,7 @@ class Odometry:
                     self._scene_depth_m = median(scale.baseline_m * lam1[valid])
         p, yaw = kf.pose_of(c2, rp.yaw_rad)
         parallax_px = median(par[inl]) * self._focal_px
-        yaw_var = relative_yaw_var(rp, f1[inl], f2[inl])
-        return Measurement(p, yaw, rp, scale, c2, parallax_px, depth2, par, (roll2, pitch2), yaw_var)
+        return Measurement(p, yaw, rp, scale, c2, parallax_px, depth2, par, (roll2, pitch2), (f1[inl], f2[inl]))
 
     def _relpose(self, frame: PairedFrame, kf: Keyframe, f1: np.ndarray, f2: np.ndarray) -> UprightRelpose:
         """The relative pose of the frame's level bearings ``f2`` against the keyframe's ``f1``, its yaw
@@ -475,7 +474,8 @@ class Odometry:
             self._carry_min_parallax_rad,
         )
         yaw = wrap_angle(m.yaw_rad)
-        nudge = self.heading.commit(yaw, m.yaw_var_rad2, frame.yaw_rad, frame.fc_armed, frame.t_exposure_s - kf.t_s)
+        yaw_var = relative_yaw_var(m.relpose, *m.inlier_bearings)  # a keyframe's only: not on every frame
+        nudge = self.heading.commit(yaw, yaw_var, frame.yaw_rad, frame.fc_armed, frame.t_exposure_s - kf.t_s)
         if nudge:
             yaw = wrap_angle(yaw + nudge)
             self.filter.shift_yaw(nudge)  # a correction of the frame's heading, not a measurement to gate
