@@ -125,7 +125,7 @@ def _run(scenario, seed: str) -> dict[str, dict[str, float]]:
     truth = seq.camera_truth(np.array([f.t_exposure_s for f in frames]))
     p0 = truth.positions_xyz_m[0]
     path = float(np.linalg.norm(np.diff(truth.positions_xyz_m, axis=0), axis=1).sum())
-    odo = Odometry(sc.camera.camera_model(), seq.R_body_cam)
+    odo = Odometry(sc.camera.camera_model(), seq.R_body_cam, readout_s=sc.camera.rolling_shutter_ms * 1e-3)
     methods = {
         "mavvo": odo,
         "optical flow x range": FlowTimesRange(seq, p0, homography=False),

@@ -4,8 +4,10 @@ Pixels in, tracks out. Each track keeps one id for as long as it lives, so the o
 frame against its keyframe by id. Per frame:
 
 1. the previous frame's tracks are followed into the new image with pyramidal Lucas-Kanade, then
-   followed back (from their old positions, at full resolution by default); a track survives when both directions converge, the round trip returns within
-   ``fb_max_px`` and it stays ``border_px`` inside the image;
+   followed back (from their old positions, at full resolution by default); a track survives when both
+   directions converge, the round trip returns within ``fb_max_px`` and it stays ``border_px`` inside
+   the image. KLT sees each image less its local mean (``klt_highpass_px``): brightness the camera
+   adds, vignetting and exposure offsets, does not move with the scene and would hold tracks back;
 2. when fewer than ``redetect_fraction`` of ``max_features`` survive, corners are detected in the
    grid cells that have lost theirs: at most ``max_features / cells`` per cell, the strongest first, and
    none within ``min_distance_px`` of a live track or of each other. The candidates are FAST corners
@@ -86,6 +88,12 @@ class FrontendOptions:
         3, "pyramid levels above the full image (at reference_width_px; one fewer per halving)", ge=0, le=6
     )
     klt_iterations: int = bounded(20, "Lucas-Kanade iterations per level", gt=0, le=1000)
+    klt_highpass_px: int = bounded(
+        33,
+        "KLT follows the image minus its mean over a box this many pixels wide (not scaled: it spans the texture a window sees), so that brightness the camera adds (vignetting, exposure offsets) does not drag the tracks; 0: the raw image",
+        ge=0,
+        le=1001,
+    )
     fb_max_px: float = bounded(0.5, "largest forward-backward round-trip error of a surviving track", gt=0, le=50)
     klt_back_levels: int = bounded(
         0,
@@ -172,6 +180,7 @@ class Frontend:
         self._win = (win, win)
         self.klt_levels = max(opt.klt_levels + int(round(math.log2(s))), min(opt.klt_levels, 1))
         self.border_px = int(round(opt.border_px * s))
+        self._highpass = max(opt.klt_highpass_px | 1, 3) if opt.klt_highpass_px > 0 else 0
         self._fast = cv2.FastFeatureDetector_create(opt.fast_threshold, True)
         self._fast_low = cv2.FastFeatureDetector_create(max(opt.fast_threshold // 2, 1), True)  # set per frame
         self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, opt.klt_iterations, 0.03)
@@ -189,9 +198,10 @@ class Frontend:
     def process(self, image: np.ndarray) -> Tracks:
         """Track into ``image`` ((H,W) uint8, the camera's size) and top up with new corners."""
         img = self._check(image)
+        klt_img = self._klt_image(img)
         ids, uv = self._ids, self._uv
         if self._prev is not None and len(uv):
-            keep, uv = self._track(self._prev, img, uv)
+            keep, uv = self._track(self._prev, klt_img, uv)
             ids = ids[keep]
         tracked = len(ids)
         if tracked < self.options.redetect_fraction * self.options.max_features:
@@ -210,7 +220,7 @@ class Frontend:
             self.dropped_unmappable += int(np.count_nonzero(~valid))
             ids, uv, uv64, f_cam = ids[valid], uv[valid], uv64[valid], f_cam[valid]
             tracked = int(np.count_nonzero(valid[:tracked]))
-        self._prev, self._ids, self._uv = img, ids, uv
+        self._prev, self._ids, self._uv = klt_img, ids, uv
         return Tracks(ids=ids, uv_px=uv64, f_cam=f_cam, tracked=tracked)
 
     def _check(self, image: np.ndarray) -> np.ndarray:
@@ -225,6 +235,25 @@ class Frontend:
         if not (_MIN_SIDE_PX <= min(h, w) and max(h, w) <= _MAX_SIDE_PX):
             raise ValueError(f"image: expected sides between {_MIN_SIDE_PX} and {_MAX_SIDE_PX} px, got {w}x{h}")
         return a
+
+    def _klt_image(self, img: np.ndarray) -> np.ndarray:
+        """What KLT follows: half the image less its local mean (a box of ``klt_highpass_px``), on mid-grey.
+
+        Lucas-Kanade matches brightness, so brightness that does not move with the scene pulls a track
+        toward standing still: vignetting's ramp across a faint floor (+-20 grey levels against a ramp of
+        40 at indoor_hops' edges) shortened the flow there, and the tilt that the relative pose fitted to
+        that shortfall put 4% on the scale of every translation. A box's mean leaves a linear ramp out
+        exactly and an exposure step's offset too, and costs two passes at any box size. The box is
+        the same number of pixels at any image width: it has to span a few KLT windows and the texture
+        they follow, not a share of the image (33 px was the best of 17-97 at 320x240 on indoor_hops and
+        of 33-65 at 640x480 on indoor_carpet).
+        """
+        if not self._highpass:
+            return img
+        mean = cv2.blur(img, (self._highpass, self._highpass), borderType=cv2.BORDER_REFLECT)
+        # Halved, so that no edge saturates (clipped at 0 or 255 its gradient is gone): the take-off's
+        # sharp ground texture at 0.3 m lost its tracks at full gain (0.30 m off at the end, not 0.03).
+        return cv2.addWeighted(img, 0.5, mean, -0.5, 128.0)
 
     def _track(self, prev: np.ndarray, cur: np.ndarray, uv0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Forward and backward KLT; (surviving mask over uv0, their new positions)."""

@@ -5,10 +5,11 @@ optionally the flight controller's yaw, rangefinder and height) and returns a
 :class:`mavvo.types.PoseEstimate`. It is pure: no threads, sockets or clocks; the same frames give the
 same estimates (RANSAC is seeded with the frame's sequence number).
 
-Per frame: track features (:mod:`mavvo.odometry.frontend`), derotate their bearings with the given roll/pitch,
-estimate yaw and translation direction against the keyframe with the 3-point RANSAC
-(:mod:`mavvo.estimation.relpose`), fix the baseline in metres (:mod:`mavvo.odometry.scale`), place the frame in the world
-frame through the keyframe (:mod:`mavvo.odometry.keyframes`), and smooth (:mod:`mavvo.odometry.filter`).
+Per frame: track features (:mod:`mavvo.odometry.frontend`), move a rolling shutter's to the frame's time
+(:mod:`mavvo.odometry.rolling_shutter`), derotate their bearings with the given roll/pitch, estimate yaw and
+translation direction against the keyframe with the 3-point RANSAC (:mod:`mavvo.estimation.relpose`), fix
+the baseline in metres (:mod:`mavvo.odometry.scale`), place the frame in the world frame through the
+keyframe (:mod:`mavvo.odometry.keyframes`), and smooth (:mod:`mavvo.odometry.filter`).
 A frame that becomes the keyframe is placed where the filter puts it, its carried depths scaled to
 that baseline, unless it is degraded for another reason than a scale that is not metric
 (:meth:`Odometry._keyframe_position`).
@@ -34,12 +35,11 @@ sends one, else the last good pose moved on by the filter's velocity over the ou
 ``dead_reckon_max_s``), else the last good pose. The flight controller's own belief is no step for its
 EKF, so the stream goes on with its usual sigma while ``anchor_sigma_m`` goes into the drift; a
 dead-reckoned or held pose is sent with the uncertainty it has (the filter's velocity sigma times the
-outage, ``max_speed_m_s`` times the outage beyond ``dead_reckon_max_s``). Every change of the position that is not motion (a re-initialisation, a
-filter restart after its gate rejected too many frames) bumps ``reset_counter`` exactly once.
+outage, ``max_speed_m_s`` times the outage beyond ``dead_reckon_max_s``). Every change of the position
+that is not motion (a re-initialisation, a filter restart) bumps ``reset_counter`` exactly once.
 
-A camera that does not move keeps measuring its position: with under a pixel of median parallax and
-nothing to triangulate the frame is where its keyframe is, within the baseline a pixel at the scene's
-depth allows.
+A camera that does not move keeps measuring its position: with under a pixel of median parallax and nothing
+to triangulate the frame is where its keyframe is, within the baseline a pixel at the scene's depth allows.
 
 ``PoseEstimate.drift_m`` is the 1-sigma long-term error since the origin: anchor uncertainties plus
 ``drift_per_m`` of the distance flown and the heading uncertainty times the distance from the anchor.
@@ -66,6 +66,7 @@ from mavvo.odometry.height import HeightAnchor
 from mavvo.odometry.keyframes import Keyframe, KeyframeChain, carry_depths, keyframe_reason
 from mavvo.odometry.measurement import Measurement, NoPose, position_noise, unresolved_baseline_m
 from mavvo.odometry.options import OdometryOptions
+from mavvo.odometry.rolling_shutter import RollingShutter
 from mavvo.odometry.scale import ScaleEstimate, estimate_scale, scale_from_scene_depth, triangulate_unit
 from mavvo.types import PairedFrame, PoseEstimate, ScaleSource, StateReason, VisionState, VoDiagnostics
 
@@ -117,6 +118,7 @@ class Odometry:
         options: :class:`OdometryOptions`.
         reset_counter: the first ``reset_counter`` (0..255): one the flight controller has not seen
             from this service, so that a restarted service's first estimate counts as a reset.
+        readout_s: a rolling shutter's top-to-bottom readout time (0: a global shutter).
     """
 
     def __init__(
@@ -125,11 +127,13 @@ class Odometry:
         R_body_cam: np.ndarray,
         options: OdometryOptions | None = None,
         reset_counter: int = 0,
+        readout_s: float = 0.0,
     ) -> None:
         self.camera = camera
         self.R_body_cam = as_rotation("R_body_cam", R_body_cam)
         self.options = opt = options or OdometryOptions()
         self.frontend = Frontend(camera, opt.frontend)
+        self._rolling = RollingShutter(camera, readout_s)
         self.chain = KeyframeChain(opt.keyframes)
         self.filter = PoseFilter(opt.filter)
         self.height = HeightAnchor(opt.height)
@@ -176,7 +180,8 @@ class Odometry:
             )
         if tracks is None:
             tracks = self.track(frame.image)
-        f_lvl = tracks.f_cam @ R_lvl_cam(frame.roll_rad, frame.pitch_rad, self.R_body_cam).T
+        f_cam = self._rolling.bearings(tracks, frame.t_exposure_s)
+        f_lvl = f_cam @ R_lvl_cam(frame.roll_rad, frame.pitch_rad, self.R_body_cam).T
         kf = self.chain.current
         if kf is None:
             return self._initialise(frame, tracks, f_lvl)
@@ -577,11 +582,9 @@ class Odometry:
     ) -> PoseEstimate:
         f = self.filter
         cov = np.zeros((6, 6))
-        cov[:3, :3] = f.position_covariance
+        cov[:3, :3], cov[5, 5] = f.position_covariance, f.yaw_variance
         cov[3, 3] = cov[4, 4] = self._attitude_sigma_rad(frame) ** 2
-        cov[5, 5] = f.yaw_variance
-        p = f.position_ned_m
-        drift = self._drift.sigma_m(p, self.options.drift_per_m, self._heading_sigma_rad)
+        drift = self._drift.sigma_m(p := f.position_ned_m, self.options.drift_per_m, self._heading_sigma_rad)
         return PoseEstimate(
             t_exposure_s=frame.t_exposure_s,
             seq=frame.seq,

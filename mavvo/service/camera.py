@@ -480,7 +480,7 @@ def open_source(
 
         _refuse_controls(
             options,
-            ("exposure_us", "gain", "readout_ms"),
+            ("exposure_us", "gain"),
             "a gst: source takes its controls in the pipeline description (e.g. v4l2src extra-controls=...)",
         )
         device = functools.partial(GstSource, arg, options, clock)
@@ -489,7 +489,6 @@ def open_source(
 
         device = functools.partial(Picamera2Source, arg, options, clock)
     elif spec.startswith("/dev/video"):
-        _refuse_controls(options, ("readout_ms",), "a V4L2 frame is stamped as the driver stamps it")
         device = functools.partial(V4L2Source, spec, options, clock)
     if device is not None:
         return ReconnectingSource(

@@ -37,7 +37,7 @@ class CameraOptions(CameraIntrinsics):
     gain: float = bounded(0.0, "fixed analogue gain; 0: automatic", ge=0, le=64)
     readout_ms: float = bounded(
         0.0,
-        "rolling shutter: top-to-bottom readout time, to stamp the middle row (picamera2); 0 for a global shutter",
+        "rolling shutter: top-to-bottom readout time; the odometry moves each track to the frame's time by it, and picamera2 stamps the middle row with it; 0 for a global shutter",
         ge=0,
         le=100,
     )

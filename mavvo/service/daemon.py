@@ -133,6 +133,7 @@ class Daemon:
             config.mounting.rotation(),
             config.odometry,
             reset_counter=reset_file.first(),
+            readout_s=config.camera.readout_ms * 1e-3,
         )
         # The odometry is looked up at each call: a test may put another in its place.
         self._ahead = TrackAhead(lambda image: self.odometry.track(image), thread=config.service.track_ahead)

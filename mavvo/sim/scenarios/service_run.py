@@ -39,9 +39,10 @@ log = logging.getLogger(__name__)
 
 
 def camera_options(spec: CameraSpec, source: str) -> CameraOptions:
-    """The daemon's camera settings for the simulated camera ``spec``: its intrinsics and frame rate."""
+    """The daemon's camera settings for the simulated camera ``spec``: its intrinsics, frame rate and
+    rolling-shutter readout."""
     intrinsics = {f.name: getattr(spec, f.name) for f in dataclasses.fields(CameraIntrinsics)}
-    return CameraOptions(source=source, rate_hz=spec.rate_hz, **intrinsics)
+    return CameraOptions(source=source, rate_hz=spec.rate_hz, readout_ms=spec.rolling_shutter_ms, **intrinsics)
 
 
 def config_for(scenario: Scenario, base: ServiceConfig, url: str) -> ServiceConfig:
