@@ -153,16 +153,16 @@ def test_a_retired_key_is_refused_with_what_replaced_it(tmp_path) -> None:
 
 
 def test_an_exposure_step_under_vignetting_does_not_drag_the_tracks() -> None:
-    """A faint floor (15 grey levels, 1 sigma) behind a lens 30% darker in the corners moves 4 px
+    """A faint floor (6 grey levels, 1 sigma) behind a lens 30% darker in the corners moves 4 px
     while the exposure steps up 3%: KLT on the raw images reads the brighter frame's vignetting ramp as
-    motion (0.08-0.1 px mean error); on the image less its local mean (``klt_highpass_px``) the
-    tracks follow the floor as they do without a step (0.02 px)."""
+    motion (median error 0.36 px); on the image less its local mean (``klt_highpass_px``, used where
+    the texture is faint, as here) the tracks follow the floor (0.04 px)."""
     v, u = np.mgrid[0:480, 0:640].astype(np.float32)
     r2 = (u - 319.5) ** 2 + (v - 239.5) ** 2
     vignette = 1.0 - 0.3 * r2 / r2.max()
     rng = np.random.default_rng(7)
     blobs = cv2.GaussianBlur(rng.normal(0, 1, (500, 700)).astype(np.float32), (0, 0), 2)
-    blobs *= 15.0 / blobs.std()
+    blobs *= 6.0 / blobs.std()
 
     def floor(dx: int, gain: float) -> np.ndarray:
         window = blobs[10:490, 30 - dx : 670 - dx]
@@ -170,10 +170,10 @@ def test_an_exposure_step_under_vignetting_does_not_drag_the_tracks() -> None:
 
     images = floor(0, 1.0), floor(4, 1.03)
     errors = {}
-    for highpass in (0, FrontendOptions().klt_highpass_px):
-        f = Frontend(CAMERA, FrontendOptions(klt_highpass_px=highpass))
+    for filtered in (False, True):  # never, and where the texture is faint (the default)
+        f = Frontend(CAMERA, FrontendOptions() if filtered else FrontendOptions(klt_highpass_below=0.0))
         first, moved = f.process(images[0]), f.process(images[1])
-        assert moved.tracked >= 200
+        assert moved.tracked >= 80
         shift = moved.uv_px[: moved.tracked] - first.uv_px[np.searchsorted(first.ids, moved.ids[: moved.tracked])]
-        errors[highpass] = float(np.mean(np.abs(shift - [4.0, 0.0])))
-    assert errors[0] > 0.06 and errors[FrontendOptions().klt_highpass_px] < 0.035, errors
+        errors[filtered] = float(np.median(np.abs(shift - [4.0, 0.0])))
+    assert errors[False] > 0.15 and errors[True] < 0.08, errors

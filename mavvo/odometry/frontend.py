@@ -6,8 +6,9 @@ frame against its keyframe by id. Per frame:
 1. the previous frame's tracks are followed into the new image with pyramidal Lucas-Kanade, then
    followed back (from their old positions, at full resolution by default); a track survives when both
    directions converge, the round trip returns within ``fb_max_px`` and it stays ``border_px`` inside
-   the image. KLT sees each image less its local mean (``klt_highpass_px``): brightness the camera
-   adds, vignetting and exposure offsets, does not move with the scene and would hold tracks back;
+   the image. Where the texture is faint (``klt_highpass_below``), KLT sees each image less its local
+   mean (``klt_highpass_px``): brightness the camera adds, vignetting and exposure offsets, does not
+   move with the scene and would hold tracks back;
 2. when fewer than ``redetect_fraction`` of ``max_features`` survive, corners are detected in the
    grid cells that have lost theirs: at most ``max_features / cells`` per cell, the strongest first, and
    none within ``min_distance_px`` of a live track or of each other. The candidates are FAST corners
@@ -94,6 +95,12 @@ class FrontendOptions:
         ge=0,
         le=1001,
     )
+    klt_highpass_below: float = bounded(
+        8.0,
+        "the high-pass is used only on faint texture: where the image's local contrast (RMS of the image less its box mean, grey levels) is below this; on strong texture the scene's coarse structure, which the filter takes out, matters more (a fast climb's zoom); 0: never",
+        ge=0,
+        le=255,
+    )
     fb_max_px: float = bounded(0.5, "largest forward-backward round-trip error of a surviving track", gt=0, le=50)
     klt_back_levels: int = bounded(
         0,
@@ -162,6 +169,16 @@ def _min_eigen_corners(img: np.ndarray, noise: float) -> tuple[np.ndarray, np.nd
     return pts, e[v, u].astype(np.float32)
 
 
+def local_contrast(img: np.ndarray, box_px: int) -> float:
+    """RMS of the image less its mean over a ``box_px`` box, grey levels, measured on every 4th pixel
+    of every 4th row (a box a quarter as wide there): the texture's own contrast, what the brightness
+    the camera adds is to be weighed against. Faint floors give 2.5-5, the shipped scenes' ground 10-27."""
+    small = np.ascontiguousarray(img[::4, ::4])
+    k = max((box_px // 4) | 1, 3)
+    d = small.astype(np.float32) - cv2.blur(small, (k, k), borderType=cv2.BORDER_REFLECT)
+    return float(np.sqrt(np.mean(d * d)))
+
+
 def _noise_floor(noise: float) -> int:
     """The lowest FAST threshold that does not find corners in noise of ``noise`` sigma (grey levels)."""
     return max(_MIN_THRESHOLD, math.ceil(_NOISE_CORNER_SIGMAS * noise))
@@ -198,10 +215,13 @@ class Frontend:
     def process(self, image: np.ndarray) -> Tracks:
         """Track into ``image`` ((H,W) uint8, the camera's size) and top up with new corners."""
         img = self._check(image)
-        klt_img = self._klt_image(img)
         ids, uv = self._ids, self._uv
         if self._prev is not None and len(uv):
-            keep, uv = self._track(self._prev, klt_img, uv)
+            # Both images of a pair the same way: filtered where this frame's texture is faint.
+            pair = (self._prev, img)
+            if self._highpass and local_contrast(img, self._highpass) < self.options.klt_highpass_below:
+                pair = (self._klt_image(self._prev), self._klt_image(img))
+            keep, uv = self._track(*pair, uv)
             ids = ids[keep]
         tracked = len(ids)
         if tracked < self.options.redetect_fraction * self.options.max_features:
@@ -220,7 +240,7 @@ class Frontend:
             self.dropped_unmappable += int(np.count_nonzero(~valid))
             ids, uv, uv64, f_cam = ids[valid], uv[valid], uv64[valid], f_cam[valid]
             tracked = int(np.count_nonzero(valid[:tracked]))
-        self._prev, self._ids, self._uv = klt_img, ids, uv
+        self._prev, self._ids, self._uv = img, ids, uv
         return Tracks(ids=ids, uv_px=uv64, f_cam=f_cam, tracked=tracked)
 
     def _check(self, image: np.ndarray) -> np.ndarray:
@@ -248,8 +268,6 @@ class Frontend:
         they follow, not a share of the image (33 px was the best of 17-97 at 320x240 on indoor_hops and
         of 33-65 at 640x480 on indoor_carpet).
         """
-        if not self._highpass:
-            return img
         mean = cv2.blur(img, (self._highpass, self._highpass), borderType=cv2.BORDER_REFLECT)
         # Halved, so that no edge saturates (clipped at 0 or 255 its gradient is gone): the take-off's
         # sharp ground texture at 0.3 m lost its tracks at full gain (0.30 m off at the end, not 0.03).
