@@ -209,11 +209,17 @@ def _corner_errors_m(run, scenario) -> list[float]:
     return [float(np.linalg.norm(e[c, 1:], axis=1).mean()) for c in corners if len(c)]
 
 
-def test_north_is_taken_on_the_ground_and_held_against_a_disturbed_compass():
+@pytest.mark.parametrize("seed", [None, 102])
+def test_north_is_taken_on_the_ground_and_held_against_a_disturbed_compass(seed):
     """A compass 3-4.5 deg off once the motors run (and the flight controller's yaw with it). Before,
     the heading followed that yaw in flight (10 s) and the square turned with it: corners 1.1-1.6 m off
-    (real flights: 1.0-2.3 m). Now north is taken while disarmed and vision's heading carries the flight."""
+    (real flights: 1.0-2.3 m). Now north is taken while disarmed and vision's heading carries the flight.
+    Seed 102: while one keyframe lasted the take-off climb's 2-3x zoom, its relative yaw came out 1-2 deg
+    off, vision's heading variance opened the gate to the disturbed compass, and the heading ended
+    3.8 deg off with corners 2.1 m off (now 0.26 deg, 0.10 m: a keyframe per quarter of the depth)."""
     sc = dataclasses.replace(load_scenario("square_compass"), duration_s=42.0)  # take-off and three corners
+    if seed is not None:
+        sc = dataclasses.replace(sc, seed=seed)
     run = run_daemon_in_sim(sc)
     corners = _corner_errors_m(run, sc)
     assert len(corners) == 3 and max(corners) < 0.5, corners

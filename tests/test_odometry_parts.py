@@ -12,7 +12,7 @@ from mavvo.estimation.relpose import _failure
 from mavvo.estimation.relpose_types import RelposeFailure
 from mavvo.geometry.frames import rot_z
 from mavvo.odometry.filter import FilterOptions, PoseFilter, Update, wrap_angle
-from mavvo.odometry.keyframes import Keyframe, KeyframeOptions, carry_depths, keyframe_reason
+from mavvo.odometry.keyframes import Keyframe, KeyframeOptions, carry_depths, keyframe_reason, sight_change
 from mavvo.odometry.measurement import Measurement, position_noise
 from mavvo.odometry.pipeline import Odometry
 from mavvo.odometry.scale import (
@@ -174,6 +174,16 @@ def test_keyframe_rules_and_pose_composition() -> None:
     assert keyframe_reason(opt, parallax_px=10.0, survival=0.4, inliers=200) == "survival"
     assert keyframe_reason(opt, parallax_px=10.0, survival=0.9, inliers=59) == "inliers"
     assert keyframe_reason(opt, parallax_px=10.0, survival=0.9, inliers=200) == ""
+    assert keyframe_reason(opt, parallax_px=10.0, survival=0.9, inliers=200, depth_change=-0.3) == "depth"
+    assert keyframe_reason(opt, parallax_px=10.0, survival=0.9, inliers=200, depth_change=0.2) == ""
+    # A nadir keyframe's bearings around straight down; the camera 2 m up and 1 m aside over ground 5 m
+    # below: it moved 2 m away from the scene along the mean line of sight, 0.4 of the depth.
+    rng = np.random.default_rng(11)
+    down = np.column_stack([rng.uniform(-0.3, 0.3, (200, 2)), np.ones(200)])
+    down[:, :2] -= down[:, :2].mean(axis=0)
+    down /= np.linalg.norm(down, axis=1)[:, None]
+    assert sight_change(down, np.array([1.0, 0.0, -2.0]), 5.0) == pytest.approx(-0.4, abs=1e-3)  # mean ~ down
+    assert sight_change(down, np.array([1.0, 0.0, -2.0]), 0.0) == 0.0
     kf = Keyframe(
         0, 0.0, np.arange(3), np.eye(3), np.full(3, np.nan), np.array([1.0, 2.0, -3.0]), math.radians(90.0), 0.0
     )

@@ -7,7 +7,11 @@ whose pose was accepted when
 - the median rotation-compensated parallax against the keyframe reaches ``parallax_px`` (the baseline
   is long enough; longer ones lose tracks), or
 - fewer than ``min_survival`` of the keyframe's tracks are left, or
-- the relative pose has fewer than ``min_inliers`` inliers.
+- the relative pose has fewer than ``min_inliers`` inliers, or
+- the camera moved along the keyframe's mean line of sight by more than ``max_depth_change`` of the
+  scene's depth: in a fast climb the image zooms, tracks survive and the rotation-compensated
+  parallax of the points near the centre stays small, so one keyframe lasted a 2-3x zoom; KLT
+  follows a patch's shift, not its scale, and the relative yaws over such pairs came out 1-2 deg off.
 
 Poses: a keyframe stores its camera position ``p_ned_m`` and the heading ``yaw_rad`` of its level
 frame in the world frame (NED). A frame at ``c2`` (its camera centre in the keyframe's level frame,
@@ -26,7 +30,15 @@ import numpy as np
 from mavvo.geometry.frames import rot_z
 from mavvo.options import bounded
 
-__all__ = ["KeyframeOptions", "Keyframe", "KeyframePose", "KeyframeChain", "keyframe_reason", "carry_depths"]
+__all__ = [
+    "KeyframeOptions",
+    "Keyframe",
+    "KeyframePose",
+    "KeyframeChain",
+    "keyframe_reason",
+    "sight_change",
+    "carry_depths",
+]
 
 
 @dataclass(frozen=True)
@@ -36,6 +48,12 @@ class KeyframeOptions:
     parallax_px: float = bounded(40.0, "median rotation-compensated parallax against the keyframe", gt=0, le=2000)
     min_survival: float = bounded(0.5, "fraction of the keyframe's tracks still alive", gt=0, lt=1)
     min_inliers: int = bounded(60, "inliers of the relative pose", ge=0, le=5000)
+    max_depth_change: float = bounded(
+        0.25,
+        "the camera moved toward or away from the scene by this fraction of its depth (a climb's zoom)",
+        gt=0,
+        le=100,
+    )
     history: int = bounded(1000, "keyframe poses kept for inspection", ge=1, le=100000)
 
 
@@ -93,14 +111,29 @@ class KeyframePose:
     reset_counter: int
 
 
-def keyframe_reason(options: KeyframeOptions, *, parallax_px: float, survival: float, inliers: int) -> str:
-    """Why the current frame should become the keyframe: ``parallax``, ``survival``, ``inliers`` or ''."""
+def sight_change(f1_lvl: np.ndarray, c2_m: np.ndarray, depth_m: float) -> float:
+    """How far the camera moved along the keyframe's mean line of sight, over the scene's depth:
+    ``c2 . mean(f1) / (|mean(f1)| depth)`` for the keyframe's bearings ``f1_lvl`` (N,3) matched now and
+    the frame's camera centre ``c2_m`` (3,) in the keyframe's level frame (positive: toward the scene)."""
+    sight = f1_lvl.sum(axis=0)
+    n = float(np.linalg.norm(sight))
+    return float(c2_m @ sight) / (n * depth_m) if n > 0 and depth_m > 0 else 0.0
+
+
+def keyframe_reason(
+    options: KeyframeOptions, *, parallax_px: float, survival: float, inliers: int, depth_change: float = 0.0
+) -> str:
+    """Why the current frame should become the keyframe: ``parallax``, ``survival``, ``inliers``,
+    ``depth`` or ''. ``depth_change``: the camera's move along the keyframe's mean line of sight over
+    the scene's depth."""
     if parallax_px >= options.parallax_px:
         return "parallax"
     if survival < options.min_survival:
         return "survival"
     if inliers < options.min_inliers:
         return "inliers"
+    if abs(depth_change) > options.max_depth_change:
+        return "depth"
     return ""
 
 

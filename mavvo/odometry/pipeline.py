@@ -63,7 +63,7 @@ from mavvo.odometry.filter import PoseFilter, Update, wrap_angle
 from mavvo.odometry.frontend import Frontend, Tracks
 from mavvo.odometry.heading import HeadingChain, relative_yaw_var
 from mavvo.odometry.height import HeightAnchor
-from mavvo.odometry.keyframes import Keyframe, KeyframeChain, carry_depths, keyframe_reason
+from mavvo.odometry.keyframes import Keyframe, KeyframeChain, carry_depths, keyframe_reason, sight_change
 from mavvo.odometry.measurement import Measurement, NoPose, position_noise, unresolved_baseline_m
 from mavvo.odometry.options import OdometryOptions
 from mavvo.odometry.rolling_shutter import RollingShutter
@@ -422,11 +422,9 @@ class Odometry:
                 self.reset_counter,
             )
         survival = len(i_kf) / len(kf.ids)
-        why_kf = (
-            keyframe_reason(opt.keyframes, parallax_px=m.parallax_px, survival=survival, inliers=rp.num_inliers)
-            if accepted
-            else ""
-        )
+        moved = sight_change(kf.f_lvl[i_kf], m.c2_m, self._depth_m())
+        why = dict(parallax_px=m.parallax_px, survival=survival, inliers=rp.num_inliers, depth_change=moved)
+        why_kf = keyframe_reason(opt.keyframes, **why) if accepted else ""
         if why_kf:
             self._new_keyframe(frame, tracks, f_lvl, kf, i_kf, i_cur, m, reason)
             # The new keyframe's error is now in every measurement made from it, so no later one
