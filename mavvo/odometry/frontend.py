@@ -172,7 +172,7 @@ def _min_eigen_corners(img: np.ndarray, noise: float) -> tuple[np.ndarray, np.nd
 def local_contrast(img: np.ndarray, box_px: int) -> float:
     """RMS of the image less its mean over a ``box_px`` box, grey levels, measured on every 4th pixel
     of every 4th row (a box a quarter as wide there): the texture's own contrast, what the brightness
-    the camera adds is to be weighed against. Faint floors give 2.5-5, the shipped scenes' ground 10-27."""
+    the camera adds is to be weighed against (docs/odometry.md has what floors and scenes measure)."""
     small = np.ascontiguousarray(img[::4, ::4])
     k = max((box_px // 4) | 1, 3)
     d = small.astype(np.float32) - cv2.blur(small, (k, k), borderType=cv2.BORDER_REFLECT)
@@ -209,6 +209,7 @@ class Frontend:
     def reset(self) -> None:
         """Forget all tracks (ids keep increasing)."""
         self._prev: np.ndarray | None = None
+        self._prev_fit: np.ndarray | None = None  # the previous image filtered for KLT, when it was
         self._ids = np.zeros(0, np.int64)
         self._uv = np.zeros((0, 2), np.float32)
 
@@ -216,11 +217,13 @@ class Frontend:
         """Track into ``image`` ((H,W) uint8, the camera's size) and top up with new corners."""
         img = self._check(image)
         ids, uv = self._ids, self._uv
+        fit = None
         if self._prev is not None and len(uv):
             # Both images of a pair the same way: filtered where this frame's texture is faint.
             pair = (self._prev, img)
             if self._highpass and local_contrast(img, self._highpass) < self.options.klt_highpass_below:
-                pair = (self._klt_image(self._prev), self._klt_image(img))
+                fit = self._klt_image(img)
+                pair = (self._prev_fit if self._prev_fit is not None else self._klt_image(self._prev), fit)
             keep, uv = self._track(*pair, uv)
             ids = ids[keep]
         tracked = len(ids)
@@ -241,6 +244,7 @@ class Frontend:
             ids, uv, uv64, f_cam = ids[valid], uv[valid], uv64[valid], f_cam[valid]
             tracked = int(np.count_nonzero(valid[:tracked]))
         self._prev, self._ids, self._uv = img, ids, uv
+        self._prev_fit = fit
         return Tracks(ids=ids, uv_px=uv64, f_cam=f_cam, tracked=tracked)
 
     def _check(self, image: np.ndarray) -> np.ndarray:
@@ -259,18 +263,16 @@ class Frontend:
     def _klt_image(self, img: np.ndarray) -> np.ndarray:
         """What KLT follows: half the image less its local mean (a box of ``klt_highpass_px``), on mid-grey.
 
-        Lucas-Kanade matches brightness, so brightness that does not move with the scene pulls a track
-        toward standing still: vignetting's ramp across a faint floor (+-20 grey levels against a ramp of
-        40 at indoor_hops' edges) shortened the flow there, and the tilt that the relative pose fitted to
-        that shortfall put 4% on the scale of every translation. A box's mean leaves a linear ramp out
-        exactly and an exposure step's offset too, and costs two passes at any box size. The box is
-        the same number of pixels at any image width: it has to span a few KLT windows and the texture
-        they follow, not a share of the image (33 px was the best of 17-97 at 320x240 on indoor_hops and
-        of 33-65 at 640x480 on indoor_carpet).
+        Lucas-Kanade matches brightness, so brightness that does not move with the scene (the
+        vignetting's ramp, scaled by exposure steps) pulls a track toward standing still; on a faint
+        floor the flow near the edges came out short, and the tilt the relative pose fitted to that
+        shortfall put the translations' scale off (docs/odometry.md, "What the camera adds"). A box's
+        mean leaves a linear ramp out exactly and an exposure step's offset too, and costs two passes at
+        any box size. The box is the same number of pixels at any image width: it has to span a few KLT
+        windows and the texture they follow, not a share of the image.
         """
         mean = cv2.blur(img, (self._highpass, self._highpass), borderType=cv2.BORDER_REFLECT)
-        # Halved, so that no edge saturates (clipped at 0 or 255 its gradient is gone): the take-off's
-        # sharp ground texture at 0.3 m lost its tracks at full gain (0.30 m off at the end, not 0.03).
+        # Halved, so that no edge saturates: clipped at 0 or 255, an edge's gradient is gone.
         return cv2.addWeighted(img, 0.5, mean, -0.5, 128.0)
 
     def _track(self, prev: np.ndarray, cur: np.ndarray, uv0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -10,8 +10,9 @@ whose pose was accepted when
 - the relative pose has fewer than ``min_inliers`` inliers, or
 - the camera moved along the keyframe's mean line of sight by more than ``max_depth_change`` of the
   scene's depth: in a fast climb the image zooms, tracks survive and the rotation-compensated
-  parallax of the points near the centre stays small, so one keyframe lasted a 2-3x zoom; KLT
-  follows a patch's shift, not its scale, and the relative yaws over such pairs came out 1-2 deg off.
+  parallax of the points near the centre stays small, so one keyframe would last a large zoom; KLT
+  follows a patch's shift, not its scale, and the relative yaws over such pairs go wrong
+  (docs/odometry.md, Keyframes).
 
 Poses: a keyframe stores its camera position ``p_ned_m`` and the heading ``yaw_rad`` of its level
 frame in the world frame (NED). A frame at ``c2`` (its camera centre in the keyframe's level frame,
