@@ -332,20 +332,22 @@ def test_over_a_faint_floor_a_clean_flight_controller_yaw_holds_the_heading() ->
     """indoor_hops' first 12 s: each keyframe's relative yaw rests on few, noisy tracks over a faint
     floor 0.4-1.5 m below, so vision's chained heading wanders; the flight controller's yaw (0.2 deg of
     noise here) pulls it by the Kalman gain of their variances. With only the time constant's pull
-    (the flight controller's yaw taken as 180 deg uncertain), the heading wanders further."""
+    (the flight controller's yaw taken as 180 deg uncertain), the heading wanders further: RMS over the
+    flight, as the wander is slow (since the faint floor's tracks live longer, the largest error of the
+    unpulled heading is only about twice the pulled one's; its RMS three times)."""
     sc = load_scenario("indoor_hops")
     sc = dataclasses.replace(sc, camera=dataclasses.replace(sc.camera, rolling_shutter_ms=0.0))  # 16x cheaper to render
     seq = PairedSequence(sc, duration_s=12.0)
     frames = list(seq)
 
-    def worst_heading_error_deg(options: dict) -> float:
+    def rms_heading_error_deg(options: dict) -> float:
         vo = Odometry(sc.camera.camera_model(), seq.R_body_cam, build(OdometryOptions, options, "test"))
         est = [e for e in (vo.step(f) for f in frames) if e is not None and e.quality >= 1]
         d = np.array([e.rpy_rad[2] - seq.trajectory.state(e.t_exposure_s).yaw_rad for e in est])
-        return float(np.degrees(np.max(np.abs(np.angle(np.exp(1j * d))))))
+        return float(np.degrees(np.sqrt(np.mean(np.angle(np.exp(1j * d)) ** 2))))
 
-    pulled, drifting = worst_heading_error_deg({}), worst_heading_error_deg({"fc_yaw_sigma_deg": 180.0})
-    assert pulled < 2.0 and drifting > 2.0 * pulled, (pulled, drifting)
+    pulled, drifting = rms_heading_error_deg({}), rms_heading_error_deg({"fc_yaw_sigma_deg": 180.0})
+    assert pulled < 0.3 and drifting > 2.0 * pulled, (pulled, drifting)
 
 
 def test_a_compass_that_comes_back_clean_is_heard_again_after_vision_drifted() -> None:

@@ -8,7 +8,7 @@ frame against its keyframe by id. Per frame:
    directions converge, the round trip returns within ``fb_max_px`` and it stays ``border_px`` inside
    the image. Where the texture is faint (``klt_highpass_below``), KLT sees each image less its local
    mean (``klt_highpass_px``): brightness the camera adds, vignetting and exposure offsets, does not
-   move with the scene and would hold tracks back;
+   move with the scene and would hold tracks back; there the round trip may be ``fb_max_faint_px``;
 2. when fewer than ``redetect_fraction`` of ``max_features`` survive, corners are detected in the
    grid cells that have lost theirs: at most ``max_features / cells`` per cell, the strongest first, and
    none within ``min_distance_px`` of a live track or of each other. The candidates are FAST corners
@@ -52,6 +52,11 @@ _MIN_THRESHOLD = 5  # the lowest FAST threshold, whatever the noise estimate say
 # KLT follows such a corner by less than a pixel either way, so it passes for a track that does not move.
 _NOISE_CORNER_SIGMAS = 4.0
 _QUANTISATION_SIGMA = 0.5  # grey levels: rounding alone leaves about 0.3
+# The high-pass is taken only of texture under klt_highpass_below (8) grey levels RMS, and rounded to 8
+# bits: doubled, rounding's 0.3 levels are a smaller part of what KLT sees (halved, the round trips on a
+# faint floor 3 m below scattered past fb_max_px and half the tracks died every few frames), and a 4-sigma
+# excursion of 8-level texture reaches +-64, far from clipping at 0 or 255.
+_HIGHPASS_GAIN = 2.0
 _NOISE_MASK = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
 
 
@@ -101,7 +106,18 @@ class FrontendOptions:
         ge=0,
         le=255,
     )
-    fb_max_px: float = bounded(0.5, "largest forward-backward round-trip error of a surviving track", gt=0, le=50)
+    fb_max_px: float = bounded(
+        0.5,
+        "largest forward-backward round-trip error of a surviving track (a jump to the next square of a repeated pattern comes back a whole period off)",
+        gt=0,
+        le=50,
+    )
+    fb_max_faint_px: float = bounded(
+        1.0,
+        "the same where the texture is faint (below klt_highpass_below): KLT's own scatter is larger there, and at 0.5 px half the tracks over a faint floor 3 m below died every few frames",
+        gt=0,
+        le=50,
+    )
     klt_back_levels: int = bounded(
         0,
         "pyramid levels of the backward check, which starts at the tracks' old positions (0: full resolution only, a third of the forward cost)",
@@ -220,11 +236,12 @@ class Frontend:
         fit = None
         if self._prev is not None and len(uv):
             # Both images of a pair the same way: filtered where this frame's texture is faint.
-            pair = (self._prev, img)
+            pair, fb_max_px = (self._prev, img), self.options.fb_max_px
             if self._highpass and local_contrast(img, self._highpass) < self.options.klt_highpass_below:
                 fit = self._klt_image(img)
                 pair = (self._prev_fit if self._prev_fit is not None else self._klt_image(self._prev), fit)
-            keep, uv = self._track(*pair, uv)
+                fb_max_px = self.options.fb_max_faint_px
+            keep, uv = self._track(*pair, uv, fb_max_px)
             ids = ids[keep]
         tracked = len(ids)
         if tracked < self.options.redetect_fraction * self.options.max_features:
@@ -261,7 +278,7 @@ class Frontend:
         return a
 
     def _klt_image(self, img: np.ndarray) -> np.ndarray:
-        """What KLT follows: half the image less its local mean (a box of ``klt_highpass_px``), on mid-grey.
+        """What KLT follows: twice the image less its local mean (a box of ``klt_highpass_px``), on mid-grey.
 
         Lucas-Kanade matches brightness, so brightness that does not move with the scene (the
         vignetting's ramp, scaled by exposure steps) pulls a track toward standing still; on a faint
@@ -272,11 +289,13 @@ class Frontend:
         windows and the texture they follow, not a share of the image.
         """
         mean = cv2.blur(img, (self._highpass, self._highpass), borderType=cv2.BORDER_REFLECT)
-        # Halved, so that no edge saturates: clipped at 0 or 255, an edge's gradient is gone.
-        return cv2.addWeighted(img, 0.5, mean, -0.5, 128.0)
+        return cv2.addWeighted(img, _HIGHPASS_GAIN, mean, -_HIGHPASS_GAIN, 128.0)
 
-    def _track(self, prev: np.ndarray, cur: np.ndarray, uv0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Forward and backward KLT; (surviving mask over uv0, their new positions)."""
+    def _track(
+        self, prev: np.ndarray, cur: np.ndarray, uv0: np.ndarray, fb_max_px: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Forward and backward KLT, a round trip within ``fb_max_px``; (surviving mask over uv0, their
+        new positions)."""
         opt = self.options
         p0 = uv0.reshape(-1, 1, 2)
         lk = dict(winSize=self._win, maxLevel=self.klt_levels, criteria=self._criteria)
@@ -293,7 +312,7 @@ class Frontend:
         h, w = cur.shape
         b = self.border_px
         inside = (p1[:, 0] >= b) & (p1[:, 0] <= w - 1 - b) & (p1[:, 1] >= b) & (p1[:, 1] <= h - 1 - b)
-        keep = (st1.ravel() == 1) & (st0.ravel() == 1) & (fb < opt.fb_max_px) & inside
+        keep = (st1.ravel() == 1) & (st0.ravel() == 1) & (fb < fb_max_px) & inside
         return keep, p1[keep]
 
     def _cell(self, uv: np.ndarray, w: int, h: int) -> np.ndarray:
