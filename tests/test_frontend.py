@@ -194,11 +194,11 @@ def test_tracks_over_a_faint_carpet_3_m_below_survive_its_noise() -> None:
 
     def alive(options: FrontendOptions) -> float:
         f = Frontend(camera, options)
-        first = [
+        tracks = [
             f.process(apply_effects(render.render(R, np.array([0.005 * k, 0.0, -3.0])), noise_sigma=2.0, rng=rng))
             for k in range(5)
         ]
-        return float(np.isin(first[0].ids, first[-1].ids).mean())
+        return float(np.isin(tracks[0].ids, tracks[-1].ids).mean())
 
     assert alive(FrontendOptions()) >= 0.8
     assert alive(FrontendOptions(fb_max_faint_px=0.5)) < 0.75  # the strong texture's round trip

@@ -52,10 +52,9 @@ _MIN_THRESHOLD = 5  # the lowest FAST threshold, whatever the noise estimate say
 # KLT follows such a corner by less than a pixel either way, so it passes for a track that does not move.
 _NOISE_CORNER_SIGMAS = 4.0
 _QUANTISATION_SIGMA = 0.5  # grey levels: rounding alone leaves about 0.3
-# The high-pass is taken only of texture under klt_highpass_below (8) grey levels RMS, and rounded to 8
-# bits: doubled, rounding's 0.3 levels are a smaller part of what KLT sees (halved, the round trips on a
-# faint floor 3 m below scattered past fb_max_px and half the tracks died every few frames), and a 4-sigma
-# excursion of 8-level texture reaches +-64, far from clipping at 0 or 255.
+# The high-pass is taken only of texture under klt_highpass_below grey levels RMS and rounded to 8 bits:
+# doubled, rounding is a smaller part of what KLT sees than halved (docs/odometry.md, Small-quad
+# flights), and a 4-sigma excursion of such texture stays far from clipping at 0 or 255.
 _HIGHPASS_GAIN = 2.0
 _NOISE_MASK = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
 
@@ -114,7 +113,7 @@ class FrontendOptions:
     )
     fb_max_faint_px: float = bounded(
         1.0,
-        "the same where the texture is faint (below klt_highpass_below): KLT's own scatter is larger there, and at 0.5 px half the tracks over a faint floor 3 m below died every few frames",
+        "the same where the texture is faint (below klt_highpass_below): KLT's own scatter is larger there, and a tighter bound kills tracks that are right (docs/odometry.md, Small-quad flights)",
         gt=0,
         le=50,
     )
