@@ -199,11 +199,14 @@ def make_log_flight(
 
 
 EUROC_T0_NS = 1_403_636_579_763_555_584
+EUROC_GYRO_BIAS = np.array([-0.002, 0.021, 0.077])  # rad/s: of the order a EuRoC sequence's gyro shows
 
 
 def make_euroc(tmp: Path, *, scenario: str = "figure_eight", duration_s: float = 12.0) -> Path:
-    """A small EuRoC/ASL folder (mav0/cam0, imu0, state_groundtruth_estimate0) of a simulated flight.
-    The IMU frame is the body's turned to x forward, y left, z up (as a z-up IMU often is)."""
+    """A small EuRoC/ASL folder (mav0/cam0, imu0, state_groundtruth_estimate0) of a simulated flight,
+    in the air from its first sample. The IMU frame is the body's turned to x forward, y left, z up (as
+    a z-up IMU often is); its gyro has EUROC_GYRO_BIAS, and its samples carry the vibration of flight
+    (white, 0.03 rad/s and 0.3 m/s^2)."""
     from mavvo.geometry.frames import rot_x
 
     sc = load_scenario(scenario)
@@ -215,12 +218,13 @@ def make_euroc(tmp: Path, *, scenario: str = "figure_eight", duration_s: float =
         (mav0 / d).mkdir(parents=True)
     ns = lambda t: EUROC_T0_NS + int(round(t * 1e9))  # noqa: E731
     rows = []
+    rng = np.random.default_rng(7)
     for t in np.arange(0.0, duration_s, 1 / 200.0):
         st = traj.state(float(t))
         f_body = st.R_ned_body.T @ (st.a_ned_m_s2 - np.array([0.0, 0.0, 9.81]))
-        rows.append(
-            f"{ns(t)},{','.join(repr(float(x)) for x in R_body_imu.T @ st.omega_body_rad_s)},{','.join(repr(float(x)) for x in R_body_imu.T @ f_body)}"
-        )
+        w_imu = R_body_imu.T @ st.omega_body_rad_s + EUROC_GYRO_BIAS + 0.03 * rng.standard_normal(3)
+        f_imu = R_body_imu.T @ f_body + 0.3 * rng.standard_normal(3)
+        rows.append(f"{ns(t)},{','.join(repr(float(x)) for x in w_imu)},{','.join(repr(float(x)) for x in f_imu)}")
     (mav0 / "imu0" / "data.csv").write_text(
         "#timestamp [ns],w_x,w_y,w_z,a_x,a_y,a_z\n" + "\n".join(rows) + "\n", encoding="utf-8"
     )

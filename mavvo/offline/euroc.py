@@ -5,12 +5,13 @@ distortion, resolution, rate), ``mav0/imu0/data.csv`` (gyro rad/s, accelerometer
 ``mav0/state_groundtruth_estimate0/data.csv``. The host clock is the dataset's (nanoseconds / 1e9).
 
 Frames (mavvo's conventions, see docs/replay.md):
-- the body frame is the IMU's turned so that z points down at the start (the mean accelerometer over
-  the first second) and x along the camera's view (or the image's up for a camera looking down);
-  ``mounting.R_body_cam`` and ``lever_arm_m`` follow from ``T_BS``;
-- roll/pitch come from the IMU through an attitude filter that also estimates the gyro bias (Mahony
-  with integral feedback, :func:`imu_attitude`; what a flight controller computes), or from the ground
-  truth plus Gaussian noise; yaw is the filter's (it drifts, as a magnetometer-less one does);
+- the body frame is the IMU's turned so that z points along the mean specific force over the first
+  second (down at rest, the thrust's axis in flight) and x along the camera's view (or the image's up
+  for a camera looking down); ``mounting.R_body_cam`` and ``lever_arm_m`` follow from ``T_BS``;
+- roll/pitch come from the IMU through an attitude filter started with the fitted gyro bias (Mahony
+  with integral feedback, :mod:`mavvo.offline.imu_attitude`; what a flight controller computes), or
+  from the ground truth plus Gaussian noise; yaw is the filter's (it drifts, as a magnetometer-less
+  one does);
 - height above the start comes from the ground truth with barometer-like noise (the datasets have no
   barometer or rangefinder), so ``odometry.scale.source`` defaults to ``altitude``; a folder without
   ground truth replays with a warning and the height from the configuration (``fixed``, or ``carried``
@@ -28,24 +29,15 @@ import yaml
 
 from mavvo.errors import ConfigError
 from mavvo.evaluation.metrics import PoseSeries
-from mavvo.geometry.frames import R_from_euler321, R_from_quat_wxyz, euler321_from_R, quat_wxyz_from_R, skew
+from mavvo.geometry.frames import R_from_quat_wxyz, euler321_from_R, quat_wxyz_from_R
 from mavvo.offline.driver import ReplayFrame, ReplayInput, image_loader
 from mavvo.offline.fc_logs import FcSeries, series_messages
+from mavvo.offline.imu_attitude import ATTITUDE_RATE_HZ, imu_attitude, imu_start, tilt_error_deg
 from mavvo.offline.recording import merge
 from mavvo.service.settings import parse_config
 
 __all__ = ["load_euroc", "read_euroc_groundtruth"]
 
-# Gains (rad/s and rad/s^2 per rad of tilt error): the accelerometer's pull toward its "up" and how fast
-# the gyro-bias estimate follows the pull that persists. Cruising: small, as in a turn the accelerometer
-# is not gravity (0.3 gave 3.4 deg median error in a figure eight at 0.7 m/s^2, 0.02 gave 0.4 deg).
-# Converging: larger, when the recording does not start at rest and the integral must find the bias.
-ATTITUDE_KP = 0.02
-ATTITUDE_KI = 0.001
-ATTITUDE_KP_CONVERGING = 0.3
-ATTITUDE_KI_CONVERGING = 0.02
-ATTITUDE_RATE_HZ = 100.0
-_REST_GYRO_STD = 0.02  # rad/s: a gyro this steady over the first second is at rest
 HEIGHT_RATE_HZ = 10.0
 HEIGHT_NOISE_M = 0.1
 _D = np.diag([1.0, -1.0, -1.0])  # the datasets' z-up world to mavvo's level frame (z down)
@@ -126,71 +118,6 @@ def _body_from_imu(acc_imu: np.ndarray, R_imu_cam: np.ndarray) -> np.ndarray:
     return np.column_stack([x, np.cross(z, x), z])
 
 
-def _exp(w: np.ndarray) -> np.ndarray:
-    th = float(np.linalg.norm(w))
-    K = skew(w)
-    if th < 1e-9:
-        return np.eye(3) + K
-    return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * K @ K
-
-
-def imu_attitude(imu: np.ndarray, R_imu_body: np.ndarray) -> np.ndarray:
-    """(N,4) t_s, roll, pitch, yaw of the body from (M,7) IMU rows (t_ns, gyro xyz rad/s, accel xyz
-    m/s^2), at ATTITUDE_RATE_HZ: Mahony's filter with integral feedback, what a flight controller's
-    attitude estimate does without a magnetometer. Started level (the body frame is defined level over
-    the first second) with the gyro bias b known, as a flight controller calibrates its gyros at boot,
-    it integrates the gyro less b, pulled toward the accelerometer's gravity with the cruising gains:
-
-        e = u_meas x u_est          (measured and estimated "up" in the IMU frame)
-        w = gyro - b + kp e         (the rate integrated)
-        db/dt = -ki e               (the bias: what the correction keeps having to add)
-
-    b is the mean gyro over the first second when the IMU is at rest then. A recording that starts
-    moving leaves b to the integral, with the converging gains throughout: small gains need an exact b
-    (a residual bias r tilts the estimate by about r / kp), and the bias about the vertical cannot be
-    found from the accelerometer in level flight. Expect degrees of error then (reported against the
-    ground truth).
-    """
-    t = imu[:, 0] * 1e-9
-    gyro0 = imu[t <= t[0] + 1.0, 1:4]
-    if len(gyro0) > 10 and float(np.max(gyro0.std(axis=0))) < _REST_GYRO_STD:
-        return _mahony(imu, R_imu_body, gyro0.mean(axis=0), ATTITUDE_KP, ATTITUDE_KI)
-    return _mahony(imu, R_imu_body, np.zeros(3), ATTITUDE_KP_CONVERGING, ATTITUDE_KI_CONVERGING)
-
-
-def _mahony(imu: np.ndarray, R_imu_body: np.ndarray, b0: np.ndarray, kp: float, ki: float) -> np.ndarray:
-    """:func:`imu_attitude`'s filter from bias ``b0`` with gains ``kp``, ``ki``: the attitude rows."""
-    t = imu[:, 0] * 1e-9
-    R = R_imu_body.T.copy()  # R_lvl_imu at the start: the body frame is level there by its definition
-    b = b0.astype(float).copy()
-    out = []
-    next_t = t[0]
-    up = np.array([0.0, 0.0, -1.0])
-    for i in range(1, len(t)):
-        dt = t[i] - t[i - 1]
-        u_meas = imu[i, 4:7] / max(np.linalg.norm(imu[i, 4:7]), 1e-9)
-        e = np.cross(u_meas, R.T @ up)
-        b -= ki * e * dt
-        R = R @ _exp((imu[i, 1:4] - b + kp * e) * dt)
-        if t[i] >= next_t:
-            U, _, Vt = np.linalg.svd(R)
-            R = U @ Vt
-            out.append((t[i], *euler321_from_R(R @ R_imu_body)))
-            next_t = t[i] + 1.0 / ATTITUDE_RATE_HZ
-    return np.array(out)
-
-
-def tilt_error_deg(attitude: np.ndarray, t_truth_s: np.ndarray, R_lvl_body_truth: np.ndarray) -> dict[str, float]:
-    """How far the roll/pitch given to mavvo are from the truth: the angle between the true and the
-    estimated "down" in the body frame (yaw does not count), at each attitude sample (nearest truth);
-    median and 95th percentile, degrees."""
-    idx = np.clip(np.searchsorted(t_truth_s, attitude[:, 0]), 0, len(t_truth_s) - 1)
-    down_true = R_lvl_body_truth[idx, 2, :]  # third row: the level frame's z in body coordinates
-    down_est = np.array([R_from_euler321(r, p, y)[2, :] for _, r, p, y in attitude])
-    err = np.degrees(np.arccos(np.clip(np.sum(down_true * down_est, axis=1), -1.0, 1.0)))
-    return {"median": round(float(np.median(err)), 3), "p95": round(float(np.percentile(err, 95)), 3)}
-
-
 def _camera(sensor_yaml: Path) -> tuple[np.ndarray, dict[str, Any]]:
     """The camera's pose on the IMU, T_imu_cam (4, 4), and its ``camera:`` settings, from cam0's sensor.yaml."""
     cam = _sensor_yaml(sensor_yaml)
@@ -238,9 +165,9 @@ def _frames(cam0: Path, gap_s: float, problems: list[str]) -> list[ReplayFrame]:
 
 
 def _imu_at_rest(imu_path: Path, gt: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray, float]:
-    """The IMU's samples (None where not needed), its specific force over the first second (which way
-    is up in its frame) and the first time, s. With ``gt`` (the truth's attitude is used) and no IMU
-    folder, the truth's first orientation says where up is."""
+    """The IMU's samples (None where not needed), its mean specific force over the first second (which
+    way the body's z is: "up" at rest, the thrust's axis in flight) and the first time, s. With ``gt``
+    (the truth's attitude is used) and no IMU folder, the truth's first orientation says where up is."""
     if imu_path.is_file() or gt is None:
         imu = _csv(imu_path, 7)
         if len(imu) < 10:
@@ -285,6 +212,8 @@ def load_euroc(
     T_imu_cam, camera = _camera(mav0 / "cam0" / "sensor.yaml")
     gt_path = mav0 / "state_groundtruth_estimate0" / "data.csv"
     gt = _csv(gt_path, 8) if gt_path.is_file() else None
+    if attitude == "truth" and gt is None:
+        raise ConfigError(f"{gt_path}: missing; --attitude truth needs the ground truth")
     imu, specific_force, t0_s = _imu_at_rest(mav0 / "imu0" / "data.csv", gt if attitude == "truth" else None)
     R_imu_cam, t_imu_cam = T_imu_cam[:3, :3], T_imu_cam[:3, 3]
     R_imu_body = _body_from_imu(specific_force, R_imu_cam)
@@ -323,14 +252,14 @@ def load_euroc(
         )
     rng = np.random.default_rng(seed)
     notes: dict[str, Any] = {"attitude": attitude}
-    if attitude == "truth":
-        if gt is None:
-            raise ConfigError(f"{gt_path}: missing; --attitude truth needs the ground truth")
+    if gt is not None and attitude == "truth":
         attitude_rows = _truth_attitude(gt, R_imu_body, attitude_noise_deg, rng)
         notes["attitude_noise_deg"] = attitude_noise_deg
     else:
         assert imu is not None  # read above: the attitude is the IMU's
-        attitude_rows = imu_attitude(imu, R_imu_body)
+        start = imu_start(imu)
+        attitude_rows = imu_attitude(imu, R_imu_body, start)
+        notes["gyro_bias_rad_s"] = [round(float(x), 5) for x in start.gyro_bias_rad_s]
     heights, reference = np.zeros((0, 2)), None
     if gt is not None:
         heights, reference = _from_truth(gt, R_imu_body, t_imu_cam, attitude_rows, rng, notes)
