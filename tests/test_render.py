@@ -9,7 +9,7 @@ import pytest
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import R_BODY_CAM_FORWARD, R_BODY_CAM_NADIR, R_from_euler321, rot_y
 from mavvo.sim.world.render import Renderer, apply_effects
-from mavvo.sim.world.scene import BoxSpec, TextureLayer, World, WorldSpec
+from mavvo.sim.world.scene import BoxSpec, PatchSpec, TextureLayer, World, WorldSpec
 
 PINHOLE = CameraModel(640, 480, 500.0, 500.0, 319.5, 239.5)
 RADTAN = CameraModel(640, 480, 420.0, 420.0, 322.0, 236.0, "pinhole", (-0.28, 0.07, 0.0005, -0.0003))
@@ -83,6 +83,29 @@ def test_box_covers_its_projected_silhouette():
     union = np.sum(hull | changed)
     assert hull.sum() > 2000
     assert inter / union > 0.93
+
+
+def test_a_plain_patch_is_flat_grey_inside_its_projected_outline_and_textured_outside():
+    """A turned 1 x 0.6 m patch seen tilted from 1.5 m: the image inside its outline (2 px in from it) is
+    the patch's mid-grey, and the floor around it keeps its texture and no corner inside."""
+    patch = PatchSpec(north_m=0.2, east_m=-0.1, length_m=1.0, width_m=0.6, yaw_deg=30.0)
+    world = World.build(WorldSpec(texture_seed=3, plain_patches=(patch,)))
+    R = R_from_euler321(0.05, -0.08, 0.3) @ R_BODY_CAM_NADIR
+    p = np.array([0.0, 0.0, -1.5])
+    img = Renderer(world, PINHOLE).render(R, p)
+    c, s = np.cos(np.radians(30.0)), np.sin(np.radians(30.0))
+    half = np.array([[0.5, -0.3], [0.5, 0.3], [-0.5, 0.3], [-0.5, -0.3]])  # north, east before the turn
+    ne = half @ np.array([[c, s], [-s, c]]) + [0.2, -0.1]
+    uv = PINHOLE.bearings_to_pixels((np.column_stack([ne, np.zeros(4)]) - p) @ R)
+    inside = np.zeros(img.shape, np.uint8)
+    cv2.fillConvexPoly(inside, np.round(uv).astype(np.int32), 1)
+    core = cv2.erode(inside, np.ones((5, 5), np.uint8)).astype(bool)
+    around = ~cv2.dilate(inside, np.ones((5, 5), np.uint8)).astype(bool)
+    assert core.sum() > 20000
+    assert np.all(img[core] == 128)
+    assert img[around].std() > 20  # the floor's texture
+    pts = cv2.goodFeaturesToTrack(img, 500, 0.01, 5)[:, 0, :]
+    assert not np.any(core[pts[:, 1].astype(int), pts[:, 0].astype(int)])
 
 
 @pytest.mark.parametrize("height_m", [2.0, 10.0, 40.0, 100.0])

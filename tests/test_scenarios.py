@@ -24,11 +24,21 @@ def test_shipped_scenarios_load_and_render(name):
     sim = Simulation(sc, f"udpin:127.0.0.1:{free_port()}")
     try:
         assert isinstance(sim.camera, FrameSource)
-        # Four moments spread over the flight, outside the faults that blank the image on purpose.
+        # Four moments spread over the flight, outside the faults that blank the image on purpose and
+        # away from the plain patches of floor (a metre from their centres).
         blank = [f for f in sc.faults if f.kind in ("dark_frames", "textureless_frames")]
-        times = [t for t in np.linspace(0.0, sim.duration_s, 9) if not any(f.start_s <= t < f.end_s for f in blank)][
-            ::2
-        ][:4]
+        patches = np.array([[q.north_m, q.east_m] for q in sc.world.plain_patches]).reshape(-1, 2)
+
+        def over_patch(t: float) -> bool:
+            below = sim.trajectory.pose(t)[0][:2]
+            return bool(np.any(np.linalg.norm(patches - below, axis=1) < 1.0))
+
+        kept = [
+            t
+            for t in np.linspace(0.0, sim.duration_s, 17)
+            if not any(f.start_s <= t < f.end_s for f in blank) and not over_patch(t)
+        ]
+        times = kept[:: max(len(kept) // 4, 1)][:4]
         assert len(times) == 4
         for t in times:
             img = sim.camera.render_at(t)

@@ -20,7 +20,7 @@ from mavvo.service.yaml_loader import build, load_yaml
 from mavvo.sim.flight_controller.spec import FlightControllerSpec
 from mavvo.sim.world.camera import CameraSpec
 from mavvo.sim.world.faults import FaultSpec
-from mavvo.sim.world.scene import BoxSpec, WorldSpec
+from mavvo.sim.world.scene import BoxSpec, PatchSpec, WorldSpec
 from mavvo.sim.world.trajectories import TRAJECTORY_SPECS, HoverSpec, TrajectorySpec
 
 SCENARIO_DIR = Path(__file__).resolve().parent
@@ -71,6 +71,7 @@ def scenario_keys_markdown() -> str:
     """Every scenario key with its default and help, as markdown tables (docs/simulator.md holds a copy
     that a test keeps current)."""
     sections = [(Scenario, "top level"), (WorldSpec, "world"), (BoxSpec, "world.boxes[]")]
+    sections += [(PatchSpec, "world.plain_patches[]")]
     sections += [(cls, f"trajectory, type: {name}") for name, cls in TRAJECTORY_SPECS.items()]
     sections += [(CameraSpec, "camera"), (FlightControllerSpec, "flight_controller"), (FaultSpec, "faults[]")]
     out = []
@@ -78,7 +79,7 @@ def scenario_keys_markdown() -> str:
         out += [f"#### {title}", "", "| key | default | meaning |", "|---|---|---|"]
         hints = typing.get_type_hints(cls)
         for f in dataclasses.fields(cls):
-            if dataclasses.is_dataclass(hints[f.name]) or f.name in ("boxes", "faults", "trajectory"):
+            if dataclasses.is_dataclass(hints[f.name]) or f.name in ("boxes", "plain_patches", "faults", "trajectory"):
                 continue  # sections of their own
             d = f.default
             shown = "the trajectory's" if d is None else (list(d) if isinstance(d, tuple) else d)

@@ -65,6 +65,8 @@ class Renderer:
         p = p.copy()
         p[2] = min(p[2], -_MIN_HEIGHT_M)  # never below the ground
         img = self._ground(R, p)
+        for quad in self.world.patches_ned:
+            self._plain_patch(img, R, p, quad)
         if self.world.boxes:
             self._boxes(img, R, p)
         if self._maps is not None:
@@ -147,6 +149,15 @@ class Renderer:
         sky = 1.0 - np.sum(weights, axis=0)
         shape = self._grid_shape
         return [wk.reshape(shape) for wk in weights], np.maximum(sky, 0.0).reshape(shape).astype(np.float32)
+
+    def _plain_patch(self, img: np.ndarray, R: np.ndarray, p: np.ndarray, quad_ned: np.ndarray) -> None:
+        """A plain patch of the ground (4 corners, (4,3)) painted mid-grey, its edges anti-aliased."""
+        x_cam = (quad_ned - p) @ R
+        if np.any(x_cam[:, 2] < _NEAR_M):
+            return  # crosses the camera plane; not drawn rather than clipped (as a box's face)
+        uv = x_cam @ self._K.T
+        uv = uv[:, :2] / uv[:, 2:]
+        cv2.fillConvexPoly(img, np.round(uv * 16).astype(np.int32), 128, lineType=cv2.LINE_AA, shift=4)
 
     def _boxes(self, img: np.ndarray, R: np.ndarray, p: np.ndarray) -> None:
         faces = []

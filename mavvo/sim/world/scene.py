@@ -37,6 +37,19 @@ class BoxSpec:
 
 
 @dataclass(frozen=True)
+class PatchSpec:
+    """A plain patch of floor (a rug, a sheet of plywood, a plain tile) painted mid-grey over the
+    texture: where a camera low above it finds nothing to track. ``length_m`` runs north before
+    ``yaw_deg`` turns it."""
+
+    north_m: float = bounded(0.0, "centre, north of the origin")
+    east_m: float = bounded(0.0, "centre, east of the origin")
+    length_m: float = bounded(1.0, "along north (before yaw)", gt=0)
+    width_m: float = bounded(1.0, "along east (before yaw)", gt=0)
+    yaw_deg: float = bounded(0.0, "rotation about down")
+
+
+@dataclass(frozen=True)
 class WorldSpec:
     """What the ground looks like and what stands on it."""
 
@@ -54,6 +67,7 @@ class WorldSpec:
         le=1,
     )
     boxes: tuple[BoxSpec, ...] = field(default=(), metadata={"help": "raised textured boxes"})
+    plain_patches: tuple[PatchSpec, ...] = field(default=(), metadata={"help": "plain mid-grey patches of floor"})
 
 
 @dataclass(frozen=True)
@@ -92,6 +106,7 @@ class World:
     layers: tuple[TextureLayer, ...]
     boxes: tuple[Box, ...]
     spec: WorldSpec
+    patches_ned: tuple[np.ndarray, ...] = ()  # each plain patch's corners (4,3) on the ground, in order
 
     @classmethod
     def build(cls, spec: WorldSpec = WorldSpec()) -> "World":
@@ -109,7 +124,8 @@ class World:
         if spec.contrast != 1.0:
             layers = tuple(TextureLayer(_scaled_contrast(la.tile, spec.contrast), la.m_per_px) for la in layers)
         boxes = tuple(_build_box(b, np.random.default_rng([spec.texture_seed, i])) for i, b in enumerate(spec.boxes))
-        return cls(layers, boxes, spec)
+        patches = tuple(np.column_stack([_footprint(q), np.zeros(4)]) for q in spec.plain_patches)
+        return cls(layers, boxes, spec, patches)
 
 
 def corner_tile(size_px: int, rng: np.random.Generator) -> np.ndarray:
@@ -155,11 +171,16 @@ def checker_tile(square_px: int) -> np.ndarray:
     return tile
 
 
-def _build_box(b: BoxSpec, rng: np.random.Generator) -> Box:
+def _footprint(b: BoxSpec | PatchSpec) -> np.ndarray:
+    """(4,2) north/east corners of a box's or patch's footprint, in order around it."""
     yaw = np.radians(b.yaw_deg)
     c, s = np.cos(yaw), np.sin(yaw)
     half = np.array([[1, -1], [1, 1], [-1, 1], [-1, -1]]) * [b.length_m / 2, b.width_m / 2]
-    ne = half @ np.array([[c, s], [-s, c]]) + [b.north_m, b.east_m]
+    return half @ np.array([[c, s], [-s, c]]) + [b.north_m, b.east_m]
+
+
+def _build_box(b: BoxSpec, rng: np.random.Generator) -> Box:
+    ne = _footprint(b)
     bottom = np.column_stack([ne, np.zeros(4)])
     top = np.column_stack([ne, np.full(4, -b.height_m)])
     return Box(np.vstack([bottom, top]), corner_tile(_BOX_TILE_PX, rng))
