@@ -23,6 +23,7 @@ from mavvo.odometry.scale import (
     scale_from_scene_depth,
     triangulate_unit,
 )
+from mavvo.odometry.tilt_motion import TiltMotion, tilt_acceleration_lvl_m_s2
 from mavvo.sim.scenarios.loader import load_scenario
 from mavvo.sim.world.twoview import make_scene
 from mavvo.types import PairedFrame, ScaleSource, StateReason
@@ -255,6 +256,58 @@ def test_filter_follows_constant_velocity_and_rejects_a_jump() -> None:
     )  # third: believed
     np.testing.assert_allclose(f.position_ned_m, v * 5.05 + [10.0, 0, 0])
     assert np.all(np.linalg.eigvalsh(f.position_covariance) > 0)
+
+
+def test_the_tilt_gives_a_multirotors_horizontal_acceleration() -> None:
+    """Against the simulator's quadrotor (its attitude made from its acceleration, thrust along the body's
+    z): over a hopping flight, the tilt's acceleration is the trajectory's to within what the vertical
+    acceleration's share of the thrust leaves (a few percent); 5 deg nose down is g tan 5 deg forward."""
+    from mavvo.sim.world.trajectories import make_trajectory
+
+    a = tilt_acceleration_lvl_m_s2(0.0, math.radians(-5.0))
+    np.testing.assert_allclose(a, [9.80665 * math.tan(math.radians(5.0)), 0.0, 0.0], atol=1e-12)
+    traj = make_trajectory(load_scenario("indoor_hops").trajectory)
+    err, true = [], []
+    for t in np.arange(0.5, 25.0, 0.1):
+        st = traj.state(float(t))
+        a_ned = rot_z(st.yaw_rad) @ tilt_acceleration_lvl_m_s2(st.roll_rad, st.pitch_rad)
+        err.append(a_ned[:2] - st.a_ned_m_s2[:2])
+        true.append(st.a_ned_m_s2[:2])
+    rms_err, rms_true = np.sqrt(np.mean(np.square(err))), np.sqrt(np.mean(np.square(true)))
+    assert rms_true > 0.2 and rms_err < 0.1 * rms_true, (rms_err, rms_true)
+
+
+def test_tilt_motion_follows_a_braking_that_its_pull_toward_a_lagging_velocity_does_not_undo() -> None:
+    """Braking from 0.6 m/s to a stop at 0.6 m/s^2 while vision's velocity falls behind, by 0.15 m/s at
+    the stop (a constant-velocity filter lagging a braking): the tilt's velocity ends within half that
+    of the truth (0.055 m/s: the lag's share that the 1 s pull lets in)."""
+    tm = TiltMotion()
+    pitch = math.atan(0.6 / 9.80665)  # nose up: braking a vehicle flying north
+    v_true = 0.6
+    tm.step(0.0, 0.0, pitch, 0.0)
+    tm.v_ne_m_s = np.array([v_true, 0.0])
+    for k in range(1, 51):
+        tm.step(0.02 * k, 0.0, pitch, 0.0)
+        v_true -= 0.6 * 0.02
+        tm.pull(np.array([v_true + 0.15 * 0.02 * k, 0.0, 0.0]))
+    assert abs(v_true) < 1e-9 and abs(tm.v_ne_m_s[0] - v_true) < 0.075 and abs(tm.v_ne_m_s[1]) < 1e-9
+
+
+def test_a_known_acceleration_moves_the_filter_exactly_and_a_coast_sets_what_is_known() -> None:
+    f = PoseFilter()
+    f.reset(0.0, np.zeros(3), 0.0, v_ned_m_s=np.array([1.0, 0.0, 0.0]), pos_cov_m2=np.eye(3) * 1e-4, yaw_sigma_rad=0.01)
+    a = np.array([-0.5, 0.2, 0.0])
+    for k in range(1, 11):  # ten steps of 0.1 s: the same as one of 1 s for a constant acceleration
+        f.predict(0.1 * k, a)
+    np.testing.assert_allclose(f.position_ned_m, [1.0 - 0.25, 0.1, 0.0], atol=1e-12)
+    np.testing.assert_allclose(f.velocity_ned_m_s, [0.5, 0.2, 0.0], atol=1e-12)
+    cov = np.diag([0.04, 0.04, 0.001])
+    f.set_position_covariance(cov)
+    f.set_horizontal_velocity(np.array([0.3, -0.1]))
+    np.testing.assert_allclose(f.position_covariance, cov)
+    np.testing.assert_allclose(f.velocity_ned_m_s, [0.3, -0.1, 0.0])
+    P = f._P
+    assert np.all(P[0:3, 3:] == 0.0) and np.allclose(P, P.T) and np.all(np.linalg.eigvalsh(P) > 0)
 
 
 def test_filter_steps_match_filterpys_kalman_filter() -> None:

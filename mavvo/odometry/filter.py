@@ -89,6 +89,10 @@ class FilterOptions:
         lt=1,
     )
     max_rejections: int = bounded(5, "after this many rejections in a row, restart at the measurement", ge=1, le=1000)
+    tilt_acceleration: bool = bounded(
+        True,
+        "while vision sees nothing, coast on the horizontal acceleration the flight controller's roll and pitch give a multirotor (thrust along the body's z); off for a vehicle whose tilt does not drive it",
+    )
 
 
 class PoseFilter:
@@ -131,8 +135,9 @@ class PoseFilter:
         self._t_s = float(t_s)
         self.rejections = 0
 
-    def predict(self, t_s: float) -> None:
-        """Move the state to ``t_s`` (no-op for a time at or before the current one)."""
+    def predict(self, t_s: float, accel_ned_m_s2: np.ndarray | None = None) -> None:
+        """Move the state to ``t_s`` (no-op for a time at or before the current one), with a known
+        acceleration (3,) m/s^2 over the step when given (the process noise is what it leaves out)."""
         if self._t_s is None:
             raise RuntimeError("PoseFilter.predict before reset")
         dt = float(t_s) - self._t_s
@@ -149,6 +154,9 @@ class PoseFilter:
             Q[i, i], Q[i, j], Q[j, j] = var * dt**4 / 4, var * dt**3 / 2, var * dt**2
             Q[j, i] = Q[i, j]
         self._x = F @ self._x  # x = F x
+        if accel_ned_m_s2 is not None:  # ... + B u, B = [dt^2/2, dt] per (position, velocity) pair
+            self._x[0:3, 0] += 0.5 * dt**2 * accel_ned_m_s2
+            self._x[3:6, 0] += dt * accel_ned_m_s2
         self._P = F @ self._P @ F.T + Q  # P = F P F' + Q
         self._t_s = float(t_s)
 
@@ -215,6 +223,17 @@ class PoseFilter:
         I_KH[:, 2] -= K[:, 0]  # I - K H
         self._P = I_KH @ P @ I_KH.T + (K @ K.T) * sigma_m**2  # Joseph form, as in update
         return Update.FUSED
+
+    def set_position_covariance(self, cov_m2: np.ndarray) -> None:
+        """Replace the position's covariance (3,3) m^2, its cross terms with the rest dropped: after a
+        coast, what is known of the position is what the coast says, not the white acceleration assumed."""
+        self._P[0:3, :] = 0.0
+        self._P[:, 0:3] = 0.0
+        self._P[0:3, 0:3] = cov_m2
+
+    def set_horizontal_velocity(self, v_ne_m_s: np.ndarray) -> None:
+        """Replace the north and east velocity (2,) m/s, their covariance kept."""
+        self._x[3:5, 0] = v_ne_m_s
 
     def commit_position_noise(self, cov_m2: np.ndarray) -> None:
         """Grow the position uncertainty by ``cov_m2`` (3,3): an error now fixed in the reference every

@@ -86,6 +86,12 @@ class OdometryOptions:
         gt=0,
         le=100,
     )
+    coast_max_s: float = bounded(
+        3.0,
+        "vision lost for at most this long (a plain patch of floor under a low camera): tracking goes on where the filter coasted to (the tilt's acceleration, the range's height), no reset; longer: re-initialised",
+        ge=0,
+        le=60,
+    )
     dead_reckon_max_s: float = bounded(
         2.0,
         "re-initialising without the flight controller's position: move the last good pose on by the filter's velocity over at most this long",

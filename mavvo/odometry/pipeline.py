@@ -29,14 +29,13 @@ States: ``initialising`` (a keyframe was just made: the pose is the anchor), ``t
 ``degraded`` (a pose, trusted less: pure rotation, no metric scale source, few inliers; quality at most
 ``degraded_quality_max``) and ``failed`` (no pose from vision; the estimate is the filter's prediction,
 quality -1, not to be sent). Tracking is lost when fewer than ``min_tracks`` of the keyframe's tracks
-survive, or after ``max_failed_frames`` frames in a row without a pose. The next frame with enough
-features re-initialises where the vehicle is now: at the flight controller's own estimate when it
-sends one, else the last good pose moved on by the filter's velocity over the outage (for at most
-``dead_reckon_max_s``), else the last good pose. The flight controller's own belief is no step for its
-EKF, so the stream goes on with its usual sigma while ``anchor_sigma_m`` goes into the drift; a
-dead-reckoned or held pose is sent with the uncertainty it has (the filter's velocity sigma times the
-outage, ``max_speed_m_s`` times the outage beyond ``dead_reckon_max_s``). Every change of the position
-that is not motion (a re-initialisation, a filter restart) bumps ``reset_counter`` exactly once.
+survive, or after ``max_failed_frames`` frames in a row without a pose; meanwhile the filter coasts (the
+tilt's acceleration, the range's height). The next frame with enough features goes on from where the
+filter coasted to after at most ``coast_max_s``, else re-initialises (:mod:`mavvo.odometry.recovery`):
+at the flight controller's own estimate (no step for its EKF: the stream keeps its sigma while
+``anchor_sigma_m`` goes into the drift) or a dead-reckoned or held pose with the uncertainty it has.
+Every change of the position that is not motion (a re-initialisation, a filter restart) bumps
+``reset_counter`` exactly once.
 
 A camera that does not move keeps measuring its position: with under a pixel of median parallax and nothing
 to triangulate the frame is where its keyframe is, within the baseline a pixel at the scene's depth allows.
@@ -49,7 +48,6 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -66,8 +64,10 @@ from mavvo.odometry.height import HeightAnchor
 from mavvo.odometry.keyframes import Keyframe, KeyframeChain, carry_depths, keyframe_reason, sight_change
 from mavvo.odometry.measurement import Measurement, NoPose, position_noise, unresolved_baseline_m
 from mavvo.odometry.options import OdometryOptions
+from mavvo.odometry.recovery import Drift, GoodPose, coast_sigma_m, dead_reckoned_anchor, velocity_sigma_m_s
 from mavvo.odometry.rolling_shutter import RollingShutter
 from mavvo.odometry.scale import ScaleEstimate, estimate_scale, scale_from_scene_depth, triangulate_unit
+from mavvo.odometry.tilt_motion import TiltMotion
 from mavvo.types import PairedFrame, PoseEstimate, ScaleSource, StateReason, VisionState, VoDiagnostics
 
 __all__ = ["Odometry"]
@@ -82,31 +82,6 @@ _FILTER_PLACES_KEYFRAME = frozenset({StateReason.NONE, StateReason.FEW_INLIERS, 
 _BASELINE_FACTOR_MIN = 0.5  # a new keyframe's depths follow the filter's baseline within a factor of 2
 # No parallax and less turn than this against the keyframe: standing still, not a degraded pure rotation.
 _STATIONARY_YAW_RAD = math.radians(2.0)
-
-
-@dataclass
-class _Good:
-    """The last frame whose pose was accepted: where re-initialisation anchors."""
-
-    t_s: float
-    p_ned_m: np.ndarray
-    v_ned_m_s: np.ndarray
-    yaw_rad: float
-    fc_yaw_rad: float
-
-
-@dataclass
-class _Drift:
-    """The long-term error since the origin (see the module docstring)."""
-
-    anchor_var_m2: float = 0.0  # summed variances of the anchors
-    flown_m: float = 0.0  # distance flown since the last anchor
-    anchor_p_ned_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    last_p_ned_m: np.ndarray | None = None
-
-    def sigma_m(self, p_ned_m: np.ndarray, per_m: float, heading_rad: float) -> float:
-        away = float(np.linalg.norm(p_ned_m[:2] - self.anchor_p_ned_m[:2]))
-        return math.sqrt(self.anchor_var_m2 + (per_m * self.flown_m) ** 2 + (heading_rad * away) ** 2)
 
 
 class Odometry:
@@ -148,9 +123,11 @@ class Odometry:
         if not 0 <= reset_counter <= 255:
             raise ValueError(f"reset_counter: expected 0..255, got {reset_counter}")
         self.reset_counter = reset_counter
-        self._drift = _Drift()
+        self._drift = Drift()
         self._heading_sigma_rad = math.radians(opt.heading_sigma_deg)
-        self._good: _Good | None = None
+        self._good: GoodPose | None = None
+        self._tilt = TiltMotion()
+        self._outage_s = -math.inf  # the first frame of the last outage: the filter took the tilt's velocity there
         self._failed_in_row = 0
         self._metric_interval = False  # a trusted scale has been carried into the current keyframe
         self._scene_depth_m: float | None = None
@@ -178,6 +155,7 @@ class Odometry:
             raise ValueError(
                 f"frame {frame.seq}: roll_rad and pitch_rad must be finite, got {frame.roll_rad}, {frame.pitch_rad}"
             )
+        self._tilt.step(frame.t_exposure_s, frame.roll_rad, frame.pitch_rad, self.filter.yaw_rad)
         if tracks is None:
             tracks = self.track(frame.image)
         f_cam = self._rolling.bearings(tracks, frame.t_exposure_s)
@@ -212,6 +190,8 @@ class Odometry:
             sigma = self.options.position_sigma_m
             if fc_p is not None:
                 self._drift.anchor_var_m2 = self.options.anchor_sigma_m**2
+        elif frame.t_exposure_s - self._good.t_s <= self.options.coast_max_s:
+            return self._coast(frame, tracks, f_lvl)
         else:
             g = self._good
             turn = wrap_angle(fc_yaw - g.fc_yaw_rad) if math.isfinite(fc_yaw) and math.isfinite(g.fc_yaw_rad) else 0.0
@@ -226,49 +206,59 @@ class Odometry:
         p = p.copy()
         p[2] = self.height.start(float(p[2]), h, first=self._good is None)
         self._drift.anchor_p_ned_m, self._drift.flown_m, self._drift.last_p_ned_m = p.copy(), 0.0, None
-        kf = Keyframe(
-            frame.seq,
-            frame.t_exposure_s,
-            tracks.ids,
-            f_lvl,
-            np.full(len(tracks.ids), np.nan),
-            p,
-            yaw,
-            fc_yaw,
-            self._attitude_sigma_rad(frame),
-        )
-        self.chain.push(kf, self.reset_counter)
-        self._last_yaw_2_1 = 0.0
+        self._first_keyframe(frame, tracks, f_lvl, p, yaw)
         self.heading.restart(fc_yaw)
-        self._metric_interval = False
         self._failed_in_row = 0
         self.filter.reset(
             frame.t_exposure_s, p, yaw, v_ned_m_s=v, pos_cov_m2=sigma**2 * np.eye(3), yaw_sigma_rad=self._yaw_sigma_rad
         )
-
-        self._good = _Good(frame.t_exposure_s, p.copy(), np.zeros(3) if v is None else v.copy(), yaw, fc_yaw)
+        self._good = GoodPose.of(self.filter, frame.t_exposure_s, fc_yaw)
         diag = VoDiagnostics(
             state=VisionState.INITIALISING, reason=StateReason.NEW_KEYFRAME, tracks=len(tracks.ids), keyframe=True
         )
         return self._estimate(frame, diag, quality=1)
 
+    def _first_keyframe(self, frame: PairedFrame, tracks: Tracks, f_lvl: np.ndarray, p: np.ndarray, yaw: float) -> None:
+        """A keyframe of a new chain (no depths carried into it) at ``p`` (NED, m), heading ``yaw``."""
+        depths = np.full(len(tracks.ids), np.nan)
+        kf = Keyframe(
+            frame.seq,
+            frame.t_exposure_s,
+            tracks.ids,
+            f_lvl,
+            depths,
+            p,
+            yaw,
+            frame.yaw_rad,
+            self._attitude_sigma_rad(frame),
+        )
+        self.chain.push(kf, self.reset_counter)
+        self._last_yaw_2_1 = 0.0
+        self._metric_interval = False
+
     def _anchor(self, t_s: float, fc_p: np.ndarray | None) -> tuple[np.ndarray, float, str]:
         """Where re-initialised tracking starts, its 1-sigma uncertainty, and what it came from."""
-        g = self._good
-        assert g is not None
-        opt = self.options
+        assert self._good is not None
         if fc_p is not None:
-            return fc_p.copy(), opt.position_sigma_m, "the flight controller's position"
-        dt = max(t_s - g.t_s, 0.0)
-        reckon = min(dt, opt.dead_reckon_max_s)
-        p = g.p_ned_m + g.v_ned_m_s * reckon
-        # Dead reckoning: the filter's velocity error times the time, then a pose held at top speed.
-        sigma_v = math.sqrt(max(np.trace(self.filter.velocity_covariance) / 3.0, 0.0))
-        sigma = opt.position_sigma_m + sigma_v * reckon + opt.max_speed_m_s * (dt - reckon)
-        how = f"the last good pose of {dt:.2f} s ago" + (
-            f", moved on by its velocity for {reckon:.2f} s" if reckon > 0 else ""
+            return fc_p.copy(), self.options.position_sigma_m, "the flight controller's position"
+        return dead_reckoned_anchor(self._good, t_s, velocity_sigma_m_s(self.filter), self.options)
+
+    def _coast(self, frame: PairedFrame, tracks: Tracks, f_lvl: np.ndarray) -> PoseEstimate:
+        """After a short outage (:mod:`mavvo.odometry.recovery`): a keyframe where the filter coasted to,
+        the filter's state and the reset counter untouched."""
+        assert self._good is not None
+        self._predict_coasting(frame)
+        p, yaw = self.filter.position_ned_m, self.filter.yaw_rad
+        sigma = coast_sigma_m(self._good, frame.t_exposure_s)
+        self.filter.set_position_covariance(np.diag([sigma**2, sigma**2, self.filter.position_covariance[2, 2]]))
+        self._drift.anchor_var_m2 += 2.0 * sigma**2
+        self._first_keyframe(frame, tracks, f_lvl, p, yaw)
+        self._failed_in_row = 0
+        log.info("tracking goes on at frame %d after %.2f s coasting", frame.seq, frame.t_exposure_s - self._good.t_s)
+        diag = VoDiagnostics(
+            state=VisionState.DEGRADED, reason=StateReason.NEW_KEYFRAME, tracks=len(tracks.ids), keyframe=True
         )
-        return p, sigma, how
+        return self._estimate(frame, diag, quality=1)
 
     def _measure(
         self, frame: PairedFrame, kf: Keyframe, i_kf: np.ndarray, i_cur: np.ndarray, f_lvl: np.ndarray
@@ -373,7 +363,8 @@ class Odometry:
     def _remember_good(self, frame: PairedFrame) -> None:
         """The frame's pose was accepted: where a re-initialisation anchors, and the distance flown."""
         f = self.filter
-        self._good = _Good(frame.t_exposure_s, f.position_ned_m, f.velocity_ned_m_s, f.yaw_rad, frame.yaw_rad)
+        self._tilt.pull(f.velocity_ned_m_s)
+        self._good = GoodPose.of(f, frame.t_exposure_s, frame.yaw_rad)
         d = self._drift
         if d.last_p_ned_m is not None:
             d.flown_m += float(np.linalg.norm(self._good.p_ned_m - d.last_p_ned_m))
@@ -542,8 +533,17 @@ class Odometry:
         k = float((p - kf.p_ned_m) @ d_meas) / n2
         return p, min(max(k, _BASELINE_FACTOR_MIN), 1.0 / _BASELINE_FACTOR_MIN)
 
+    def _predict_coasting(self, frame: PairedFrame) -> None:
+        """The filter to the frame with no vision: the tilt's acceleration (when a multirotor's) and the range."""
+        tilt = self.options.filter.tilt_acceleration
+        self.filter.predict(frame.t_exposure_s, self._tilt.accel_ned_m_s2 if tilt else None)
+        self.height.fuse(self.filter, self.height.height_m(frame.range_m, frame.roll_rad, frame.pitch_rad))
+
     def _failed(self, frame: PairedFrame, reason: StateReason, tracks: int) -> PoseEstimate:
-        self.filter.predict(frame.t_exposure_s)  # the filter runs from the first keyframe on
+        self._predict_coasting(frame)  # the filter runs from the first keyframe on
+        if self._good is not None and self._good.t_s >= self._outage_s and self.options.filter.tilt_acceleration:
+            self._outage_s = frame.t_exposure_s  # coast from where the vehicle is going, not the lagging filter
+            self.filter.set_horizontal_velocity(self._tilt.v_ne_m_s)
         return self._estimate(frame, VoDiagnostics(state=VisionState.FAILED, reason=reason, tracks=tracks), quality=-1)
 
     def _depth_m(self) -> float:
