@@ -128,6 +128,7 @@ class Odometry:
         self._good: GoodPose | None = None
         self._tilt = TiltMotion()
         self._outage_s = -math.inf  # the first frame of the last outage: the filter took the tilt's velocity there
+        self._may_coast = False  # a pose was accepted since the last start and no restart was asked for
         self._failed_in_row = 0
         self._metric_interval = False  # a trusted scale has been carried into the current keyframe
         self._scene_depth_m: float | None = None
@@ -135,9 +136,9 @@ class Odometry:
 
     # ----------------------------------------------------------------------------------------------
     def restart(self) -> None:
-        """Give up the current keyframe: the next frame re-initialises (anchored as after a loss)."""
+        """Give up the current keyframe: the next frame re-initialises (anchored as after a long loss)."""
         self.chain.drop()
-        self._failed_in_row = 0
+        self._failed_in_row, self._may_coast = 0, False
 
     def track(self, image: np.ndarray) -> Tracks:
         """Track features into ``image``: for a frame that has no attitude (a short gap in the flight
@@ -190,7 +191,7 @@ class Odometry:
             sigma = self.options.position_sigma_m
             if fc_p is not None:
                 self._drift.anchor_var_m2 = self.options.anchor_sigma_m**2
-        elif frame.t_exposure_s - self._good.t_s <= self.options.coast_max_s:
+        elif self._may_coast and frame.t_exposure_s - self._good.t_s <= self.options.coast_max_s:
             return self._coast(frame, tracks, f_lvl)
         else:
             g = self._good
@@ -364,6 +365,7 @@ class Odometry:
         """The frame's pose was accepted: where a re-initialisation anchors, and the distance flown."""
         f = self.filter
         self._tilt.pull(f.velocity_ned_m_s)
+        self._may_coast = True
         self._good = GoodPose.of(f, frame.t_exposure_s, frame.yaw_rad)
         d = self._drift
         if d.last_p_ned_m is not None:
