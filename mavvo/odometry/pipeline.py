@@ -64,7 +64,7 @@ from mavvo.odometry.height import HeightAnchor
 from mavvo.odometry.keyframes import Keyframe, KeyframeChain, carry_depths, keyframe_reason, sight_change
 from mavvo.odometry.measurement import Measurement, NoPose, position_noise, unresolved_baseline_m
 from mavvo.odometry.options import OdometryOptions
-from mavvo.odometry.recovery import Drift, GoodPose, coast_sigma_m, dead_reckoned_anchor, velocity_sigma_m_s
+from mavvo.odometry.recovery import Drift, GoodPose, coast_sigma_m, heading_now_rad, reinit_anchor, velocity_sigma_m_s
 from mavvo.odometry.rolling_shutter import RollingShutter
 from mavvo.odometry.scale import ScaleEstimate, estimate_scale, scale_from_scene_depth, triangulate_unit
 from mavvo.odometry.tilt_motion import TiltMotion
@@ -156,7 +156,8 @@ class Odometry:
             raise ValueError(
                 f"frame {frame.seq}: roll_rad and pitch_rad must be finite, got {frame.roll_rad}, {frame.pitch_rad}"
             )
-        self._tilt.step(frame.t_exposure_s, frame.roll_rad, frame.pitch_rad, self.filter.yaw_rad)
+        heading = self.filter.yaw_rad if self._good is None else heading_now_rad(self._good, frame.yaw_rad)
+        self._tilt.step(frame.t_exposure_s, frame.roll_rad, frame.pitch_rad, heading)
         if tracks is None:
             tracks = self.track(frame.image)
         f_cam = self._rolling.bearings(tracks, frame.t_exposure_s)
@@ -194,10 +195,9 @@ class Odometry:
         elif self._may_coast and frame.t_exposure_s - self._good.t_s <= self.options.coast_max_s:
             return self._coast(frame, tracks, f_lvl)
         else:
-            g = self._good
-            turn = wrap_angle(fc_yaw - g.fc_yaw_rad) if math.isfinite(fc_yaw) and math.isfinite(g.fc_yaw_rad) else 0.0
-            yaw, v = wrap_angle(g.yaw_rad + turn), g.v_ned_m_s
-            p, sigma, how = self._anchor(frame.t_exposure_s, fc_p)
+            yaw, v = heading_now_rad(self._good, fc_yaw), self._good.v_ned_m_s
+            v_sigma = velocity_sigma_m_s(self.filter)
+            p, sigma, how = reinit_anchor(self._good, frame.t_exposure_s, fc_p, v_sigma, self.options)
             # The flight controller's own belief is no step for its EKF (the stream's sigma), but it
             # is only as true as that belief: its uncertainty goes into the long-term drift.
             self._drift.anchor_var_m2 += self.options.anchor_sigma_m**2 if fc_p is not None else sigma**2
@@ -237,20 +237,14 @@ class Odometry:
         self._last_yaw_2_1 = 0.0
         self._metric_interval = False
 
-    def _anchor(self, t_s: float, fc_p: np.ndarray | None) -> tuple[np.ndarray, float, str]:
-        """Where re-initialised tracking starts, its 1-sigma uncertainty, and what it came from."""
-        assert self._good is not None
-        if fc_p is not None:
-            return fc_p.copy(), self.options.position_sigma_m, "the flight controller's position"
-        return dead_reckoned_anchor(self._good, t_s, velocity_sigma_m_s(self.filter), self.options)
-
     def _coast(self, frame: PairedFrame, tracks: Tracks, f_lvl: np.ndarray) -> PoseEstimate:
         """After a short outage (:mod:`mavvo.odometry.recovery`): a keyframe where the filter coasted to,
         the filter's state and the reset counter untouched."""
         assert self._good is not None
         self._predict_coasting(frame)
-        p, yaw = self.filter.position_ned_m, self.filter.yaw_rad
-        sigma = coast_sigma_m(self._good, frame.t_exposure_s)
+        yaw = heading_now_rad(self._good, frame.yaw_rad)
+        self.filter.shift_yaw(wrap_angle(yaw - self.filter.yaw_rad))  # not the coasted yaw rate's
+        p, sigma = self.filter.position_ned_m, coast_sigma_m(self._good, frame.t_exposure_s)
         self.filter.set_position_covariance(np.diag([sigma**2, sigma**2, self.filter.position_covariance[2, 2]]))
         self._drift.anchor_var_m2 += 2.0 * sigma**2
         self._first_keyframe(frame, tracks, f_lvl, p, yaw)

@@ -16,11 +16,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mavvo.odometry.filter import PoseFilter
+from mavvo.odometry.filter import PoseFilter, wrap_angle
 from mavvo.odometry.options import OdometryOptions
 from mavvo.odometry.tilt_motion import TILT_RESIDUAL_M_S2
 
-__all__ = ["Drift", "GoodPose", "coast_sigma_m", "dead_reckoned_anchor", "velocity_sigma_m_s"]
+__all__ = ["Drift", "GoodPose", "coast_sigma_m", "heading_now_rad", "reinit_anchor", "velocity_sigma_m_s"]
 
 
 def velocity_sigma_m_s(flt: PoseFilter) -> float:
@@ -65,12 +65,23 @@ def coast_sigma_m(good: GoodPose, t_s: float) -> float:
     return good.v_sigma_m_s * dt + 0.5 * TILT_RESIDUAL_M_S2 * dt**2
 
 
-def dead_reckoned_anchor(
-    good: GoodPose, t_s: float, v_sigma_m_s: float, options: OdometryOptions
+def heading_now_rad(good: GoodPose, fc_yaw_rad: float) -> float:
+    """Vision's heading at ``good`` moved on by the flight controller's turn since (its yaw's drift is
+    slow; the filter's yaw rate, coasted, is not)."""
+    if math.isfinite(fc_yaw_rad) and math.isfinite(good.fc_yaw_rad):
+        return wrap_angle(good.yaw_rad + wrap_angle(fc_yaw_rad - good.fc_yaw_rad))
+    return good.yaw_rad
+
+
+def reinit_anchor(
+    good: GoodPose, t_s: float, fc_p_ned_m: np.ndarray | None, v_sigma_m_s: float, options: OdometryOptions
 ) -> tuple[np.ndarray, float, str]:
-    """Where re-initialised tracking starts without the flight controller's position: ``good`` moved on
-    by its velocity for at most ``dead_reckon_max_s``, then held; its 1 sigma (the velocity's error,
-    ``v_sigma_m_s``, times the time, then ``max_speed_m_s`` times the rest) and what it came from."""
+    """Where re-initialised tracking starts, its 1 sigma and what it came from: the flight controller's
+    position when it sends one (the stream's sigma: no step for its EKF), else ``good`` moved on by its
+    velocity for at most ``dead_reckon_max_s``, then held (the velocity's error, ``v_sigma_m_s``, times
+    the time, then ``max_speed_m_s`` times the rest)."""
+    if fc_p_ned_m is not None:
+        return fc_p_ned_m.copy(), options.position_sigma_m, "the flight controller's position"
     dt = max(t_s - good.t_s, 0.0)
     reckon = min(dt, options.dead_reckon_max_s)
     p = good.p_ned_m + good.v_ned_m_s * reckon
