@@ -9,7 +9,7 @@ so the flight controller's roll and pitch give the horizontal acceleration. What
 drag (a few tenths of m/s^2 at 1 m/s on a small quad), the attitude's trim error (0.17 m/s^2 per degree)
 and its noise, and the vertical acceleration's share of the thrust (a climb at 2 m/s^2 makes a_h 20%
 larger than this says). Over the seconds of a short outage that is centimetres to decimetres, where a
-constant velocity overshoots a vehicle that stops (indoor_patches: 0.75 m in 2 s).
+constant velocity runs on past a vehicle that stops.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ __all__ = ["GRAVITY_M_S2", "TILT_RESIDUAL_M_S2", "VELOCITY_PULL_S", "TiltMotion"
 GRAVITY_M_S2 = 9.80665
 # What the tilt's acceleration misses, 1 sigma: rotor drag and the attitude's trim error (see above).
 TILT_RESIDUAL_M_S2 = 0.3
-# TiltVelocity's pull toward vision's velocity: long against a braking (the filter's lag), short against
+# TiltMotion's pull toward vision's velocity: long against a braking (the filter's lag), short against
 # what the tilt misses (0.3 m/s^2 for 1 s: 0.3 m/s).
 VELOCITY_PULL_S = 1.0
 
