@@ -109,6 +109,20 @@ def test_faults_scenario_is_what_the_vehicle_can_fly_on(faults_run):
     assert v.drift_within_3x_fraction >= 0.95
 
 
+@pytest.mark.slow  # the whole faults scenario again, 36 s: make soak
+def test_faults_scenario_reinitialised_instead_of_coasted_makes_no_step_for_the_ekf():
+    """The re-initialisations coasting now spares the faults scenario, forced back (coast_max_s 0): each
+    anchored where the flight controller's EKF believes the vehicle is, so none moves its estimate by
+    more than 0.3 m plus 10% of the motion during the outage."""
+    base = ServiceConfig()
+    reinit = dataclasses.replace(base, odometry=dataclasses.replace(base.odometry, coast_max_s=0.0))
+    run = run_daemon_in_sim(load_scenario("faults"), reinit)
+    v = run.safety
+    assert run.resets >= 1 and v.reset_steps_m
+    assert v.reset_step_excess_m <= 0.0, (v.reset_steps_m, v.reset_step_excess_m)
+    assert v.fc_end_error_m < 0.01 * v.path_length_m, (v.fc_end_error_m, v.path_length_m)
+
+
 def test_with_a_rangefinder_the_sent_height_stays_where_the_truth_is(faults_run):
     """The down coordinate sent, against the truth's, relative to the first estimate (the anchor's own
     offset, the barometer's, aside), through the faults scenario's outages. Before the range measured

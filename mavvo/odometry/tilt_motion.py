@@ -39,8 +39,7 @@ class TiltMotion:
     ends, NED) and the horizontal velocity where vision's filter lags: the acceleration integrated,
     pulled toward vision's velocity with the time constant VELOCITY_PULL_S (a complementary filter: the
     quick changes from the tilt, the level from vision). A constant-velocity filter runs ahead of a
-    vehicle braking into a stop (indoor_patches: by 0.09-0.15 m/s as the floor went plain); coasting
-    from this velocity instead put the first recovery there 0.32 -> 0.1 m off."""
+    vehicle braking into a stop, which a coast from its velocity carries on (docs/odometry.md)."""
 
     def __init__(self) -> None:
         self._last_a_lvl: np.ndarray | None = None

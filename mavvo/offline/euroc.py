@@ -32,7 +32,7 @@ from mavvo.evaluation.metrics import PoseSeries
 from mavvo.geometry.frames import R_from_quat_wxyz, euler321_from_R, quat_wxyz_from_R
 from mavvo.offline.driver import ReplayFrame, ReplayInput, image_loader
 from mavvo.offline.fc_logs import FcSeries, series_messages
-from mavvo.offline.imu_attitude import ATTITUDE_RATE_HZ, imu_attitude, imu_start, tilt_error_deg
+from mavvo.offline.imu_attitude import ATTITUDE_RATE_HZ, imu_attitude, imu_start, level_from_up, tilt_error_deg
 from mavvo.offline.recording import merge
 from mavvo.service.settings import parse_config
 
@@ -111,11 +111,8 @@ def read_euroc_groundtruth(path: Path) -> PoseSeries:
 
 def _body_from_imu(acc_imu: np.ndarray, R_imu_cam: np.ndarray) -> np.ndarray:
     """R_imu_body: body z down (against the mean specific force), x along the view (see the module docstring)."""
-    z = -acc_imu / np.linalg.norm(acc_imu)
-    x = R_imu_cam[:, 2] if abs(R_imu_cam[:, 2] @ z) < 0.9 else -R_imu_cam[:, 1]
-    x = x - (x @ z) * z
-    x /= np.linalg.norm(x)
-    return np.column_stack([x, np.cross(z, x), z])
+    view = R_imu_cam[:, 2] if abs(R_imu_cam[:, 2] @ acc_imu) < 0.9 * np.linalg.norm(acc_imu) else -R_imu_cam[:, 1]
+    return level_from_up(acc_imu, view).T
 
 
 def _camera(sensor_yaml: Path) -> tuple[np.ndarray, dict[str, Any]]:

@@ -20,8 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from mavvo.geometry.frames import R_from_euler321, euler321_from_R, skew
+from mavvo.geometry.refine import tilt_rotation
 
-__all__ = ["ImuStart", "imu_attitude", "imu_start", "tilt_error_deg"]
+__all__ = ["ImuStart", "imu_attitude", "imu_start", "level_from_up", "tilt_error_deg"]
 
 # Gains (rad/s and rad/s^2 per rad of tilt error): the accelerometer's pull toward its "up" and how fast
 # the gyro-bias estimate follows the pull that persists. Small, as in a turn the accelerometer is not
@@ -45,13 +46,10 @@ class ImuStart:
     """The IMU's state at its first sample, from :func:`imu_start`.
 
     ``specific_force_imu_m_s2``: (3,) what the accelerometer would read at rest there (gravity's
-    reaction: "up" in the IMU frame, 9.81 m/s^2 long); ``gyro_bias_rad_s``: (3,) IMU frame;
-    ``velocity_rms_m_s``: the RMS about its mean of the velocity the fit leaves (the vehicle's own
-    motion when the fit is right; metres per second, level frame; NaN when nothing was fitted)."""
+    reaction: "up" in the IMU frame, 9.81 m/s^2 long); ``gyro_bias_rad_s``: (3,) IMU frame."""
 
     specific_force_imu_m_s2: np.ndarray
     gyro_bias_rad_s: np.ndarray
-    velocity_rms_m_s: float
 
 
 def _skew_many(w: np.ndarray) -> np.ndarray:
@@ -94,7 +92,7 @@ def _integrate(R0: np.ndarray, gyro: np.ndarray, dt: np.ndarray, b: np.ndarray) 
     return R0 @ R
 
 
-def _level_from_up(up_imu: np.ndarray, x_imu: np.ndarray | None = None) -> np.ndarray:
+def level_from_up(up_imu: np.ndarray, x_imu: np.ndarray | None = None) -> np.ndarray:
     """A R_lvl_imu whose level z points against ``up_imu`` and whose level x is ``x_imu`` made level
     (when given and not vertical; else any)."""
     z = -up_imu / np.linalg.norm(up_imu)
@@ -117,9 +115,9 @@ def _rest_gyro_mean(t: np.ndarray, gyro: np.ndarray, at_end: bool) -> np.ndarray
 
 def _fit(
     t: np.ndarray, gyro: np.ndarray, f: np.ndarray, R0: np.ndarray, b: np.ndarray, fit_bias: bool
-) -> tuple[np.ndarray, np.ndarray, float]:
+) -> tuple[np.ndarray, np.ndarray]:
     """:func:`imu_start`'s least squares from (R0, b), the bias held when not ``fit_bias``: the fitted
-    R0, b and the RMS about its mean of the velocity before the last step."""
+    R0 and b."""
     g = np.array([0.0, 0.0, GRAVITY_M_S2])
     horizons = [h for h in _HORIZONS_S if t[0] + h < t[-1]] + [t[-1] - t[0]]
     for horizon in horizons:
@@ -138,16 +136,14 @@ def _fit(
             J = [np.broadcast_to(np.eye(3), (len(fit), 3, 3)), J_theta[fit, :, :2]]
             J += [J_b[fit] @ horizontal] if fit_bias else []
             x = np.linalg.lstsq(np.concatenate(J, axis=2).reshape(3 * len(fit), -1), -dv[fit].ravel(), rcond=None)[0]
-            R0 = _exp_many(np.array([[x[3], x[4], 0.0]]))[0] @ R0
+            R0 = tilt_rotation(x[3:5]) @ R0
             b = b + horizontal @ x[5:7] if fit_bias else b
-    v = dv[fit]
-    return R0, b, float(np.sqrt(np.mean(np.sum((v - v.mean(axis=0)) ** 2, axis=1))))
+    return R0, b
 
 
 def imu_start(imu: np.ndarray) -> ImuStart:
     """Down and the gyro bias at the start of (M,7) IMU rows (t_ns, gyro xyz rad/s, accel xyz m/s^2);
-    see the module docstring. The first guess: down from the first second's mean specific force, the
-    bias from :func:`_start_bias`.
+    see the module docstring. The first guess of down is the first second's mean specific force.
 
     Each Gauss-Newton step linearises about the current (R0, b): with the level-frame rotation error
     phi_i of sample i,
@@ -169,14 +165,13 @@ def imu_start(imu: np.ndarray) -> ImuStart:
     t = imu[:, 0] * 1e-9
     gyro, f = imu[:, 1:4], imu[:, 4:7]
     first = t <= t[0] + 1.0
-    R0 = _level_from_up(f[first].mean(axis=0))
-    v_rms = float("nan")
+    R0 = level_from_up(f[first].mean(axis=0))
     b = _rest_gyro_mean(t, gyro, at_end=False)
     if b is None:
         b_end = _rest_gyro_mean(t, gyro, at_end=True)
         b = gyro[first].mean(axis=0) if b_end is None else b_end
-        R0, b, v_rms = _fit(t, gyro, f, R0, b, fit_bias=b_end is None)
-    return ImuStart(R0.T @ np.array([0.0, 0.0, -GRAVITY_M_S2]), b, v_rms)
+        R0, b = _fit(t, gyro, f, R0, b, fit_bias=b_end is None)
+    return ImuStart(R0.T @ np.array([0.0, 0.0, -GRAVITY_M_S2]), b)
 
 
 def imu_attitude(imu: np.ndarray, R_imu_body: np.ndarray, start: ImuStart) -> np.ndarray:
@@ -190,7 +185,7 @@ def imu_attitude(imu: np.ndarray, R_imu_body: np.ndarray, start: ImuStart) -> np
         db/dt = -ki e               (the bias: what the correction keeps having to add)
     """
     t = imu[:, 0] * 1e-9
-    R = _level_from_up(start.specific_force_imu_m_s2, R_imu_body[:, 0])  # R_lvl_imu at the start
+    R = level_from_up(start.specific_force_imu_m_s2, R_imu_body[:, 0])  # R_lvl_imu at the start
     b = np.asarray(start.gyro_bias_rad_s, dtype=float).copy()
     out = []
     next_t = t[0]

@@ -152,12 +152,18 @@ class Renderer:
 
     def _plain_patch(self, img: np.ndarray, R: np.ndarray, p: np.ndarray, quad_ned: np.ndarray) -> None:
         """A plain patch of the ground (4 corners, (4,3)) painted mid-grey, its edges anti-aliased."""
+        uv = self._project_quad(quad_ned, R, p)
+        if uv is not None:
+            cv2.fillConvexPoly(img, np.round(uv * 16).astype(np.int32), 128, lineType=cv2.LINE_AA, shift=4)
+
+    def _project_quad(self, quad_ned: np.ndarray, R: np.ndarray, p: np.ndarray) -> np.ndarray | None:
+        """(4,2) pixels of the ideal pinhole image of a quad's corners (4,3), or None when it crosses the
+        camera plane (not drawn rather than clipped)."""
         x_cam = (quad_ned - p) @ R
         if np.any(x_cam[:, 2] < _NEAR_M):
-            return  # crosses the camera plane; not drawn rather than clipped (as a box's face)
+            return None
         uv = x_cam @ self._K.T
-        uv = uv[:, :2] / uv[:, 2:]
-        cv2.fillConvexPoly(img, np.round(uv * 16).astype(np.int32), 128, lineType=cv2.LINE_AA, shift=4)
+        return uv[:, :2] / uv[:, 2:]
 
     def _boxes(self, img: np.ndarray, R: np.ndarray, p: np.ndarray) -> None:
         faces = []
@@ -172,11 +178,9 @@ class Renderer:
         faces.sort(key=lambda f: -f[0])  # painter's order: far first
         h, w = img.shape
         for _, quad, tex, shade in faces:
-            x_cam = (quad - p) @ R
-            if np.any(x_cam[:, 2] < _NEAR_M):
-                continue  # crosses the camera plane; not drawn rather than clipped
-            uv = x_cam @ self._K.T
-            uv = uv[:, :2] / uv[:, 2:]
+            uv = self._project_quad(quad, R, p)
+            if uv is None:
+                continue
             x0, y0 = np.floor(uv.min(axis=0)).astype(int)
             x1, y1 = np.ceil(uv.max(axis=0)).astype(int) + 1
             x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
