@@ -513,14 +513,15 @@ def test_height_from_the_range_is_fused_a_glitch_rejected_and_a_step_of_the_grou
     for k in range(40):
         f.predict(0.05 * (k + 1))
         f._x[5, 0] = 0.0
-        assert anchor.fuse(f, 1.0)
+        assert anchor.fuse(f, 1.0) is Update.FUSED
     assert f.position_ned_m[2] == pytest.approx(-1.0, abs=0.01)
-    assert not anchor.fuse(f, 0.6) and anchor.fuse(f, 1.0)  # the glitch: rejected, nothing moved
+    assert anchor.fuse(f, 0.6) is Update.REJECTED  # the glitch: rejected, nothing moved
+    assert anchor.fuse(f, 1.0) is Update.FUSED
     assert f.position_ned_m[2] == pytest.approx(-1.0, abs=0.01)
     for _ in range(5):  # the table: 0.3 m below the vehicle now
-        assert not anchor.fuse(f, 0.3)
+        assert anchor.fuse(f, 0.3) is Update.REJECTED
     assert anchor.steps == 1 and anchor.ground_down_m == pytest.approx(-0.7, abs=0.01)
-    assert anchor.fuse(f, 0.3) and f.position_ned_m[2] == pytest.approx(-1.0, abs=0.01)
+    assert anchor.fuse(f, 0.3) is Update.FUSED and f.position_ned_m[2] == pytest.approx(-1.0, abs=0.01)
     # A restart after tracking was lost starts at the measured height, not where vision left it.
     assert anchor.start(-1.5, 0.3, first=False) == pytest.approx(-1.0, abs=0.01)
 

@@ -224,6 +224,15 @@ class PoseFilter:
         self._P = I_KH @ P @ I_KH.T + (K @ K.T) * sigma_m**2  # Joseph form, as in update
         return Update.FUSED
 
+    def set_down(self, down_m: float, sigma_m: float) -> None:
+        """Put the down coordinate at ``down_m`` with 1 sigma ``sigma_m``, its cross terms dropped: a
+        measured height that has outvoted the estimate for several frames in a row, where an update
+        weighed against vision's tight down would move it by millimetres."""
+        self._x[2, 0] = down_m
+        self._P[2, :] = 0.0
+        self._P[:, 2] = 0.0
+        self._P[2, 2] = sigma_m**2
+
     def set_position_covariance(self, cov_m2: np.ndarray) -> None:
         """Replace the position's covariance (3,3) m^2, its cross terms with the rest dropped: after a
         coast, what is known of the position is what the coast says, not the white acceleration assumed."""

@@ -56,6 +56,7 @@ _QUANTISATION_SIGMA = 0.5  # grey levels: rounding alone leaves about 0.3
 # doubled, rounding is a smaller part of what KLT sees than halved (docs/odometry.md, Small-quad
 # flights), and a 4-sigma excursion of such texture stays far from clipping at 0 or 255.
 _HIGHPASS_GAIN = 2.0
+_MIN_CONSENSUS_TRACKS = 12  # fewer tracks than this make no consensus worth dropping a track for
 _NOISE_MASK = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
 
 
@@ -122,6 +123,18 @@ class FrontendOptions:
         "pyramid levels of the backward check, which starts at the tracks' old positions (0: full resolution only, a third of the forward cost)",
         ge=0,
         le=6,
+    )
+    consensus_max_px: float = bounded(
+        8.0,
+        "a track ending further than this from where the pair's consensus motion (an affine map fitted robustly to all surviving tracks) puts it is dropped: a jump to the next identical square of a repeated pattern passes the round trip (at reference_width_px); 0: no check",
+        ge=0,
+        le=500,
+    )
+    consensus_min_share: float = bounded(
+        0.2,
+        "the check drops tracks only when at least this share of the pair's tracks is off the consensus: where the scene has depth (a forward camera) the parallax puts a few tracks off an affine map, never this many (docs/odometry.md, Repeated patterns)",
+        ge=0,
+        le=1,
     )
     border_px: int = bounded(8, "tracks this close to the image edge are dropped (at reference_width_px)", ge=0, le=500)
 
@@ -199,6 +212,26 @@ def _noise_floor(noise: float) -> int:
     return max(_MIN_THRESHOLD, math.ceil(_NOISE_CORNER_SIGMAS * noise))
 
 
+def _off_consensus(uv0: np.ndarray, uv1: np.ndarray, keep: np.ndarray, max_px: float) -> np.ndarray:
+    """(N,) mask: the tracks ending more than ``max_px`` from the pair's consensus motion.
+
+    uv0, uv1: (N,2) pixel positions in the earlier and later image; keep: (N,) the tracks to fit to.
+    The consensus is an affine map uv1 = A [uv0; 1] fitted by least squares, twice refitted to the
+    tracks within max(3 x median residual, 2 px) of the last fit: a median keeps the fit on the majority
+    when a third of the tracks slipped one period of a repeated pattern (docs/odometry.md, "Repeated
+    patterns"). Between two frames a plane's homography is affine to well under a pixel.
+    """
+    x = np.column_stack([uv0, np.ones(len(uv0))]).astype(np.float64)
+    y = uv1.astype(np.float64)
+    xs, ys = x[keep], y[keep]
+    a = np.linalg.lstsq(xs, ys, rcond=None)[0]
+    for _ in range(2):
+        r = np.hypot(*(xs @ a - ys).T)
+        inl = r <= max(3.0 * float(np.median(r)), 2.0)
+        a = np.linalg.lstsq(xs[inl], ys[inl], rcond=None)[0]
+    return np.hypot(*(x @ a - y).T) > max_px
+
+
 class Frontend:
     """Tracks features through a sequence of 8-bit grey images of one camera (see the module docstring)."""
 
@@ -212,6 +245,7 @@ class Frontend:
         self._win = (win, win)
         self.klt_levels = max(opt.klt_levels + int(round(math.log2(s))), min(opt.klt_levels, 1))
         self.border_px = int(round(opt.border_px * s))
+        self.consensus_max_px = opt.consensus_max_px * s
         self._highpass = max(opt.klt_highpass_px | 1, 3) if opt.klt_highpass_px > 0 else 0
         self._fast = cv2.FastFeatureDetector_create(opt.fast_threshold, True)
         self._fast_low = cv2.FastFeatureDetector_create(max(opt.fast_threshold // 2, 1), True)  # set per frame
@@ -312,6 +346,10 @@ class Frontend:
         b = self.border_px
         inside = (p1[:, 0] >= b) & (p1[:, 0] <= w - 1 - b) & (p1[:, 1] >= b) & (p1[:, 1] <= h - 1 - b)
         keep = (st1.ravel() == 1) & (st0.ravel() == 1) & (fb < fb_max_px) & inside
+        if self.consensus_max_px > 0 and np.count_nonzero(keep) >= _MIN_CONSENSUS_TRACKS:
+            off = _off_consensus(uv0, p1, keep, self.consensus_max_px)
+            if np.count_nonzero(off & keep) >= opt.consensus_min_share * np.count_nonzero(keep):
+                keep &= ~off
         return keep, p1[keep]
 
     def _cell(self, uv: np.ndarray, w: int, h: int) -> np.ndarray:

@@ -16,7 +16,10 @@ frame with a range fuses ``z_down`` into the filter with sigma ``range_sigma_m +
 of freedom. A single range that disagrees (a glitch) is rejected. ``step_frames`` in a row that began
 with the range jumping by 0.1 m or more from the reading before are the ground itself stepping (a table,
 a kerb, a roof: no vehicle moves that far in one frame): ``g`` moves by the step, so the vehicle does
-not. A run that began smoothly means the estimate drifted or lagged: the range wins. Tilted beyond ``max_tilt_deg`` the beam may miss the ground under the vehicle: not used.
+not. A run that began smoothly means the estimate drifted or lagged (a keyframe placed a few
+centimetres off in height, which every later vision measurement repeats): the range wins, the down
+coordinate is set to it (an update weighed against vision's millimetre-tight down would hardly move it)
+and the caller moves the keyframe by as much. Tilted beyond ``max_tilt_deg`` the beam may miss the ground under the vehicle: not used.
 Without a range the down coordinate behaves as before.
 """
 
@@ -68,6 +71,7 @@ class HeightAnchor:
         self._last_height_m: float | None = None
         self._jump_m = 0.0  # the range's change at the frame a run of disagreement began
         self.steps = 0  # the ground stepped (counted)
+        self.correction_m = 0.0  # how far the down coordinate was moved when the range last won
 
     def height_m(self, range_m: float | None, roll_rad: float, pitch_rad: float) -> float | None:
         """Height above the ground from a range along body z, or None (no range, too tilted)."""
@@ -93,30 +97,33 @@ class HeightAnchor:
             return down_m
         return self.ground_down_m - height_m
 
-    def fuse(self, flt: PoseFilter, height_m: float | None) -> bool:
-        """Fuse one frame's height into ``flt`` (already predicted to the frame's time); whether it was."""
+    def fuse(self, flt: PoseFilter, height_m: float | None) -> Update | None:
+        """Fuse one frame's height into ``flt`` (already predicted to the frame's time): FUSED, REJECTED
+        (a glitch, or the ground stepped), RESTARTED (the range won: the down coordinate was set to it),
+        or None (no height to fuse)."""
         if height_m is None or not self.options.from_range:
-            return False
+            return None
         if self.ground_down_m is None:
             self.ground_down_m = float(flt.position_ned_m[2]) + height_m  # the first range after a start
-            return False
+            return None
         sigma = self.options.range_sigma_m + self.options.range_sigma_per_m * height_m
         previous, self._last_height_m = self._last_height_m, height_m
         if flt.update_down(self.ground_down_m - height_m, sigma) is Update.FUSED:
             self._disagree = 0
-            return True
+            return Update.FUSED
         if self._disagree == 0:  # how the range moved as the disagreement began
             self._jump_m = 0.0 if previous is None else height_m - previous
         self._disagree += 1
         if self._disagree < self.options.step_frames:
-            return False
+            return Update.REJECTED
         self._disagree = 0
         if abs(self._jump_m) >= _STEP_MIN_M:  # the range jumped and stayed: the ground moved, not the vehicle
             new = float(flt.position_ned_m[2]) + height_m
             log.info("the ground under the rangefinder stepped by %+.2f m", self.ground_down_m - new)
             self.ground_down_m = new
             self.steps += 1
-            return False
+            return Update.REJECTED
         # The range moved smoothly away from the estimate: the estimate lagged or drifted. The range wins.
-        flt.update_down(self.ground_down_m - height_m, sigma, gated=False)
-        return True
+        self.correction_m = self.ground_down_m - height_m - float(flt.position_ned_m[2])
+        flt.set_down(self.ground_down_m - height_m, sigma)
+        return Update.RESTARTED

@@ -24,7 +24,7 @@ so the chain stays in one continuous frame.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -187,6 +187,14 @@ class KeyframeChain:
         self.current = kf
         self.count += 1
         self.poses.append(KeyframePose(kf.seq, kf.t_s, kf.p_ned_m.copy(), kf.yaw_rad, reset_counter))
+
+    def shift_down(self, delta_m: float) -> None:
+        """Move the current keyframe down by ``delta_m`` (its height was corrected by a measurement):
+        every later frame is measured from it, so it carries the correction on."""
+        if self.current is not None:
+            p = self.current.p_ned_m.copy()
+            p[2] += delta_m
+            self.current = replace(self.current, p_ned_m=p)
 
     def drop(self) -> None:
         """Lose the current keyframe (tracking lost); the history stays."""

@@ -396,9 +396,7 @@ class Odometry:
         self.filter.predict(frame.t_exposure_s)
         outcome = self.filter.update(p_meas, m.yaw_rad, pos_cov_m2=pos_cov, yaw_sigma_rad=yaw_sigma)
         accepted = outcome != Update.REJECTED
-        self._height_fused = self.height.fuse(
-            self.filter, self.height.height_m(frame.range_m, frame.roll_rad, frame.pitch_rad)
-        )
+        self._height_fused = self._fuse_height(frame)
         if outcome == Update.RESTARTED:
             # The filter jumped to the measurement: a change of the sent pose that is not motion.
             self.reset_counter = (self.reset_counter + 1) % 256
@@ -533,7 +531,15 @@ class Odometry:
         """The filter to the frame with no vision: the tilt's acceleration (when a multirotor's) and the range."""
         tilt = self.options.filter.tilt_acceleration
         self.filter.predict(frame.t_exposure_s, self._tilt.accel_ned_m_s2 if tilt else None)
-        self.height.fuse(self.filter, self.height.height_m(frame.range_m, frame.roll_rad, frame.pitch_rad))
+        self._fuse_height(frame)
+
+    def _fuse_height(self, frame: PairedFrame) -> bool:
+        """The frame's range into the filter (:mod:`mavvo.odometry.height`): whether it set or moved the
+        down. Where the range won, the keyframe moves too, or vision would put the old height back."""
+        outcome = self.height.fuse(self.filter, self.height.height_m(frame.range_m, frame.roll_rad, frame.pitch_rad))
+        if outcome is Update.RESTARTED:
+            self.chain.shift_down(self.height.correction_m)
+        return outcome in (Update.FUSED, Update.RESTARTED)
 
     def _failed(self, frame: PairedFrame, reason: StateReason, tracks: int) -> PoseEstimate:
         self._predict_coasting(frame)  # the filter runs from the first keyframe on
