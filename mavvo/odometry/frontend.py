@@ -8,7 +8,9 @@ frame against its keyframe by id. Per frame:
    directions converge, the round trip returns within ``fb_max_px`` and it stays ``border_px`` inside
    the image. Where the texture is faint (``klt_highpass_below``), KLT sees each image less its local
    mean (``klt_highpass_px``): brightness the camera adds, vignetting and exposure offsets, does not
-   move with the scene and would hold tracks back; there the round trip may be ``fb_max_faint_px``;
+   move with the scene and would hold tracks back; there the round trip may be ``fb_max_faint_px``.
+   When ``consensus_min_share`` of the survivors end over ``consensus_max_px`` off the pair's affine
+   consensus, those are dropped: tracks that slipped a period of a repeated pattern pass the round trip;
 2. when fewer than ``redetect_fraction`` of ``max_features`` survive, corners are detected in the
    grid cells that have lost theirs: at most ``max_features / cells`` per cell, the strongest first, and
    none within ``min_distance_px`` of a live track or of each other. The candidates are FAST corners
