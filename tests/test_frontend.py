@@ -3,6 +3,8 @@ grid, bad input is refused."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -172,7 +174,9 @@ def test_an_exposure_step_under_vignetting_does_not_drag_the_tracks() -> None:
     images = floor(0, 1.0), floor(4, 1.03)
     errors = {}
     for filtered in (False, True):  # never, and where the texture is faint (the default)
-        f = Frontend(CAMERA, FrontendOptions() if filtered else FrontendOptions(klt_highpass_below=0.0))
+        # The consensus check off: it would drop the raw images' dragged tracks, whose drag is measured here.
+        opt = FrontendOptions(consensus_max_px=0.0)
+        f = Frontend(CAMERA, opt if filtered else dataclasses.replace(opt, klt_highpass_below=0.0))
         first, moved = f.process(images[0]), f.process(images[1])
         assert moved.tracked >= 80
         shift = moved.uv_px[: moved.tracked] - first.uv_px[np.searchsorted(first.ids, moved.ids[: moved.tracked])]
@@ -202,3 +206,18 @@ def test_tracks_over_a_faint_carpet_3_m_below_survive_its_noise() -> None:
 
     assert alive(FrontendOptions()) >= 0.8
     assert alive(FrontendOptions(fb_max_faint_px=0.5)) < 0.75  # the strong texture's round trip
+
+
+def test_tracks_that_slipped_a_period_are_off_the_pairs_consensus() -> None:
+    """200 tracks moved by one affine map (a zoom and 7 px across, KLT's 0.3 px of scatter), a third of
+    them a further 6 px along u (one period of a 3 cm pattern 1.2 m below a 320 px camera): the fit
+    stays on the majority and exactly the slipped ones are more than 4 px off it."""
+    from mavvo.odometry.frontend import _off_consensus
+
+    rng = np.random.default_rng(3)
+    uv0 = rng.uniform([10, 10], [310, 230], (200, 2))
+    uv1 = uv0 @ np.array([[1.02, 0.01], [-0.01, 1.02]]).T + [7.0, -2.0] + rng.normal(0, 0.3, (200, 2))
+    slipped = np.arange(200) % 3 == 0
+    uv1[slipped, 0] += 6.0
+    off = _off_consensus(uv0, uv1, np.ones(200, bool), 4.0)
+    assert np.array_equal(off, slipped)
