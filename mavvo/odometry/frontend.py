@@ -220,8 +220,9 @@ def _off_consensus(uv0: np.ndarray, uv1: np.ndarray, keep: np.ndarray, max_px: f
     uv0, uv1: (N,2) pixel positions in the earlier and later image; keep: (N,) the tracks to fit to.
     The consensus is an affine map uv1 = A [uv0; 1] fitted by least squares, twice refitted to the
     tracks within max(3 x median residual, 2 px) of the last fit: a median keeps the fit on the majority
-    when a third of the tracks slipped one period of a repeated pattern (docs/odometry.md, "Repeated
-    patterns"). Between two frames a plane's homography is affine to well under a pixel.
+    when a quarter of the tracks slipped one period of a repeated pattern either way (a third slipped
+    the same way pulls it too far; docs/odometry.md, "Repeated patterns"). Between two frames a plane's
+    homography is affine to well under a pixel.
     """
     x = np.column_stack([uv0, np.ones(len(uv0))]).astype(np.float64)
     y = uv1.astype(np.float64)
