@@ -224,7 +224,8 @@ def _corner_errors_m(run, scenario) -> list[float]:
     return [float(np.linalg.norm(e[c, 1:], axis=1).mean()) for c in corners if len(c)]
 
 
-@pytest.mark.parametrize("seed", [None, 102])
+# The scenario's own seed runs in `make soak`; 102, the draw that once failed, runs in `make test`.
+@pytest.mark.parametrize("seed", [pytest.param(None, marks=pytest.mark.slow), 102])
 def test_north_is_taken_on_the_ground_and_held_against_a_disturbed_compass(seed):
     """A compass 3-4.5 deg off once the motors run (and the flight controller's yaw with it). Before,
     the heading followed that yaw in flight (10 s) and the square turned with it: corners 1.1-1.6 m off

@@ -13,7 +13,7 @@ from mavvo.estimation.relpose_types import RelposeFailure
 from mavvo.geometry.frames import rot_z
 from mavvo.odometry.filter import FilterOptions, PoseFilter, Update, wrap_angle
 from mavvo.odometry.keyframes import Keyframe, KeyframeOptions, carry_depths, keyframe_reason, sight_change
-from mavvo.odometry.measurement import Measurement, position_noise
+from mavvo.odometry.measurement import Measurement, keyframe_position, position_noise
 from mavvo.odometry.pipeline import Odometry
 from mavvo.odometry.scale import (
     ScaleEstimate,
@@ -411,23 +411,29 @@ def test_a_new_keyframe_goes_where_the_filter_puts_its_frame_when_that_is_the_be
 
     tracking = StateReason.NONE
     filtered_at([4.0, 2.5, -5.0])
-    p, k = vo._keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking)
+    p, k = keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking, vo.filter.position_ned_m)
     np.testing.assert_allclose(p, [4.0, 2.5, -5.0])
     assert k == pytest.approx(3.0 / 4.0)  # 3 m of the filter's 3 m north, 0.5 m east along the measured 4 m north
     for guessed in (StateReason.SCALE_HELD, StateReason.FEW_INLIERS):
-        p, k = vo._keyframe_position(kf, measured([5.0, 2.0, -5.0]), guessed)
+        p, k = keyframe_position(kf, measured([5.0, 2.0, -5.0]), guessed, vo.filter.position_ned_m)
         np.testing.assert_allclose(p, [4.0, 2.5, -5.0])
         assert k == 1.0
-    p, k = vo._keyframe_position(kf, measured([5.0, 2.0, -5.0]), StateReason.ATTITUDE_INTERPOLATED)
+    p, k = keyframe_position(
+        kf, measured([5.0, 2.0, -5.0]), StateReason.ATTITUDE_INTERPOLATED, vo.filter.position_ned_m
+    )
     np.testing.assert_allclose(p, [5.0, 2.0, -5.0])
     assert k == 1.0
-    p, k = vo._keyframe_position(kf, measured([1.0, 2.0, -5.0], with_scale=False), tracking)
+    p, k = keyframe_position(kf, measured([1.0, 2.0, -5.0], with_scale=False), tracking, vo.filter.position_ned_m)
     np.testing.assert_allclose(p, [1.0, 2.0, -5.0])
     assert k == 1.0
     filtered_at([21.0, 2.0, -5.0])  # 20 m where 4 m were measured: the factor stops at 2
-    assert vo._keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking)[1] == pytest.approx(2.0)
+    assert keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking, vo.filter.position_ned_m)[1] == pytest.approx(
+        2.0
+    )
     filtered_at([1.5, 2.0, -5.0])
-    assert vo._keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking)[1] == pytest.approx(0.5)
+    assert keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking, vo.filter.position_ned_m)[1] == pytest.approx(
+        0.5
+    )
 
 
 def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_the_translation() -> None:
@@ -544,3 +550,40 @@ def test_a_range_that_drifts_away_smoothly_is_the_estimate_lagging_not_the_groun
         pulled.append(-1.0 - f.position_ned_m[2])
     assert anchor.steps == 0 and anchor.ground_down_m == pytest.approx(0.0)
     assert max(pulled) > 0.1  # the range won: the estimate was pulled up toward the measured height
+
+
+def test_while_tracking_the_range_refines_the_ground_then_corrects_the_keyframes_height() -> None:
+    """The first keyframe defines the frame: its first range (1.05 m, 5 cm long) sets the ground with a
+    range's variance, and n more true ranges (1.00 m) leave it where the n + 1 ranges' mean, weighted by
+    their inverse variances, puts it.
+    A new keyframe placed 10 cm high with a variance of (10 cm)^2 on top; vision's down is its
+    keyframe's plus an exact relative part. Each range now moves the keyframe by K y,
+    K = P / (P + sigma^2), and leaves P sigma^2 / (P + sigma^2) (sigma 3 cm + 1% of 1 m): a scalar Kalman
+    filter, whose n updates leave an offset e at e sigma^2 / (sigma^2 + n P)."""
+    from mavvo.odometry.height import HeightAnchor, HeightOptions
+
+    anchor = HeightAnchor(HeightOptions())
+    f = PoseFilter(FilterOptions())
+    f.reset(0.0, np.array([0.0, 0.0, -1.0]), 0.0, pos_cov_m2=1e-6 * np.eye(3), yaw_sigma_rad=0.01)
+    assert anchor.start(-1.0, 1.05, first=True) == -1.0
+    n = 9
+    for _ in range(n):
+        assert anchor.fuse(f, 1.0, tracking=True) is Update.FUSED and anchor.correction_m == 0.0
+    assert f.position_ned_m[2] == -1.0  # the frame's down is its definition
+    w0, w = 1 / 0.0405**2, 1 / 0.04**2  # each range's sigma: 3 cm + 1% of its height
+    assert anchor.ground_down_m == pytest.approx(0.05 * w0 / (w0 + n * w), rel=1e-9)
+    e0 = -0.1 - anchor.ground_down_m  # the keyframe's offset against the ground as it stands
+    anchor.keyframe_pushed(0.1**2)
+    P, R, keyframe_down = anchor.keyframe_var_m2, 0.04**2, -1.1
+    for k in range(n):
+        f.predict(0.02 * (k + 1))
+        f._x[2, 0] = keyframe_down  # vision's measurement from the keyframe, fused
+        assert anchor.fuse(f, 1.0, tracking=True) is Update.FUSED
+        if k == 0:
+            assert anchor.correction_m == pytest.approx(-e0 * P / (P + R), rel=1e-9)
+            assert anchor.keyframe_var_m2 == pytest.approx(P * R / (P + R), rel=1e-9)
+        keyframe_down += anchor.correction_m  # the caller moves the keyframe by as much
+    assert keyframe_down - (anchor.ground_down_m - 1.0) == pytest.approx(e0 * R / (R + n * P), rel=1e-6)
+    before = float(f.position_ned_m[2])
+    assert anchor.fuse(f, 0.6, tracking=True) is Update.REJECTED  # a glitch moves nothing
+    assert anchor.correction_m == 0.0 and f.position_ned_m[2] == before

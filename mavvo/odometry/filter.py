@@ -224,6 +224,14 @@ class PoseFilter:
         self._P = I_KH @ P @ I_KH.T + (K @ K.T) * sigma_m**2  # Joseph form, as in update
         return Update.FUSED
 
+    def shift_down(self, delta_m: float) -> None:
+        """Move the down coordinate by ``delta_m`` (the reference it is measured from was corrected)."""
+        self._x[2, 0] += delta_m
+
+    def gate(self, dof: int) -> float:
+        """The chi-square gate of a measurement with ``dof`` degrees of freedom."""
+        return self._gate[dof] if dof in self._gate else chi2_quantile(self.options.gate_probability, dof)
+
     def set_down(self, down_m: float, sigma_m: float) -> None:
         """Put the down coordinate at ``down_m`` with 1 sigma ``sigma_m``, its cross terms dropped: a
         measured height that has outvoted the estimate for several frames in a row, where an update

@@ -10,16 +10,31 @@ range paired to 90% of the frames). Here the range measures it directly, over fl
     z_down = g - h                          g: the ground's down coordinate in the world frame
 
 ``g`` is taken when tracking starts (the anchor's down coordinate plus the height then) and kept; a
-restart after tracking was lost starts at ``g - h`` rather than at a dead-reckoned height. Each
-frame with a range fuses ``z_down`` into the filter with sigma ``range_sigma_m + range_sigma_per_m * h``
-(the sensor's noise, plus what a tilt error and an uneven floor add with height), gated with one degree
-of freedom. A single range that disagrees (a glitch) is rejected. ``step_frames`` in a row that began
+restart after tracking was lost starts at ``g - h`` rather than at a dead-reckoned height. Each frame
+with a range has sigma ``range_sigma_m + range_sigma_per_m * h`` (the sensor's noise, plus what a tilt
+error and an uneven floor add with height).
+
+While vision tracks, its down coordinate is its keyframe's plus a relative part that is millimetre-tight;
+what drifts is the keyframe's down, fixed when the keyframe was made and repeated by every frame measured
+from it. So the range corrects the keyframe, a scalar Kalman filter on its down coordinate relative to the
+ground with variance ``P`` (``keyframe_var_m2``: a range's sigma^2 when the ground is taken or after a
+restart, the filter's after a coast, plus each new keyframe's vertical measurement variance)::
+
+    y = (g - h) - z                     innovation against the frame's down (the keyframe's, through vision)
+    S = P + sigma^2, gated with one degree of freedom
+    K = P / S;  dz = K y;  P = (1 - K) P
+    keyframe and filter moved down by dz; then the range updates the filter (its covariance)
+
+While the keyframe the ground was taken from lasts, it defines the frame: ``g`` moves instead
+(``g -= K y``), which makes it the ranges' inverse-variance weighted mean rather than the first range.
+
+While vision is lost (coasting), the range is fused into the filter directly (``PoseFilter.update_down``,
+gated). A single range that disagrees (a glitch) is rejected. ``step_frames`` in a row that began
 with the range jumping by 0.1 m or more from the reading before are the ground itself stepping (a table,
 a kerb, a roof: no vehicle moves that far in one frame): ``g`` moves by the step, so the vehicle does
-not. A run that began smoothly means the estimate drifted or lagged (a keyframe placed a few
-centimetres off in height, which every later vision measurement repeats): the range wins, the down
-coordinate is set to it (an update weighed against vision's millimetre-tight down would hardly move it)
-and the caller moves the keyframe by as much. Tilted beyond ``max_tilt_deg`` the beam may miss the ground under the vehicle: not used.
+not. A run that began smoothly means the estimate drifted or lagged beyond what its variance allowed:
+the range wins, the down coordinate is set to it and the caller moves the keyframe by as much.
+Tilted beyond ``max_tilt_deg`` the beam may miss the ground under the vehicle: not used.
 Without a range the down coordinate behaves as before.
 """
 
@@ -71,7 +86,9 @@ class HeightAnchor:
         self._last_height_m: float | None = None
         self._jump_m = 0.0  # the range's change at the frame a run of disagreement began
         self.steps = 0  # the ground stepped (counted)
-        self.correction_m = 0.0  # how far the down coordinate was moved when the range last won
+        self.correction_m = 0.0  # how far this frame's range moved the down coordinate (and the keyframe)
+        self.keyframe_var_m2 = 0.0  # variance of the current keyframe's down coordinate (relative to g), m^2
+        self._ground_moves = False  # the current keyframe is the one g was taken from: the range refines g
 
     def height_m(self, range_m: float | None, roll_rad: float, pitch_rad: float) -> float | None:
         """Height above the ground from a range along body z, or None (no range, too tilted)."""
@@ -93,22 +110,60 @@ class HeightAnchor:
                 self.ground_down_m = None
             return down_m
         if first or self.ground_down_m is None:
-            self.ground_down_m = down_m + height_m
+            self._take_ground(down_m, height_m)
             return down_m
+        self.keyframe_at(self._sigma_m(height_m) ** 2)
         return self.ground_down_m - height_m
 
-    def fuse(self, flt: PoseFilter, height_m: float | None) -> Update | None:
-        """Fuse one frame's height into ``flt`` (already predicted to the frame's time): FUSED, REJECTED
-        (a glitch, or the ground stepped), RESTARTED (the range won: the down coordinate was set to it),
+    def keyframe_pushed(self, added_var_m2: float) -> None:
+        """A new keyframe, its down coordinate off the old one's by a variance ``added_var_m2``."""
+        self.keyframe_var_m2 += added_var_m2
+        self._ground_moves = False
+
+    def keyframe_at(self, var_m2: float) -> None:
+        """A new chain's keyframe (after a coast or a restart) with a down coordinate of variance ``var_m2``."""
+        self.keyframe_var_m2 = var_m2
+        self._ground_moves = False
+
+    def _take_ground(self, down_m: float, height_m: float) -> None:
+        """The ground from one range at the current keyframe, whose down coordinate defines the frame:
+        as uncertain as that range, refined by the next ones while the keyframe lasts."""
+        self.ground_down_m = down_m + height_m
+        self.keyframe_var_m2 = self._sigma_m(height_m) ** 2
+        self._ground_moves = True
+
+    def _sigma_m(self, height_m: float) -> float:
+        return self.options.range_sigma_m + self.options.range_sigma_per_m * height_m
+
+    def fuse(self, flt: PoseFilter, height_m: float | None, *, tracking: bool = False) -> Update | None:
+        """Fuse one frame's height into ``flt`` (already predicted to the frame's time; with ``tracking``,
+        updated with vision's measurement from the keyframe, whose down ``correction_m`` then says how far
+        to move): FUSED, REJECTED (a glitch, or the ground stepped), RESTARTED (the range won: the down coordinate was set to it),
         or None (no height to fuse)."""
         if height_m is None or not self.options.from_range:
             return None
-        if self.ground_down_m is None:
-            self.ground_down_m = float(flt.position_ned_m[2]) + height_m  # the first range after a start
+        if self.ground_down_m is None:  # the first range after a start
+            self._take_ground(float(flt.position_ned_m[2]), height_m)
             return None
-        sigma = self.options.range_sigma_m + self.options.range_sigma_per_m * height_m
+        sigma = self._sigma_m(height_m)
         previous, self._last_height_m = self._last_height_m, height_m
-        if flt.update_down(self.ground_down_m - height_m, sigma) is Update.FUSED:
+        self.correction_m = 0.0
+        down_m = self.ground_down_m - height_m
+        if tracking:
+            y = down_m - float(flt.position_ned_m[2])
+            S = self.keyframe_var_m2 + sigma**2
+            if y * y / S <= flt.gate(1):
+                K = self.keyframe_var_m2 / S
+                self.keyframe_var_m2 *= 1.0 - K
+                self._disagree = 0
+                if self._ground_moves:  # the keyframe defines the frame: the ground is what is off
+                    self.ground_down_m -= K * y
+                    return Update.FUSED
+                self.correction_m = K * y
+                flt.shift_down(self.correction_m)
+                flt.update_down(down_m, sigma, gated=False)
+                return Update.FUSED
+        elif flt.update_down(down_m, sigma) is Update.FUSED:
             self._disagree = 0
             return Update.FUSED
         if self._disagree == 0:  # how the range moved as the disagreement began
@@ -121,9 +176,11 @@ class HeightAnchor:
             new = float(flt.position_ned_m[2]) + height_m
             log.info("the ground under the rangefinder stepped by %+.2f m", self.ground_down_m - new)
             self.ground_down_m = new
+            self.keyframe_var_m2 += sigma**2  # the new ground is as good as one range
             self.steps += 1
             return Update.REJECTED
         # The range moved smoothly away from the estimate: the estimate lagged or drifted. The range wins.
         self.correction_m = self.ground_down_m - height_m - float(flt.position_ned_m[2])
         flt.set_down(self.ground_down_m - height_m, sigma)
+        self.keyframe_at(sigma**2)
         return Update.RESTARTED

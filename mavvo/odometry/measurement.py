@@ -12,9 +12,16 @@ from mavvo.estimation.relpose_types import RelposeFailure, UprightRelpose
 from mavvo.odometry.keyframes import Keyframe
 from mavvo.odometry.options import OdometryOptions
 from mavvo.odometry.scale import ScaleEstimate
-from mavvo.types import PairedFrame, StateReason
+from mavvo.types import PairedFrame, ScaleSource, StateReason
 
-__all__ = ["Measurement", "NoPose", "position_noise", "unresolved_baseline_m"]
+__all__ = [
+    "UNTRUSTED_SCALE_REASON",
+    "Measurement",
+    "NoPose",
+    "keyframe_position",
+    "position_noise",
+    "unresolved_baseline_m",
+]
 
 _REFERENCE_DEPTH_M = 10.0  # the scene depth position_sigma_m is given for
 # The motion term follows the tracks' noise within these multiples of track_noise_px: capped at 2x, the
@@ -22,6 +29,11 @@ _REFERENCE_DEPTH_M = 10.0  # the scene depth position_sigma_m is given for
 # while the position moved 0.1 m (one draw at 93.1% inside the 99% ellipse; 95.0% at 10x).
 _TRACK_NOISE_MIN, _TRACK_NOISE_MAX = 0.5, 10.0
 _STILL_PARALLAX_PX = 1.0  # median parallax below this and nothing triangulated: the camera has not moved
+# An untrusted scale source -> the reason the frame is degraded.
+UNTRUSTED_SCALE_REASON = {ScaleSource.HELD: StateReason.SCALE_HELD, ScaleSource.ASSUMED: StateReason.SCALE_ASSUMED}
+# Frames whose keyframe goes where the filter puts them (keyframe_position).
+_FILTER_PLACES_KEYFRAME = frozenset({StateReason.NONE, StateReason.FEW_INLIERS, *UNTRUSTED_SCALE_REASON.values()})
+_BASELINE_FACTOR_MIN = 0.5  # a new keyframe's depths follow the filter's baseline within a factor of 2
 
 
 @dataclass(frozen=True)
@@ -107,3 +119,40 @@ def position_noise(
         p_meas, unresolved = None, 0.0
     iso_m = math.hypot(opt.position_sigma_m * max(depth_m / _REFERENCE_DEPTH_M, 0.2), unresolved)
     return p_meas, iso_m**2 * np.eye(3) + _along(along_dir, along_m)
+
+
+def keyframe_position(
+    kf: Keyframe, m: Measurement, reason: StateReason, filter_p_ned_m: np.ndarray
+) -> tuple[np.ndarray, float]:
+    """Where a new keyframe made from the measured frame goes, and the factor its baseline (and so
+    the depths it carries) takes to match; ``reason`` is why the frame is degraded (NONE: tracking).
+
+    The keyframe goes where the filter puts the frame when that is the better estimate:
+    - tracking: the raw measurement at the end of the old keyframe's reach carries that interval's
+      largest error (a scale with a wide spread: its sigma says so, and the filter leans on its
+      prediction), and would step every later position by it. Its depths are scaled to the
+      baseline it is placed with (the filter's along the measured direction over the measured
+      one), so the carried scale does not take up the error the position left behind;
+    - a held or assumed scale: the measured length is a guess from the scene depth (in a turn on
+      the spot, a translation the images barely resolve moved the frame 16 cm); the depths stay
+      as measured, in the same guessed units;
+    - few inliers: the translation rests on few points (in a fast turn, 53 inliers put a frame
+      0.3 m off, and the keyframes of the turn on the spot after it stayed there); the filter
+      weighed it by its inflated sigma. The depths stay as measured.
+    Other degraded frames keep their raw measurement: their sigma is inflated by the quality cap,
+    so the filter's estimate lags (docs/odometry.md). Without a translation (mostly a turn on the
+    spot) the keyframe stays where the old one was: the filter's coasted position would let its
+    velocity noise into the chain.
+    """
+    if m.scale is None or reason not in _FILTER_PLACES_KEYFRAME:
+        return m.p_ned_m, 1.0
+    p = filter_p_ned_m
+    if reason != StateReason.NONE:
+        return p, 1.0  # a guessed length: the depths stay in its units
+    d_meas = m.p_ned_m - kf.p_ned_m
+    n2 = float(d_meas @ d_meas)
+    if not n2 > 0:
+        return p, 1.0
+    # The filtered baseline along the measured direction, over the measured one.
+    k = float((p - kf.p_ned_m) @ d_meas) / n2
+    return p, min(max(k, _BASELINE_FACTOR_MIN), 1.0 / _BASELINE_FACTOR_MIN)

@@ -12,7 +12,7 @@ the baseline in metres (:mod:`mavvo.odometry.scale`), place the frame in the wor
 keyframe (:mod:`mavvo.odometry.keyframes`), and smooth (:mod:`mavvo.odometry.filter`).
 A frame that becomes the keyframe is placed where the filter puts it, its carried depths scaled to
 that baseline, unless it is degraded for another reason than a scale that is not metric
-(:meth:`Odometry._keyframe_position`).
+(:func:`mavvo.odometry.measurement.keyframe_position`).
 
 World frame: the flight controller's local NED frame, so that what is sent needs no alignment. The
 first keyframe is placed where the flight controller believes the vehicle is
@@ -62,7 +62,14 @@ from mavvo.odometry.frontend import Frontend, Tracks
 from mavvo.odometry.heading import HeadingChain, relative_yaw_var
 from mavvo.odometry.height import HeightAnchor
 from mavvo.odometry.keyframes import Keyframe, KeyframeChain, carry_depths, keyframe_reason, sight_change
-from mavvo.odometry.measurement import Measurement, NoPose, position_noise, unresolved_baseline_m
+from mavvo.odometry.measurement import (
+    UNTRUSTED_SCALE_REASON,
+    Measurement,
+    NoPose,
+    keyframe_position,
+    position_noise,
+    unresolved_baseline_m,
+)
 from mavvo.odometry.options import OdometryOptions
 from mavvo.odometry.recovery import Drift, GoodPose, coast_sigma_m, heading_now_rad, reinit_anchor, velocity_sigma_m_s
 from mavvo.odometry.rolling_shutter import RollingShutter
@@ -75,11 +82,6 @@ __all__ = ["Odometry"]
 log = logging.getLogger(__name__)
 
 _TRUSTED_SCALE = frozenset({ScaleSource.RANGEFINDER, ScaleSource.ALTITUDE, ScaleSource.FIXED, ScaleSource.CARRIED})
-# An untrusted scale source -> the reason the frame is degraded.
-_UNTRUSTED_SCALE_REASON = {ScaleSource.HELD: StateReason.SCALE_HELD, ScaleSource.ASSUMED: StateReason.SCALE_ASSUMED}
-# Frames whose keyframe goes where the filter puts them (Odometry._keyframe_position).
-_FILTER_PLACES_KEYFRAME = frozenset({StateReason.NONE, StateReason.FEW_INLIERS, *_UNTRUSTED_SCALE_REASON.values()})
-_BASELINE_FACTOR_MIN = 0.5  # a new keyframe's depths follow the filter's baseline within a factor of 2
 # No parallax and less turn than this against the keyframe: standing still, not a degraded pure rotation.
 _STATIONARY_YAW_RAD = math.radians(2.0)
 
@@ -246,6 +248,7 @@ class Odometry:
         self.filter.shift_yaw(wrap_angle(yaw - self.filter.yaw_rad))  # not the coasted yaw rate's
         p, sigma = self.filter.position_ned_m, coast_sigma_m(self._good, frame.t_exposure_s)
         self.filter.set_position_covariance(np.diag([sigma**2, sigma**2, self.filter.position_covariance[2, 2]]))
+        self.height.keyframe_at(self.filter.position_covariance[2, 2])
         self._drift.anchor_var_m2 += 2.0 * sigma**2
         self._first_keyframe(frame, tracks, f_lvl, p, yaw)
         self._failed_in_row = 0
@@ -348,7 +351,7 @@ class Odometry:
         if rp.reason == RelposeFailure.PURE_ROTATION and abs(rp.yaw_rad) >= _STATIONARY_YAW_RAD:
             return StateReason.PURE_ROTATION
         if m.scale is not None and not self._trusted(m.scale):
-            return _UNTRUSTED_SCALE_REASON[m.scale.source]
+            return UNTRUSTED_SCALE_REASON[m.scale.source]
         if rp.num_inliers < self.options.keyframes.min_inliers:
             return StateReason.FEW_INLIERS
         if frame.interpolation_sigma_rad > self._att_sigma_rad:
@@ -396,7 +399,7 @@ class Odometry:
         self.filter.predict(frame.t_exposure_s)
         outcome = self.filter.update(p_meas, m.yaw_rad, pos_cov_m2=pos_cov, yaw_sigma_rad=yaw_sigma)
         accepted = outcome != Update.REJECTED
-        self._height_fused = self._fuse_height(frame)
+        self._height_fused = self._fuse_height(frame, tracking=accepted)
         if outcome == Update.RESTARTED:
             # The filter jumped to the measurement: a change of the sent pose that is not motion.
             self.reset_counter = (self.reset_counter + 1) % 256
@@ -416,6 +419,7 @@ class Odometry:
             # averages it away: the chain's random walk, which the filter's covariance must carry
             # (docs/odometry.md, Position noise at close range).
             self.filter.commit_position_noise(pos_cov)
+            self.height.keyframe_pushed(pos_cov[2, 2])
         if accepted:
             self._remember_good(frame)
         diag = VoDiagnostics(
@@ -445,7 +449,7 @@ class Odometry:
         reason: StateReason,
     ) -> None:
         rp = m.relpose
-        p_kf, k = self._keyframe_position(kf, m, reason)
+        p_kf, k = keyframe_position(kf, m, reason, self.filter.position_ned_m)
         if self._height_fused:  # the measured height, not the sum of the translations, carries on
             p_kf = p_kf.copy()
             p_kf[2] = self.filter.position_ned_m[2]
@@ -493,51 +497,18 @@ class Odometry:
         if np.any(known):
             self._scene_depth_m = median(depth[known])
 
-    def _keyframe_position(self, kf: Keyframe, m: Measurement, reason: StateReason) -> tuple[np.ndarray, float]:
-        """Where a new keyframe made from the measured frame goes, and the factor its baseline (and so
-        the depths it carries) takes to match; ``reason`` is why the frame is degraded (NONE: tracking).
-
-        The keyframe goes where the filter puts the frame when that is the better estimate:
-        - tracking: the raw measurement at the end of the old keyframe's reach carries that interval's
-          largest error (a scale with a wide spread: its sigma says so, and the filter leans on its
-          prediction), and would step every later position by it. Its depths are scaled to the
-          baseline it is placed with (the filter's along the measured direction over the measured
-          one), so the carried scale does not take up the error the position left behind;
-        - a held or assumed scale: the measured length is a guess from the scene depth (in a turn on
-          the spot, a translation the images barely resolve moved the frame 16 cm); the depths stay
-          as measured, in the same guessed units;
-        - few inliers: the translation rests on few points (in a fast turn, 53 inliers put a frame
-          0.3 m off, and the keyframes of the turn on the spot after it stayed there); the filter
-          weighed it by its inflated sigma. The depths stay as measured.
-        Other degraded frames keep their raw measurement: their sigma is inflated by the quality cap,
-        so the filter's estimate lags (docs/odometry.md). Without a translation (mostly a turn on the
-        spot) the keyframe stays where the old one was: the filter's coasted position would let its
-        velocity noise into the chain.
-        """
-        if m.scale is None or reason not in _FILTER_PLACES_KEYFRAME:
-            return m.p_ned_m, 1.0
-        p = self.filter.position_ned_m
-        if reason != StateReason.NONE:
-            return p, 1.0  # a guessed length: the depths stay in its units
-        d_meas = m.p_ned_m - kf.p_ned_m
-        n2 = float(d_meas @ d_meas)
-        if not n2 > 0:
-            return p, 1.0
-        # The filtered baseline along the measured direction, over the measured one.
-        k = float((p - kf.p_ned_m) @ d_meas) / n2
-        return p, min(max(k, _BASELINE_FACTOR_MIN), 1.0 / _BASELINE_FACTOR_MIN)
-
     def _predict_coasting(self, frame: PairedFrame) -> None:
         """The filter to the frame with no vision: the tilt's acceleration (when a multirotor's) and the range."""
         tilt = self.options.filter.tilt_acceleration
         self.filter.predict(frame.t_exposure_s, self._tilt.accel_ned_m_s2 if tilt else None)
         self._fuse_height(frame)
 
-    def _fuse_height(self, frame: PairedFrame) -> bool:
+    def _fuse_height(self, frame: PairedFrame, *, tracking: bool = False) -> bool:
         """The frame's range into the filter (:mod:`mavvo.odometry.height`): whether it set or moved the
         down. Where the range won, the keyframe moves too, or vision would put the old height back."""
-        outcome = self.height.fuse(self.filter, self.height.height_m(frame.range_m, frame.roll_rad, frame.pitch_rad))
-        if outcome is Update.RESTARTED:
+        h = self.height.height_m(frame.range_m, frame.roll_rad, frame.pitch_rad)
+        outcome = self.height.fuse(self.filter, h, tracking=tracking)
+        if outcome is not None and self.height.correction_m:
             self.chain.shift_down(self.height.correction_m)
         return outcome in (Update.FUSED, Update.RESTARTED)
 
