@@ -212,12 +212,35 @@ def test_tracks_that_slipped_a_period_are_off_the_pairs_consensus() -> None:
     """200 tracks moved by one affine map (a zoom and 7 px across, KLT's 0.3 px of scatter), a quarter of
     them a further period (6 px: a 3 cm pattern 1.2 m below a 320 px camera) either way along u or v:
     the fit stays on the majority and exactly the slipped ones are more than 4 px off it."""
-    from mavvo.odometry.frontend import _off_consensus
+    from mavvo.geometry.affine_consensus import off_affine_consensus
 
     rng = np.random.default_rng(3)
     uv0 = rng.uniform([10, 10], [310, 230], (200, 2))
     uv1 = uv0 @ np.array([[1.02, 0.01], [-0.01, 1.02]]).T + [7.0, -2.0] + rng.normal(0, 0.3, (200, 2))
     slipped = np.arange(200) % 4 == 0
     uv1[slipped] += rng.choice([-6.0, 6.0], (50, 1)) * np.eye(2)[rng.integers(0, 2, 50)]
-    off = _off_consensus(uv0, uv1, np.ones(200, bool), 4.0)
+    off = off_affine_consensus(uv0, uv1, np.ones(200, bool), 4.0)
     assert np.array_equal(off, slipped)
+
+
+def test_the_consensus_fit_is_the_least_squares_affine_map_of_the_tracks_it_keeps() -> None:
+    """Without slipped tracks every refit keeps them all, so the fit is numpy's least squares over the
+    kept tracks: the tracks more than 0.5 px off it (some of 0.8 px of scatter) are the same; tracks not
+    kept do not pull the fit (one 30 px off is marked); tracks all on a line
+    give no affine map, and nothing is marked."""
+    from mavvo.geometry.affine_consensus import off_affine_consensus
+
+    rng = np.random.default_rng(5)
+    uv0 = rng.uniform([0, 0], [640, 480], (120, 2))
+    # Scatter within 0.8 px a coordinate: every kept track inside the refits' 2 px band.
+    uv1 = uv0 @ np.array([[0.98, 0.03], [-0.02, 1.01]]).T + [-4.0, 9.0] + rng.uniform(-0.8, 0.8, (120, 2))
+    keep = np.arange(120) % 10 != 0
+    uv1[0] += 30.0  # not kept
+    x = np.column_stack([uv0, np.ones(120)])
+    a = np.linalg.lstsq(x[keep], uv1[keep], rcond=None)[0]
+    want = np.hypot(*(x @ a - uv1).T) > 0.5
+    off = off_affine_consensus(uv0, uv1, keep, 0.5)
+    assert 10 < np.count_nonzero(want[keep]) < 100 and want[0]
+    assert np.array_equal(off, want)
+    line = np.column_stack([np.linspace(0, 600, 50), np.full(50, 100.0)])
+    assert not off_affine_consensus(line, line + 3.0, np.ones(50, bool), 0.5).any()

@@ -18,6 +18,7 @@ from mavvo.estimation.general5pt import decompose_homography
 from mavvo.estimation.relpose import estimate_relpose_known_gravity, estimate_upright_relpose
 from mavvo.estimation.relpose_types import RelposeOptions
 from mavvo.geometry import solve_upright_3pt
+from mavvo.geometry.affine_consensus import off_affine_consensus
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.medians import median, weighted_median
 from mavvo.geometry.triangulation import triangulate_midpoints
@@ -63,6 +64,7 @@ def warm_kernels() -> float:
     median(f1[:, 0])
     weighted_median(f1[:, 0], f1[:, 2])
     triangulate_midpoints(f1, f2, np.eye(3), np.array([1.0, 0.0, 0.0]), 0.001)
+    off_affine_consensus(uv, uv + 3.0, np.ones(len(uv), dtype=bool), 8.0)  # the frontend's check per pair
     return time.process_time() - t0
 
 

@@ -39,6 +39,7 @@ from typing import ClassVar
 import cv2
 import numpy as np
 
+from mavvo.geometry.affine_consensus import off_affine_consensus
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.options import bounded
 
@@ -214,27 +215,6 @@ def _noise_floor(noise: float) -> int:
     return max(_MIN_THRESHOLD, math.ceil(_NOISE_CORNER_SIGMAS * noise))
 
 
-def _off_consensus(uv0: np.ndarray, uv1: np.ndarray, keep: np.ndarray, max_px: float) -> np.ndarray:
-    """(N,) mask: the tracks ending more than ``max_px`` from the pair's consensus motion.
-
-    uv0, uv1: (N,2) pixel positions in the earlier and later image; keep: (N,) the tracks to fit to.
-    The consensus is an affine map uv1 = A [uv0; 1] fitted by least squares, twice refitted to the
-    tracks within max(3 x median residual, 2 px) of the last fit: a median keeps the fit on the majority
-    when a quarter of the tracks slipped one period of a repeated pattern either way (a third slipped
-    the same way pulls it too far; docs/odometry.md, "Repeated patterns"). Between two frames a plane's
-    homography is affine to well under a pixel.
-    """
-    x = np.column_stack([uv0, np.ones(len(uv0))]).astype(np.float64)
-    y = uv1.astype(np.float64)
-    xs, ys = x[keep], y[keep]
-    a = np.linalg.lstsq(xs, ys, rcond=None)[0]
-    for _ in range(2):
-        r = np.hypot(*(xs @ a - ys).T)
-        inl = r <= max(3.0 * float(np.median(r)), 2.0)
-        a = np.linalg.lstsq(xs[inl], ys[inl], rcond=None)[0]
-    return np.hypot(*(x @ a - y).T) > max_px
-
-
 class Frontend:
     """Tracks features through a sequence of 8-bit grey images of one camera (see the module docstring)."""
 
@@ -350,7 +330,7 @@ class Frontend:
         inside = (p1[:, 0] >= b) & (p1[:, 0] <= w - 1 - b) & (p1[:, 1] >= b) & (p1[:, 1] <= h - 1 - b)
         keep = (st1.ravel() == 1) & (st0.ravel() == 1) & (fb < fb_max_px) & inside
         if self.consensus_max_px > 0 and np.count_nonzero(keep) >= _MIN_CONSENSUS_TRACKS:
-            off = _off_consensus(uv0, p1, keep, self.consensus_max_px)
+            off = off_affine_consensus(uv0, p1, keep, self.consensus_max_px)
             if np.count_nonzero(off & keep) >= opt.consensus_min_share * np.count_nonzero(keep):
                 keep &= ~off
         return keep, p1[keep]
