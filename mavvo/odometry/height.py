@@ -105,6 +105,7 @@ class HeightAnchor:
         keeps the ground (it has not moved because tracking was lost) and starts at the measured height,
         not at the dead-reckoned or the flight controller's down coordinate."""
         self._disagree, self._last_height_m = 0, height_m
+        self._ground_moves = False
         if height_m is None or not self.options.from_range:
             if first:
                 self.ground_down_m = None
@@ -138,8 +139,8 @@ class HeightAnchor:
     def fuse(self, flt: PoseFilter, height_m: float | None, *, tracking: bool = False) -> Update | None:
         """Fuse one frame's height into ``flt`` (already predicted to the frame's time; with ``tracking``,
         updated with vision's measurement from the keyframe, whose down ``correction_m`` then says how far
-        to move): FUSED, REJECTED (a glitch, or the ground stepped), RESTARTED (the range won: the down coordinate was set to it),
-        or None (no height to fuse)."""
+        to move): FUSED, REJECTED (a glitch, or the ground stepped), RESTARTED (the range won: the down
+        coordinate was set to it), or None (no height to fuse)."""
         if height_m is None or not self.options.from_range:
             return None
         if self.ground_down_m is None:  # the first range after a start
