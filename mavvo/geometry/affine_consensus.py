@@ -1,11 +1,12 @@
 """The tracks of an image pair that end off the pair's consensus motion, compiled: the frontend asks on
-every pair, and numpy's least squares spent about 0.15 ms of its Python layers on three small fits of
-250 tracks, where the kernel needs a few microseconds."""
+every pair, and three small least-squares fits through numpy cost mostly its per-call overhead
+(docs/odometry.md, "Repeated patterns")."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from mavvo.geometry.small_linalg import solve_spd
 from mavvo.jit import kernel
 
 __all__ = ["off_affine_consensus"]
@@ -40,7 +41,7 @@ def off_affine_consensus(uv0: np.ndarray, uv1: np.ndarray, keep: np.ndarray, max
 def _fit(uv0: np.ndarray, uv1: np.ndarray, use: np.ndarray, c0: float, c1: float, a: np.ndarray) -> bool:
     """Least-squares affine map into a (3,2): uv1 = [u0 - c0, v0 - c1, 1] a, over the tracks in use,
     from the normal equations M a = B (M = sum x x', B = sum x y'; centred pixels keep M well
-    conditioned); False when M is singular."""
+    conditioned); False when M is not positive definite (the tracks on a line)."""
     m = np.zeros((3, 3))
     b = np.zeros((3, 2))
     x = np.empty(3)
@@ -53,21 +54,11 @@ def _fit(uv0: np.ndarray, uv1: np.ndarray, use: np.ndarray, c0: float, c1: float
                 m[j, k] += x[j] * x[k]
             b[j, 0] += x[j] * uv1[i, 0]
             b[j, 1] += x[j] * uv1[i, 1]
-    # M^-1 by cofactors (M symmetric): a = M^-1 B.
-    c00 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
-    c01 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
-    c02 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
-    det = m[0, 0] * c00 + m[0, 1] * c01 + m[0, 2] * c02
-    scale = m[0, 0] * m[1, 1] * m[2, 2]
-    if not abs(det) > 1e-12 * abs(scale) or not scale > 0.0:
-        return False
-    inv = np.empty((3, 3))
-    inv[0, 0], inv[0, 1], inv[0, 2] = c00, m[0, 2] * m[2, 1] - m[0, 1] * m[2, 2], m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]
-    inv[1, 0], inv[1, 1], inv[1, 2] = c01, m[0, 0] * m[2, 2] - m[0, 2] * m[2, 0], m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]
-    inv[2, 0], inv[2, 1], inv[2, 2] = c02, m[0, 1] * m[2, 0] - m[0, 0] * m[2, 1], m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
-    for j in range(3):
-        for col in range(2):
-            a[j, col] = (inv[j, 0] * b[0, col] + inv[j, 1] * b[1, col] + inv[j, 2] * b[2, col]) / det
+    for col in range(2):  # a = M^-1 B, one column at a time (the solve overwrites M by its factor)
+        mc = m.copy()
+        a[:, col] = b[:, col]
+        if not solve_spd(mc, a[:, col]):
+            return False
     return True
 
 

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mavvo.geometry.residuals import sampson_sq_point
+from mavvo.geometry.small_linalg import solve_spd
 from mavvo.jit import kernel
 
 __all__ = ["UprightFit", "tilt_rotation", "refine_upright", "upright_yaw_variance", "ground_similarity", "fit_rotation"]
@@ -167,36 +168,6 @@ def tilt_matrix(dx: float, dy: float) -> np.ndarray:
     if th < 1e-12:
         return np.eye(3) + K
     return np.eye(3) + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / (th * th)) * (K @ K)
-
-
-@kernel
-def _solve_spd(A: np.ndarray, b: np.ndarray) -> bool:
-    """Solve ``A x = b`` for symmetric positive definite A (n, n) by Cholesky; x overwrites b, A is
-    overwritten by its factor. False (b unchanged in meaning) when A is not positive definite."""
-    n = A.shape[0]
-    for j in range(n):
-        s = A[j, j]
-        for k in range(j):
-            s -= A[j, k] * A[j, k]
-        if not s > 0.0:
-            return False
-        A[j, j] = math.sqrt(s)
-        for i in range(j + 1, n):
-            s = A[i, j]
-            for k in range(j):
-                s -= A[i, k] * A[j, k]
-            A[i, j] = s / A[j, j]
-    for i in range(n):  # L y = b
-        s = b[i]
-        for k in range(i):
-            s -= A[i, k] * b[k]
-        b[i] = s / A[i, i]
-    for i in range(n - 1, -1, -1):  # L^T x = y
-        s = b[i]
-        for k in range(i + 1, n):
-            s -= A[k, i] * b[k]
-        b[i] = s / A[i, i]
-    return True
 
 
 @kernel
@@ -384,7 +355,7 @@ def gauss_newton_upright(
             trace += JtJ[a, a]
         for a in range(n_params):
             JtJ[a, a] += 1e-12 * trace
-        if not _solve_spd(JtJ, Jtr):
+        if not solve_spd(JtJ, Jtr):
             break
         # delta = -Jtr, scaled by alpha until the cost goes down
         x0[:] = x

@@ -9,7 +9,7 @@ import numpy as np
 
 from mavvo.jit import kernel
 
-__all__ = ["symmetric_eigen"]
+__all__ = ["solve_spd", "symmetric_eigen"]
 
 _SWEEPS = 30
 
@@ -63,3 +63,33 @@ def symmetric_eigen(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         for k in range(n):
             vecs[k, j] = v[k, p]
     return w, vecs
+
+
+@kernel
+def solve_spd(A: np.ndarray, b: np.ndarray) -> bool:
+    """Solve ``A x = b`` for symmetric positive definite A (n, n) by Cholesky; x overwrites b, A is
+    overwritten by its factor. False (b unchanged in meaning) when A is not positive definite."""
+    n = A.shape[0]
+    for j in range(n):
+        s = A[j, j]
+        for k in range(j):
+            s -= A[j, k] * A[j, k]
+        if not s > 0.0:
+            return False
+        A[j, j] = math.sqrt(s)
+        for i in range(j + 1, n):
+            s = A[i, j]
+            for k in range(j):
+                s -= A[i, k] * A[j, k]
+            A[i, j] = s / A[j, j]
+    for i in range(n):  # L y = b
+        s = b[i]
+        for k in range(i):
+            s -= A[i, k] * b[k]
+        b[i] = s / A[i, i]
+    for i in range(n - 1, -1, -1):  # L^T x = y
+        s = b[i]
+        for k in range(i + 1, n):
+            s -= A[k, i] * b[k]
+        b[i] = s / A[i, i]
+    return True
