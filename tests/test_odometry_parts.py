@@ -370,6 +370,35 @@ def test_chi2_quantile_matches_the_tables(probability, dof, table):
     assert chi2_quantile(probability, dof) == pytest.approx(table, abs=1e-3)
 
 
+def test_the_filter_estimates_one_sources_part_of_the_last_measurements_error() -> None:
+    """PoseFilter.error_share_m: a position measured with two independent errors n1, n2 (covariances R1,
+    R2) from a prior off by its own covariance P. The share it gives for R2 is the least-squares
+    estimate of n2 from the innovation: over seeded draws, n2 regressed on it has a slope of 1 in each
+    direction, and what is left has the variance R2 - R2 (P + R1 + R2)^-1 R2 (per axis, the diagonal
+    covariances here); a direction R2 does not move gets nothing; a rejected update leaves no share."""
+    rng = np.random.default_rng(31)
+    s_p, s1, s2 = np.array([0.01, 0.01, 0.01]), np.array([0.02, 0.005, 0.01]), np.array([0.015, 0.015, 0.0])
+    R1, R2 = np.diag(s1**2), np.diag(s2**2)
+    est, true = [], []
+    for _ in range(4000):
+        f = PoseFilter(FilterOptions(gate_probability=0.999999))
+        f.reset(0.0, np.zeros(3), 0.0, pos_cov_m2=np.diag(s_p**2), yaw_sigma_rad=0.01)
+        p_true = rng.normal(0.0, s_p)  # the filter's estimate (zero) is off by this
+        n1, n2 = rng.normal(0.0, s1), rng.normal(0.0, s2)
+        assert f.update(p_true + n1 + n2, 0.0, pos_cov_m2=R1 + R2, yaw_sigma_rad=0.01) == Update.FUSED
+        est.append(f.error_share_m(R2))
+        true.append(n2)
+    e, n = np.array(est), np.array(true)
+    for axis in (0, 1):
+        slope = float(e[:, axis] @ n[:, axis] / (e[:, axis] @ e[:, axis]))
+        assert slope == pytest.approx(1.0, abs=0.08)
+        left = s2[axis] ** 2 - s2[axis] ** 4 / (s_p[axis] ** 2 + s1[axis] ** 2 + s2[axis] ** 2)
+        assert float(np.var(n[:, axis] - e[:, axis])) == pytest.approx(left, rel=0.1)
+    assert np.all(e[:, 2] == 0.0)
+    f.update(np.array([10.0, 0.0, 0.0]), 0.0, pos_cov_m2=R1 + R2, yaw_sigma_rad=0.01)  # far outside the gate
+    assert np.all(f.error_share_m(R2) == 0.0)
+
+
 def test_gate_uses_the_measurement_size():
     """A yaw-only update 3.5 sigma off is beyond the 1-dof gate (10.83) though inside the 4-dof one
     (18.47): it is rejected. The same yaw error with a position that agrees passes the 4-dof gate."""
@@ -383,7 +412,7 @@ def test_gate_uses_the_measurement_size():
 
 def test_a_new_keyframe_goes_where_the_filter_puts_its_frame_when_that_is_the_better_estimate() -> None:
     """docs/odometry.md, Keyframes: a tracking frame's keyframe goes where the filter puts the frame and
-    its depths follow the baseline that leaves it (the filtered baseline along the measured direction
+    its depths follow the baseline that leaves it; placed by the filter, it also takes the part of the measurement the frame's own tilt error made (the filtered baseline along the measured direction
     over the measured one, within 0.5-2); with a held scale (a guessed length) or few inliers the
     filter's position and the depths as measured; other degraded frames, and frames without a measured
     translation, keep the measurement."""
@@ -410,30 +439,34 @@ def test_a_new_keyframe_goes_where_the_filter_puts_its_frame_when_that_is_the_be
         vo.filter.reset(1.0, np.array(p_ned_m), 0.0, pos_cov_m2=0.1**2 * np.eye(3), yaw_sigma_rad=0.01)
 
     tracking = StateReason.NONE
+    none, view = np.zeros(3), np.array([0.02, -0.01, 0.0])  # the part of the measurement the frame's tilt made
     filtered_at([4.0, 2.5, -5.0])
-    p, k = keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking, vo.filter.position_ned_m)
+    p, k = keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking, vo.filter.position_ned_m, none)
     np.testing.assert_allclose(p, [4.0, 2.5, -5.0])
     assert k == pytest.approx(3.0 / 4.0)  # 3 m of the filter's 3 m north, 0.5 m east along the measured 4 m north
+    p, k = keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking, vo.filter.position_ned_m, view)
+    np.testing.assert_allclose(p, [4.02, 2.49, -5.0])  # with it: the keyframe levels with that tilt
+    assert k == pytest.approx(3.02 / 4.0)
     for guessed in (StateReason.SCALE_HELD, StateReason.FEW_INLIERS):
-        p, k = keyframe_position(kf, measured([5.0, 2.0, -5.0]), guessed, vo.filter.position_ned_m)
-        np.testing.assert_allclose(p, [4.0, 2.5, -5.0])
+        p, k = keyframe_position(kf, measured([5.0, 2.0, -5.0]), guessed, vo.filter.position_ned_m, view)
+        np.testing.assert_allclose(p, [4.02, 2.49, -5.0])
         assert k == 1.0
     p, k = keyframe_position(
-        kf, measured([5.0, 2.0, -5.0]), StateReason.ATTITUDE_INTERPOLATED, vo.filter.position_ned_m
+        kf, measured([5.0, 2.0, -5.0]), StateReason.ATTITUDE_INTERPOLATED, vo.filter.position_ned_m, view
     )
     np.testing.assert_allclose(p, [5.0, 2.0, -5.0])
     assert k == 1.0
-    p, k = keyframe_position(kf, measured([1.0, 2.0, -5.0], with_scale=False), tracking, vo.filter.position_ned_m)
+    p, k = keyframe_position(kf, measured([1.0, 2.0, -5.0], with_scale=False), tracking, vo.filter.position_ned_m, view)
     np.testing.assert_allclose(p, [1.0, 2.0, -5.0])
     assert k == 1.0
     filtered_at([21.0, 2.0, -5.0])  # 20 m where 4 m were measured: the factor stops at 2
-    assert keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking, vo.filter.position_ned_m)[1] == pytest.approx(
-        2.0
-    )
+    assert keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking, vo.filter.position_ned_m, none)[
+        1
+    ] == pytest.approx(2.0)
     filtered_at([1.5, 2.0, -5.0])
-    assert keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking, vo.filter.position_ned_m)[1] == pytest.approx(
-        0.5
-    )
+    assert keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking, vo.filter.position_ned_m, none)[
+        1
+    ] == pytest.approx(0.5)
 
 
 def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_the_translation() -> None:

@@ -104,6 +104,7 @@ class PoseFilter:
         self._P = np.eye(_DIM_X)  # its covariance
         self._t_s: float | None = None
         self.rejections = 0
+        self._innovation: tuple[np.ndarray, np.ndarray] | None = None  # the last fused position's (y, S)
         # Gate per measurement size: position and yaw (4), yaw alone (1).
         self._gate = {k: chi2_quantile(self.options.gate_probability, k) for k in (1, _DIM_Z)}
 
@@ -134,6 +135,7 @@ class PoseFilter:
         self._P[0:3, 0:3] = pos_cov_m2
         self._t_s = float(t_s)
         self.rejections = 0
+        self._innovation = None
 
     def predict(self, t_s: float, accel_ned_m_s2: np.ndarray | None = None) -> None:
         """Move the state to ``t_s`` (no-op for a time at or before the current one), with a known
@@ -169,6 +171,7 @@ class PoseFilter:
         ``p_ned_m`` None measures the yaw only (vision saw a rotation but no translation).
         """
         x, P = self._x, self._P
+        self._innovation = None
         rows = slice(0, 4) if p_ned_m is not None else slice(3, 4)
         H = _H[rows]
         z = np.empty((_DIM_Z, 1))
@@ -199,6 +202,7 @@ class PoseFilter:
             )
             return Update.RESTARTED
         self.rejections = 0
+        self._innovation = (y[0:3, 0].copy(), S[0:3, 0:3].copy()) if p_ned_m is not None else None
         K = np.linalg.solve(S, H @ P).T  # gain K = P H' S^-1 (S and P symmetric)
         self._x = x + K @ y  # x = x + K y
         I_KH = np.eye(_DIM_X) - K @ H
@@ -206,6 +210,15 @@ class PoseFilter:
             I_KH @ P @ I_KH.T + K @ R @ K.T
         )  # P = (I - K H) P (I - K H)' + K R K' (Joseph: stays symmetric, positive)
         return Update.FUSED
+
+    def error_share_m(self, cov_m2: np.ndarray) -> np.ndarray:
+        """(3,) m: the part of the last fused position's error expected to come from one of its
+        independent sources, of covariance ``cov_m2`` (3,3): E[n | y] = R_n S^-1 y (zero when no
+        position was fused by the last update)."""
+        if self._innovation is None:
+            return np.zeros(3)
+        y, S = self._innovation
+        return cov_m2 @ np.linalg.solve(S, y)
 
     def update_down(self, down_m: float, sigma_m: float, *, gated: bool = True) -> Update:
         """Fuse a measurement of the down coordinate alone (a height from a rangefinder), 1 sigma

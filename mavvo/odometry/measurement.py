@@ -122,7 +122,7 @@ def position_noise(
 
 
 def keyframe_position(
-    kf: Keyframe, m: Measurement, reason: StateReason, filter_p_ned_m: np.ndarray
+    kf: Keyframe, m: Measurement, reason: StateReason, filter_p_ned_m: np.ndarray, view_error_m: np.ndarray
 ) -> tuple[np.ndarray, float]:
     """Where a new keyframe made from the measured frame goes, and the factor its baseline (and so
     the depths it carries) takes to match; ``reason`` is why the frame is degraded (NONE: tracking).
@@ -139,6 +139,12 @@ def keyframe_position(
     - few inliers: the translation rests on few points (in a fast turn, 53 inliers put a frame
       0.3 m off, and the keyframes of the turn on the spot after it stayed there); the filter
       weighed it by its inflated sigma. The depths stay as measured.
+    Placed where the filter puts the frame, the keyframe also takes ``view_error_m`` (3,): the part of
+    the measured position the frame's own roll/pitch error made (estimated from the filter's last
+    innovation). The keyframe levels its bearings with that roll/pitch, so every later measurement
+    from it carries the same error the other way; with it, the two cancel, as they do along a
+    frame-to-frame chain. Without it, each keyframe left in the chain's random walk what the filter's
+    gain had not taken of its frame's tilt error times the depth (at 3 m, 0.2 deg is 1 cm).
     Other degraded frames keep their raw measurement: their sigma is inflated by the quality cap,
     so the filter's estimate lags (docs/odometry.md). Without a translation (mostly a turn on the
     spot) the keyframe stays where the old one was: the filter's coasted position would let its
@@ -146,7 +152,7 @@ def keyframe_position(
     """
     if m.scale is None or reason not in _FILTER_PLACES_KEYFRAME:
         return m.p_ned_m, 1.0
-    p = filter_p_ned_m
+    p = filter_p_ned_m + view_error_m
     if reason != StateReason.NONE:
         return p, 1.0  # a guessed length: the depths stay in its units
     d_meas = m.p_ned_m - kf.p_ned_m

@@ -54,7 +54,7 @@ import numpy as np
 from mavvo.estimation.relpose import estimate_upright_relpose
 from mavvo.estimation.relpose_types import RelposeFailure, UprightRelpose
 from mavvo.geometry.camera_model import CameraModel
-from mavvo.geometry.frames import R_lvl_body, R_lvl_cam, as_rotation, euler321_from_R
+from mavvo.geometry.frames import R_from_euler321, R_lvl_body, R_lvl_cam, as_rotation, euler321_from_R, skew
 from mavvo.geometry.medians import median
 from mavvo.geometry.refine import tilt_rotation
 from mavvo.odometry.filter import PoseFilter, Update, wrap_angle
@@ -449,7 +449,7 @@ class Odometry:
         reason: StateReason,
     ) -> None:
         rp = m.relpose
-        p_kf, k = keyframe_position(kf, m, reason, self.filter.position_ned_m)
+        p_kf, k = keyframe_position(kf, m, reason, self.filter.position_ned_m, self._view_error_m(frame, m))
         if self._height_fused:  # the measured height, not the sum of the translations, carries on
             p_kf = p_kf.copy()
             p_kf[2] = self.filter.position_ned_m[2]
@@ -496,6 +496,19 @@ class Odometry:
         )
         if np.any(known):
             self._scene_depth_m = median(depth[known])
+
+    def _view_error_m(self, frame: PairedFrame, m: Measurement) -> np.ndarray:
+        """(3,) m: the part of the frame's measured position its own roll/pitch error made, as the last
+        update's innovation tells it (measurement.keyframe_position says why it matters)."""
+        # The sigma the measurement's noise counted for the frame's tilt (position_noise): the shares of
+        # the innovation are only right for what its covariance holds.
+        sigma = frame.interpolation_sigma_rad if m.relpose.attitude_resolved else self._attitude_sigma_rad(frame)
+        # A tilt error (about north and east) turns the view: what is seen along the optical axis at the
+        # scene's depth moves by depth x (tilt x axis).
+        axis = R_from_euler321(*m.roll_pitch_rad, m.yaw_rad) @ self.R_body_cam[:, 2]
+        turn = skew(axis)
+        tilt_cov = (self._depth_m() * sigma) ** 2 * (turn @ np.diag([1.0, 1.0, 0.0]) @ turn.T)
+        return self.filter.error_share_m(tilt_cov)
 
     def _predict_coasting(self, frame: PairedFrame) -> None:
         """The filter to the frame with no vision: the tilt's acceleration (when a multirotor's) and the range."""
@@ -567,5 +580,6 @@ class Odometry:
             quality=quality,
             reset_counter=self.reset_counter,
             diagnostics=diag,
-            drift_m=max(drift, math.sqrt(float(np.trace(cov[:2, :2])) / 2.0)),
+            # max(., 0): the filter's covariance is kept positive, but a sent figure must not depend on it.
+            drift_m=max(drift, math.sqrt(max(float(np.trace(cov[:2, :2])), 0.0) / 2.0)),
         )
