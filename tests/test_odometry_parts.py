@@ -395,7 +395,8 @@ def test_the_filter_estimates_one_sources_part_of_the_last_measurements_error() 
         left = s2[axis] ** 2 - s2[axis] ** 4 / (s_p[axis] ** 2 + s1[axis] ** 2 + s2[axis] ** 2)
         assert float(np.var(n[:, axis] - e[:, axis])) == pytest.approx(left, rel=0.1)
     assert np.all(e[:, 2] == 0.0)
-    f.update(np.array([10.0, 0.0, 0.0]), 0.0, pos_cov_m2=R1 + R2, yaw_sigma_rad=0.01)  # far outside the gate
+    far = f.update(np.array([10.0, 0.0, 0.0]), 0.0, pos_cov_m2=R1 + R2, yaw_sigma_rad=0.01)
+    assert far == Update.REJECTED
     assert np.all(f.error_share_m(R2) == 0.0)
 
 
@@ -412,9 +413,10 @@ def test_gate_uses_the_measurement_size():
 
 def test_a_new_keyframe_goes_where_the_filter_puts_its_frame_when_that_is_the_better_estimate() -> None:
     """docs/odometry.md, Keyframes: a tracking frame's keyframe goes where the filter puts the frame and
-    its depths follow the baseline that leaves it; placed by the filter, it also takes the part of the measurement the frame's own tilt error made (the filtered baseline along the measured direction
+    its depths follow the baseline that leaves it (the filtered baseline along the measured direction
     over the measured one, within 0.5-2); with a held scale (a guessed length) or few inliers the
-    filter's position and the depths as measured; other degraded frames, and frames without a measured
+    filter's position and the depths as measured; placed by the filter, it also takes the part of the
+    measurement its frame's own tilt made; other degraded frames, and frames without a measured
     translation, keep the measurement."""
     sc = load_scenario("forward")
     vo = Odometry(sc.camera.camera_model(), sc.camera.R_body_cam())

@@ -213,8 +213,8 @@ class PoseFilter:
 
     def error_share_m(self, cov_m2: np.ndarray) -> np.ndarray:
         """(3,) m: the part of the last fused position's error expected to come from one of its
-        independent sources, of covariance ``cov_m2`` (3,3): E[n | y] = R_n S^-1 y (zero when no
-        position was fused by the last update)."""
+        independent sources, of covariance ``cov_m2`` (3,3): E[n | y] = R_n S^-1 y on the innovation's
+        position part (zero when the last update fused no position)."""
         if self._innovation is None:
             return np.zeros(3)
         y, S = self._innovation
