@@ -6,6 +6,7 @@ for too little parallax; and the general 5-point pose where the attitude looks w
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -112,19 +113,24 @@ def _ground_model(
     below = candidates[(f1[candidates, 2] > _MIN_GROUND_Z) & (f2[candidates, 2] > _MIN_GROUND_Z)]
     if below.size < max(4, 0.8 * candidates.size):
         return None  # a scene that is all ground lies below the horizon in both views
-    # Among the essential inliers a ground scene is nearly all inliers: a few samples decide.
-    block = min(8, opt.ground_samples)
-    sampling = dataclasses.replace(
+    run = lo_ransac(GroundHomography(f1[below], f2[below]), _ground_sampling(opt), threshold_rad, rng)
+    return None if run.model is None else run.model[0]
+
+
+@functools.lru_cache(maxsize=8)
+def _ground_sampling(opt: RelposeOptions) -> RelposeOptions:
+    """The loop's settings for the ground homography: among the essential inliers a ground scene is
+    nearly all inliers, so a few samples decide. Made once per settings (options check their fields
+    when made, and this runs on every frame)."""
+    return dataclasses.replace(
         opt,
         min_iterations=0,
         max_iterations=opt.ground_samples,
-        first_block=block,
+        first_block=min(8, opt.ground_samples),
         min_block=1,
         lo_rounds=2,
         local_optimization=True,
     )
-    run = lo_ransac(GroundHomography(f1[below], f2[below]), sampling, threshold_rad, rng)
-    return None if run.model is None else run.model[0]
 
 
 @dataclass(frozen=True)

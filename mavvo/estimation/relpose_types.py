@@ -11,7 +11,7 @@ import numpy as np
 
 from mavvo.estimation.estimators import MinimalSolver, NonminimalSolver
 from mavvo.estimation.ransac import RansacOptions, RansacStats
-from mavvo.options import bounded, check_fields
+from mavvo.options import bounded
 from mavvo.types import StrEnum
 
 __all__ = [
@@ -102,10 +102,6 @@ class RelposeOptions(RansacOptions):
         True,
         "the odometry corrects roll/pitch of both views under odometry.attitude_sigma_deg (docs/relpose.md: roll/pitch that are not exact)",
     )
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check_fields(self)
 
     @property
     def tilt_sigma_rad(self) -> float | None:
