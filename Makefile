@@ -6,7 +6,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup sim test lint soak faults draws bench install clean
+.PHONY: setup sim test lint soak faults draws bench bench-instructions install clean
 
 setup: $(STAMP)
 
@@ -78,6 +78,12 @@ bench: $(STAMP)
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/pipeline.py --threads --markdown docs/benchmarks.md
 	$(BIN)/python benchmarks/batch_scaling.py --markdown docs/benchmarks.md
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python benchmarks/small_quad.py --markdown docs/benchmarks.md
+
+# The odometry's instructions per frame (valgrind), this tree beside AGAINST (default: the last commit):
+# whether a change made the work larger, whatever the machine's load. Needs Debian's valgrind.
+AGAINST ?= HEAD
+bench-instructions: $(STAMP)
+	$(BIN)/python benchmarks/instructions.py $(foreach r,$(AGAINST),--against $(r))
 
 # Install on the companion computer (sudo make install): the package into a venv made in PREFIX (never
 # a copied one), the settings under ETCDIR (kept if present), the unit, the mavvo user; then check-config
