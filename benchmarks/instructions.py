@@ -3,11 +3,12 @@ does not move with the machine's load or clock.
 
     python benchmarks/instructions.py [--against 6ddffe3 ...] [--scenario survey] [--frames 100] [--markdown docs/benchmarks.md]
 
-CPU time on a shared machine moved by 30% between runs minutes apart (docs/benchmarks.md, the
-pipeline's section), so a change of a few percent in the odometry's cost cannot be told from it. The
-instructions executed can: valgrind's callgrind counts them, and the same code on the same input
-counts the same on every run. What is counted is one pass of a fresh :class:`Odometry` over the
-scenario's first ``--frames`` frames, after a first pass over them has compiled and loaded every
+CPU time on a shared machine moved by 30% between runs minutes apart (docs/status.md, the pipeline's
+row), so a change of a few percent in the odometry's cost cannot be told from it. The instructions
+executed can: valgrind's callgrind counts them, and the same code on the same input counts the same
+on every run to about 0.1% (two copies of one tree read 41.96M and 41.92M a frame: the garbage
+collector and the allocator need not repeat themselves; hash seeds are fixed). What is counted is
+one pass of a fresh :class:`Odometry` over the scenario's first ``--frames`` frames, after a first pass over them has compiled and loaded every
 kernel (instrumentation is switched on only for the second pass, with ``callgrind_control``). Every
 revision steps the same frames: rendered once here, by this tree's simulator, and handed to each as
 arrays. Revisions are exported with ``git archive`` into a temporary folder and run with this
@@ -131,7 +132,7 @@ def _count(tree: Path, scenario: str, frames_file: Path, work: Path) -> int:
         "--frames-file",
         str(frames_file),
     ]
-    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONHASHSEED="0")
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     m = _COLLECTED.findall(proc.stderr)
     if proc.returncode != 0 or not m:
@@ -162,8 +163,8 @@ def _section(scenario: str, frames: int, counts: dict[str, int], argv: list[str]
             f"Measured {dt.date.today().isoformat()} on {machine(None).replace(', PoseLib not installed', '')}; `python benchmarks/instructions.py {' '.join(argv)}`. "
             f"Instructions (valgrind's callgrind) of one pass of a fresh odometry over the first {frames} frames of "
             f"`{scenario}`, after a pass that compiled every kernel; the same frames for every revision. The same code "
-            "on the same input counts the same on every run, whatever the machine's load: a change here is a change "
-            "of the work.",
+            "on the same input counts the same on every run to about 0.1%, whatever the machine's load: a larger change "
+            "here is a change of the work.",
             "",
             "| code | million instructions per frame | vs this tree |",
             "|---|---:|---:|",
