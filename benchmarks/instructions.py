@@ -6,10 +6,12 @@ does not move with the machine's load or clock.
 CPU time on a shared machine moved by 30% between runs minutes apart (docs/status.md, the pipeline's
 row), so a change of a few percent in the odometry's cost cannot be told from it. The instructions
 executed can: valgrind's callgrind counts them, and the same code on the same input counts the same
-on every run to about 0.1% (two copies of one tree read 41.96M and 41.92M a frame: the garbage
-collector and the allocator need not repeat themselves; hash seeds are fixed). What is counted is
-one pass of a fresh :class:`Odometry` over the scenario's first ``--frames`` frames, after a first pass over them has compiled and loaded every
-kernel (instrumentation is switched on only for the second pass, with ``callgrind_control``). Every
+on every run to about 0.1% over 100 frames (two copies of one tree read 41.96M and 41.92M a frame:
+the garbage collector and the allocator need not repeat themselves; hash seeds are fixed). Over 3
+frames the same two read 4.5% apart, so count 100 or more. What is counted is
+one pass of a fresh :class:`Odometry` over the scenario's first ``--frames`` frames, after a first
+pass over them has compiled and loaded every kernel (instrumentation is switched on only for the
+second pass, with ``callgrind_control``). Every
 revision steps the same frames: rendered once here, by this tree's simulator, and handed to each as
 arrays. Revisions are exported with ``git archive`` into a temporary folder and run with this
 checkout's packages.
@@ -50,8 +52,7 @@ def _render(scenario: str, frames: int, path: Path) -> None:
     from mavvo.sim.scenarios.paired_frames import PairedSequence
 
     sc = load_scenario(scenario)
-    rate_hz = sc.camera.rate_hz
-    sc = dataclasses.replace(sc, duration_s=frames / rate_hz + 2.0)  # past the frames' end, or the flight's
+    sc = dataclasses.replace(sc, duration_s=frames / sc.camera.rate_hz + 2.0)  # a little past the last frame
     seq = PairedSequence(sc)
     out = []
     for f in seq:
@@ -185,7 +186,12 @@ def main(argv: list[str] | None = None) -> int:
         help="a git revision to count beside this tree (repeatable)",
     )
     p.add_argument("--scenario", default="survey", help="shipped scenario name (default survey)")
-    p.add_argument("--frames", type=int, default=100, help="frames counted (default 100)")
+    p.add_argument(
+        "--frames",
+        type=int,
+        default=100,
+        help="frames counted (default 100; a few read several percent apart for the same code)",
+    )
     p.add_argument("--markdown", type=Path, help="rewrite this benchmark's section of this markdown file")
     p.add_argument("--child", type=Path, help=argparse.SUPPRESS)
     p.add_argument("--frames-file", type=Path, help=argparse.SUPPRESS)
@@ -198,11 +204,16 @@ def main(argv: list[str] | None = None) -> int:
     missing = [t for t in ("valgrind", "callgrind_control") if shutil.which(t) is None]
     if missing:
         p.error(f"needs {' and '.join(missing)} on PATH (Debian's package valgrind)")
+    from mavvo.errors import ConfigError
+
     with tempfile.TemporaryDirectory(prefix="mavvo-instructions-") as tmp:
         work = Path(tmp)
         frames_file = work / "frames.npz"
-        _render(args.scenario, args.frames, frames_file)
-        trees = {"this tree": ROOT} | {rev: _export(rev, work) for rev in args.against}
+        try:
+            _render(args.scenario, args.frames, frames_file)
+        except ConfigError as e:
+            p.error(f"--scenario: {e}")
+        trees = {"this tree": ROOT} | {rev: _export(rev, work) for rev in dict.fromkeys(args.against)}
         print(f"counting {len(trees)} trees over {args.frames} frames (a few minutes each)", file=sys.stderr)
         with concurrent.futures.ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
             futures = {
