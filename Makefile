@@ -40,9 +40,9 @@ sim: $(STAMP)
 	$(BIN)/mavvo sim
 
 # Each run first compiles the kernels the sources changed since the last (a second when none did), so
-# that no test's service spends its start-up compiling. The suite runs in TEST_JOBS processes
-# (pytest-xdist): most of its time is flights waiting on real sockets and clocks, so two halve it even
-# on two loaded cores (8.5 -> 4.6 min quiet, 6 min with a third process spinning).
+# that no test's service spends its start-up compiling. The suite runs in TEST_JOBS worker processes
+# (pytest-xdist; 0: in this one): most of its time is flights waiting on real sockets and clocks, so two
+# shorten it even on two loaded cores (docs/developers.md has the figures).
 TEST_JOBS ?= 2
 test: lint
 	$(BIN)/python -m mavvo.estimation.warmup
