@@ -405,6 +405,34 @@ def test_a_compass_that_comes_back_clean_is_heard_again_after_vision_drifted() -
     assert after < 0.6 and after_fixed > 1.0, (during, after, after_fixed)
 
 
+def _indoor_hops_keyframe_sigmas_deg(held_level_below_m: float) -> list[float]:
+    """The roll/pitch sigma of each keyframe made over indoor_hops' first 3 s (0.3-1.5 m above the floor)."""
+    sc = load_scenario("indoor_hops")
+    sc = dataclasses.replace(sc, camera=dataclasses.replace(sc.camera, rolling_shutter_ms=0.0))  # 16x cheaper to render
+    seq = PairedSequence(sc, duration_s=3.0)
+    options = build(OdometryOptions, {"keyframes": {"held_level_below_m": held_level_below_m}}, "test")
+    vo = Odometry(sc.camera.camera_model(), seq.R_body_cam, options)
+    sigmas = []
+    for f in seq:
+        e = vo.step(f)
+        if e is not None and e.diagnostics.keyframe and vo.chain.current is not None:
+            sigmas.append(math.degrees(vo.chain.current.attitude_sigma_rad))
+    return sigmas
+
+
+def test_keyframes_hold_their_level_frame_while_the_scene_is_near() -> None:
+    """docs/odometry.md, Close range: once the floor's depth is measured nearer than
+    keyframes.held_level_below_m (5 m), every keyframe holds its level frame (0.01 deg), so the relative
+    pose corrects the frame's view, not the keyframe's; before (the scene taken 10 m away until a depth
+    is measured), and with the setting at 0, each takes the flight controller's 0.2 deg."""
+    held, free = _indoor_hops_keyframe_sigmas_deg(5.0), _indoor_hops_keyframe_sigmas_deg(0.0)
+    first = next(i for i, s in enumerate(held) if s < 0.1)
+    assert 1 <= first <= 5 and len(held) - first >= 8
+    assert held[:first] == pytest.approx([0.2] * first, abs=0.01)  # 0.2 deg and the pairing's interpolation
+    assert held[first:] == pytest.approx([0.01] * (len(held) - first))
+    assert len(free) >= 8 and free == pytest.approx([0.2] * len(free), abs=0.01)
+
+
 def test_a_keyframe_placed_off_in_height_is_put_back_by_the_range() -> None:
     """indoor_hops' first 6 s, the current keyframe moved 2 cm up on each of eight frames in a row (as
     relative poses on slipped tracks moved it over a printed floor: vision's down is millimetre-tight, so

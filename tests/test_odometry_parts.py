@@ -417,7 +417,8 @@ def test_a_new_keyframe_goes_where_the_filter_puts_its_frame_when_that_is_the_be
     over the measured one, within 0.5-2); with a held scale (a guessed length) or few inliers the
     filter's position and the depths as measured; placed by the filter, it also takes the part of the
     measurement its frame's own tilt made; other degraded frames, and frames without a measured
-    translation, keep the measurement."""
+    translation, keep the measurement. In the close range (the keyframes' level frames held) a tracking
+    frame's keyframe keeps its measurement too."""
     sc = load_scenario("forward")
     vo = Odometry(sc.camera.camera_model(), sc.camera.R_body_cam())
     kf = Keyframe(0, 0.0, np.arange(3), np.eye(3), np.full(3, np.nan), np.array([1.0, 2.0, -5.0]), 0.0, 0.0)
@@ -461,6 +462,17 @@ def test_a_new_keyframe_goes_where_the_filter_puts_its_frame_when_that_is_the_be
     p, k = keyframe_position(kf, measured([1.0, 2.0, -5.0], with_scale=False), tracking, vo.filter.position_ned_m, view)
     np.testing.assert_allclose(p, [1.0, 2.0, -5.0])
     assert k == 1.0
+    # The close range (held level frames): a tracking frame's keyframe where it was measured, k = 1;
+    # a guessed length or few inliers still go where the filter puts them.
+    p, k = keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking, vo.filter.position_ned_m, view, held_level=True)
+    np.testing.assert_allclose(p, [5.0, 2.0, -5.0])
+    assert k == 1.0
+    for guessed in (StateReason.SCALE_HELD, StateReason.FEW_INLIERS):
+        p, k = keyframe_position(
+            kf, measured([5.0, 2.0, -5.0]), guessed, vo.filter.position_ned_m, view, held_level=True
+        )
+        np.testing.assert_allclose(p, [4.02, 2.49, -5.0])
+        assert k == 1.0
     filtered_at([21.0, 2.0, -5.0])  # 20 m where 4 m were measured: the factor stops at 2
     assert keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking, vo.filter.position_ned_m, none)[
         1
@@ -469,6 +481,25 @@ def test_a_new_keyframe_goes_where_the_filter_puts_its_frame_when_that_is_the_be
     assert keyframe_position(kf, measured([5.0, 2.0, -5.0]), tracking, vo.filter.position_ned_m, none)[
         1
     ] == pytest.approx(0.5)
+
+
+def test_the_close_range_is_entered_below_its_depth_and_left_only_well_beyond_it() -> None:
+    """docs/odometry.md, Close range: a keyframe holds its level frame when the scene is nearer than
+    keyframes.held_level_below_m (5 m); a chain that holds lets go only beyond held_level_release (1.4)
+    times that, 7 m: at the top of `indoor_carpet`'s 3 m hops the triangulated depth read 3.0-4.8 m, and
+    each switch out and back in cost the chain."""
+    sc = load_scenario("indoor_carpet")
+    vo = Odometry(sc.camera.camera_model(), sc.camera.R_body_cam())
+    kf = Keyframe(0, 0.0, np.arange(3), np.eye(3), np.full(3, np.nan), np.zeros(3), 0.0, 0.0, math.radians(0.2))
+    held_kf = dataclasses.replace(kf, attitude_sigma_rad=math.radians(0.01))
+    for depth_m, from_free, from_held in (
+        (4.9, True, True),
+        (5.1, False, True),
+        (6.9, False, True),
+        (7.1, False, False),
+    ):
+        vo._scene_depth_m = depth_m
+        assert (vo._holds_level(kf), vo._holds_level(held_kf)) == (from_free, from_held), depth_m
 
 
 def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_the_translation() -> None:

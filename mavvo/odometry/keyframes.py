@@ -55,6 +55,18 @@ class KeyframeOptions:
         gt=0,
         le=100,
     )
+    held_level_below_m: float = bounded(
+        5.0,
+        "while the scene is nearer than this, a new keyframe holds its level frame as exact and sits where its frame was measured (docs/odometry.md, Close range; 0: never), metres",
+        ge=0,
+        le=1000,
+    )
+    held_level_release: float = bounded(
+        1.4,
+        "once held, the keyframes let go only where the scene is farther than this many times held_level_below_m (depths triangulated from a few pixels of parallax wander by half)",
+        ge=1,
+        le=100,
+    )
     history: int = bounded(1000, "keyframe poses kept for inspection", ge=1, le=100000)
 
 

@@ -122,10 +122,22 @@ def position_noise(
 
 
 def keyframe_position(
-    kf: Keyframe, m: Measurement, reason: StateReason, filter_p_ned_m: np.ndarray, view_error_m: np.ndarray
+    kf: Keyframe,
+    m: Measurement,
+    reason: StateReason,
+    filter_p_ned_m: np.ndarray,
+    view_error_m: np.ndarray,
+    *,
+    held_level: bool = False,
 ) -> tuple[np.ndarray, float]:
     """Where a new keyframe made from the measured frame goes, and the factor its baseline (and so
     the depths it carries) takes to match; ``reason`` is why the frame is degraded (NONE: tracking).
+
+    ``held_level``: the keyframes hold their level frames as exact (the close range, docs/odometry.md):
+    a tracking frame's keyframe then goes where it was measured. Its tilt error is its keyframe's, so
+    the error the keyframe's tilt puts in the measured position (depth x tilt) is the one its own
+    bearings carry into every later measurement the other way, and the two cancel along the chain;
+    the filter's place would break that for the interval's scale error it averages.
 
     The keyframe goes where the filter puts the frame when that is the better estimate:
     - tracking: the raw measurement at the end of the old keyframe's reach carries that interval's
@@ -150,7 +162,7 @@ def keyframe_position(
     spot) the keyframe stays where the old one was: the filter's coasted position would let its
     velocity noise into the chain.
     """
-    if m.scale is None or reason not in _FILTER_PLACES_KEYFRAME:
+    if m.scale is None or reason not in _FILTER_PLACES_KEYFRAME or (held_level and reason == StateReason.NONE):
         return m.p_ned_m, 1.0
     p = filter_p_ned_m + view_error_m
     if reason != StateReason.NONE:

@@ -84,6 +84,9 @@ log = logging.getLogger(__name__)
 _TRUSTED_SCALE = frozenset({ScaleSource.RANGEFINDER, ScaleSource.ALTITUDE, ScaleSource.FIXED, ScaleSource.CARRIED})
 # No parallax and less turn than this against the keyframe: standing still, not a degraded pure rotation.
 _STATIONARY_YAW_RAD = math.radians(2.0)
+# A held level frame's roll/pitch sigma (keyframes.held_level_below_m): the relative pose then corrects
+# the frame's view, not the keyframe's. 0.05 deg already gave back most of the carpet's gain (docs/odometry.md).
+_HELD_LEVEL_SIGMA_RAD = math.radians(0.01)
 
 
 class Odometry:
@@ -449,7 +452,10 @@ class Odometry:
         reason: StateReason,
     ) -> None:
         rp = m.relpose
-        p_kf, k = keyframe_position(kf, m, reason, self.filter.position_ned_m, self._view_error_m(frame, m))
+        held = self._holds_level(kf)
+        p_kf, k = keyframe_position(
+            kf, m, reason, self.filter.position_ned_m, self._view_error_m(frame, m), held_level=held
+        )
         if self._height_fused:  # the measured height, not the sum of the translations, carries on
             p_kf = p_kf.copy()
             p_kf[2] = self.filter.position_ned_m[2]
@@ -484,7 +490,7 @@ class Odometry:
                 p_kf,
                 yaw,
                 frame.yaw_rad,
-                self._attitude_sigma_rad(frame),
+                _HELD_LEVEL_SIGMA_RAD if held else self._attitude_sigma_rad(frame),
                 unmeasured,
             ),
             self.reset_counter,
@@ -496,6 +502,14 @@ class Odometry:
         )
         if np.any(known):
             self._scene_depth_m = median(depth[known])
+
+    def _holds_level(self, kf: Keyframe) -> bool:
+        """Whether a keyframe made now holds its level frame (the close range, docs/odometry.md): the
+        scene nearer than ``keyframes.held_level_below_m``, or while ``kf`` holds its own, nearer than
+        ``held_level_release`` times that (a chain let go and taken up again pays for each switch)."""
+        opt = self.options.keyframes
+        release = opt.held_level_release if kf.attitude_sigma_rad == _HELD_LEVEL_SIGMA_RAD else 1.0
+        return self._depth_m() < opt.held_level_below_m * release
 
     def _view_error_m(self, frame: PairedFrame, m: Measurement) -> np.ndarray:
         """(3,) m: the part of the frame's measured position its own roll/pitch error made, as the last
