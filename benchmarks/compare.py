@@ -44,14 +44,15 @@ class TrialErrors:
 
 @dataclass(frozen=True)
 class PairedMedians:
-    """Median errors of mavvo and a peer on the same trials (deg), the 90% bootstrap interval of their
+    """Median errors of mavvo and a peer on the same trials, the 90% bootstrap interval of their
     difference (mavvo minus peer: negative is mavvo lower), and the share of the trials where both gave a
-    pose on which mavvo's error is the lower."""
+    pose on which mavvo's error is the lower. In the errors' unit: degrees for the relative pose's
+    trials, metres for a flight's end error."""
 
-    ours_deg: float
-    peer_deg: float
-    diff_low_deg: float
-    diff_high_deg: float
+    ours: float
+    peer: float
+    diff_low: float
+    diff_high: float
     ours_lower_share: float
 
 
@@ -95,7 +96,7 @@ def best_peer_cells(ours: TrialErrors, peers: Mapping[str, TrialErrors]) -> list
         )
         # Four decimals: over flat ground the rotation medians are 0.005 deg, and the gaps 0.0001-0.001.
         cells.append(
-            f"{p.ours_deg:.4f} vs {p.peer_deg:.4f} ({lowest}): {p.diff_low_deg:+.4f} to {p.diff_high_deg:+.4f}, "
+            f"{p.ours:.4f} vs {p.peer:.4f} ({lowest}): {p.diff_low:+.4f} to {p.diff_high:+.4f}, "
             f"lower on {p.ours_lower_share:.0%}; {common}"
         )
     return cells

@@ -38,6 +38,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import load_average, machine, publish  # noqa: E402
+from benchmarks.compare import paired_medians  # noqa: E402
 from mavvo.fleet.engine import Outcome, run_tasks  # noqa: E402
 from mavvo.geometry.frames import R_from_euler321  # noqa: E402
 from mavvo.odometry.pipeline import Odometry  # noqa: E402
@@ -178,11 +179,23 @@ def _run(scenario, seed: str) -> dict[str, dict[str, float]]:
     return out
 
 
+def against_mavvo_cell(runs: list[dict[str, dict[str, float]]], name: str) -> str:
+    """A peer's cell: mavvo's end error minus the peer's, draw by draw (both flew the same noise), as
+    the 90% bootstrap interval of the medians' difference and the draws where mavvo ended closer. Five
+    draws' medians move by centimetres with the draws; the interval says whether a gap is more than that."""
+    if name == "mavvo":
+        return "-"
+    ours, peer = (np.array([run[m]["end"] for run in runs]) for m in ("mavvo", name))
+    p = paired_medians(ours, peer)
+    closer = int(np.count_nonzero(ours < peer))
+    return f"{p.diff_low:+.2f} to {p.diff_high:+.2f} m; {closer} of {len(runs)}"
+
+
 def _table(runs: list[dict[str, dict[str, float]]]) -> list[str]:
     """Markdown rows: per method, medians over the runs (and the worst end error)."""
     rows = [
-        "| method | end error, no alignment: median (worst) | % of path | horizontal | vertical | RMS over the flight: median (worst) | resets | frames with an estimate | height within 5 cm + 2% (lowest) | CPU per frame |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| method | end error, no alignment: median (worst) | % of path | horizontal | vertical | RMS over the flight: median (worst) | resets | frames with an estimate | height within 5 cm + 2% (lowest) | CPU per frame | mavvo minus this, end error: 90% interval of the medians' difference; draws mavvo ends closer |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for name in runs[0]:
         r = [run[name] for run in runs]
@@ -194,7 +207,8 @@ def _table(runs: list[dict[str, dict[str, float]]]) -> list[str]:
             f"| {name} | {med('end'):.2f} m ({max(x['end'] for x in r):.2f} m) | {100 * med('end') / med('path'):.1f}% | "
             f"{med('h'):.2f} m | {med('v'):.2f} m | {med('rms'):.2f} m ({max(x['rms'] for x in r):.2f} m) | "
             f"{med('resets'):.0f} | {100 * med('frames'):.0f}% | "
-            f"{100 * med('height_ok'):.0f}% ({100 * min(x['height_ok'] for x in r):.0f}%) | {med('cpu_ms'):.1f} ms |"
+            f"{100 * med('height_ok'):.0f}% ({100 * min(x['height_ok'] for x in r):.0f}%) | {med('cpu_ms'):.1f} ms | "
+            f"{against_mavvo_cell(runs, name)} |"
         )
     return rows
 

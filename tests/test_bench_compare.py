@@ -19,9 +19,9 @@ def test_a_constant_gap_has_an_interval_of_exactly_that_gap() -> None:
     rng = np.random.default_rng(5)
     peer = rng.uniform(0.01, 0.2, 101)
     p = paired_medians(peer + 0.003, peer, seed=1)
-    assert p.ours_deg == pytest.approx(np.sort(peer)[50] + 0.003)
-    assert p.peer_deg == pytest.approx(np.sort(peer)[50])
-    assert p.diff_low_deg == pytest.approx(0.003) and p.diff_high_deg == pytest.approx(0.003)
+    assert p.ours == pytest.approx(np.sort(peer)[50] + 0.003)
+    assert p.peer == pytest.approx(np.sort(peer)[50])
+    assert p.diff_low == pytest.approx(0.003) and p.diff_high == pytest.approx(0.003)
     assert p.ours_lower_share == 0.0
 
 
@@ -29,7 +29,7 @@ def test_two_draws_of_the_same_noise_give_an_interval_around_zero() -> None:
     rng = np.random.default_rng(6)
     a, b = np.abs(rng.normal(0, 0.05, 400)), np.abs(rng.normal(0, 0.05, 400))
     p = paired_medians(a, b, seed=2)
-    assert p.diff_low_deg < 0 < p.diff_high_deg
+    assert p.diff_low < 0 < p.diff_high
     assert 0.4 < p.ours_lower_share < 0.6
 
 
@@ -37,7 +37,7 @@ def test_failures_count_in_the_medians_and_not_in_the_share() -> None:
     ours = np.array([0.1, 0.1, 0.1, math.inf, 0.1])
     peer = np.array([0.2, 0.2, 0.2, 0.2, math.inf])
     p = paired_medians(ours, peer, seed=3)
-    assert p.ours_deg == pytest.approx(0.1) and p.peer_deg == pytest.approx(0.2)
+    assert p.ours == pytest.approx(0.1) and p.peer == pytest.approx(0.2)
     assert p.ours_lower_share == 1.0  # of the three trials where both gave a pose
 
 
@@ -88,3 +88,15 @@ def test_nothing_found_by_both_is_said() -> None:
 def test_no_peer_is_refused() -> None:
     with pytest.raises(ValueError, match="no peer"):
         best_peer_cells(TrialErrors(np.zeros(2), np.zeros(2)), {})
+
+
+def test_the_small_quad_table_tells_the_draws_mavvo_ends_closer_and_the_gap_interval() -> None:
+    from benchmarks.small_quad import against_mavvo_cell
+
+    peer_end = [0.05, 0.12, 0.03, 0.08, 0.06]
+    runs = [{"mavvo": {"end": e - 0.01}, "script": {"end": e}} for e in peer_end]
+    assert against_mavvo_cell(runs, "script") == "-0.01 to -0.01 m; 5 of 5"
+    assert against_mavvo_cell(runs, "mavvo") == "-"
+    runs[1]["mavvo"]["end"] = 0.50  # one draw far behind: counted, and the interval widens to hold it
+    cell = against_mavvo_cell(runs, "script")
+    assert cell.endswith("; 4 of 5") and cell.startswith("-0.01 to +")
