@@ -19,7 +19,10 @@ For the two peers a reset is a frame where fewer than 8 tracks survive (they re-
 frame's motion); they send an estimate for every frame with a motion. Errors: the last estimate against
 the truth at its time, without alignment (what the autopilot feels), horizontal and vertical, and in
 percent of the path. CPU per frame: the thread's CPU time in each method's step (tracking included),
-median over frames. Same frames, methods stepped in turn on each frame.
+median over frames. Same frames, methods stepped in turn on each frame. Each peer's row also compares
+its end errors with mavvo's draw by draw (the same noise for both): the 90% bootstrap interval of the
+difference of the medians and the draws where mavvo ends closer, since a median over a few draws moves
+by centimetres from one set of draws to another.
 """
 
 from __future__ import annotations
