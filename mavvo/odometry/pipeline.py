@@ -278,17 +278,18 @@ class Odometry:
         R_lvl_body2 = T2 @ R_lvl_body(frame.roll_rad, frame.pitch_rad)
         roll2, pitch2, _ = euler321_from_R(R_lvl_body2)  # the frame's roll/pitch with vision's correction
         inl = rp.inliers
+        f1i, f2i = f1[inl], f2[inl]
         n = len(i_kf)
         depth2 = np.full(n, np.nan)
         par = np.zeros(n)
         if rp.reason == RelposeFailure.PURE_ROTATION:
-            a = f1[inl] @ rp.R_2_1.T
-            par[inl] = np.arccos(np.clip(np.einsum("ij,ij->i", a, f2[inl]), -1.0, 1.0))
+            a = f1i @ rp.R_2_1.T
+            par[inl] = np.arccos(np.clip(np.einsum("ij,ij->i", a, f2i), -1.0, 1.0))
             c2, scale = np.zeros(3), None
         else:
-            lam1, lam2, par_i, valid = triangulate_unit(f1[inl], f2[inl], rp.R_2_1, rp.t_2_1, self._min_parallax_rad)
+            lam1, lam2, par_i, valid = triangulate_unit(f1i, f2i, rp.R_2_1, rp.t_2_1, self._min_parallax_rad)
             par[inl] = par_i
-            pts = lam1[valid, None] * f1[inl][valid]
+            pts = lam1[valid, None] * f1i[valid]
             carried = kf.depth_m[i_kf][inl][valid]
             known = np.isfinite(carried) & (par_i[valid] >= self._carry_min_parallax_rad)
             down2 = R_lvl_body2[:, 2]
@@ -325,7 +326,7 @@ class Odometry:
                     self._scene_depth_m = median(scale.baseline_m * lam1[valid])
         p, yaw = kf.pose_of(c2, rp.yaw_rad)
         parallax_px = median(par[inl]) * self._focal_px
-        return Measurement(p, yaw, rp, scale, c2, parallax_px, depth2, par, (roll2, pitch2), (f1[inl], f2[inl]))
+        return Measurement(p, yaw, rp, scale, c2, parallax_px, depth2, par, (roll2, pitch2), (f1i, f2i))
 
     def _relpose(self, frame: PairedFrame, kf: Keyframe, f1: np.ndarray, f2: np.ndarray) -> UprightRelpose:
         """The relative pose of the frame's level bearings ``f2`` against the keyframe's ``f1``, its yaw
