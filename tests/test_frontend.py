@@ -244,39 +244,3 @@ def test_the_consensus_fit_is_the_least_squares_affine_map_of_the_tracks_it_keep
     assert np.array_equal(off, want)
     line = np.column_stack([np.linspace(0, 600, 50), np.full(50, 100.0)])
     assert not off_affine_consensus(line, line + 3.0, np.ones(50, bool), 0.5).any()
-
-
-def _fine_grain() -> np.ndarray:
-    """480x4000 grey texture of blurred noise: little of it is left at the pyramid's coarse levels."""
-    rng = np.random.default_rng(7)
-    canvas = cv2.GaussianBlur(rng.uniform(0, 255, (480, 4000)).astype(np.float32), (0, 0), 2.0)
-    return cv2.normalize(canvas, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
-
-
-def _checkerboard() -> np.ndarray:
-    """480x4000 checkerboard of 42 px period (0.1 m squares 2 m below a 640 px camera of f 420 px)."""
-    v, u = np.mgrid[0:480, 0:4000]
-    return cv2.GaussianBlur(((u // 21 + v // 21) % 2 * 160 + 48).astype(np.uint8), (0, 0), 1.0)
-
-
-@pytest.mark.parametrize(
-    ("texture", "step_px"), [(_fine_grain, 12.0), (_checkerboard, 4.0)], ids=["fine grain", "checkerboard"]
-)
-def test_a_pan_that_speeds_up_past_the_pyramids_reach_is_followed(texture, step_px: float) -> None:
-    """A camera panning faster every frame, ``step_px`` more each (to 132 px a frame over the fine
-    grain, 44 over the checkerboard, more than its period): each track starts where its last
-    displacement puts it, so it is followed where a start at its old position slips to another grain
-    of a fine texture whose coarse pyramid levels show little (from 24 px a frame), or every track
-    together to the next square of a checkerboard (from half its period, 21 px). Every track that
-    survives moved exactly as the image did, and most do (the rest leave the image)."""
-    canvas = texture()
-    fe = Frontend(CAMERA)
-    x, prev = 0, fe.process(np.ascontiguousarray(canvas[:, :640]))
-    for k in range(1, 12):
-        x += int(step_px * k)
-        tr = fe.process(np.ascontiguousarray(canvas[:, x : x + 640]))
-        _, ia, ib = np.intersect1d(prev.ids, tr.ids, return_indices=True)
-        moved = tr.uv_px[ib] - prev.uv_px[ia]
-        assert tr.tracked == len(ib) > 0.6 * len(prev.ids), k
-        assert np.abs(moved - [-step_px * k, 0.0]).max() < 0.05, k
-        prev = tr

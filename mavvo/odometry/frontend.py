@@ -3,9 +3,8 @@
 Pixels in, tracks out. Each track keeps one id for as long as it lives, so the odometry can match a
 frame against its keyframe by id. Per frame:
 
-1. the previous frame's tracks are followed into the new image with pyramidal Lucas-Kanade, each
-   starting where its last displacement puts it (a new track: the tracks' median one; on faint
-   texture, below, at its old position), then followed back (from their old positions, at full resolution by default); a track survives when both
+1. the previous frame's tracks are followed into the new image with pyramidal Lucas-Kanade, then
+   followed back (from their old positions, at full resolution by default); a track survives when both
    directions converge, the round trip returns within ``fb_max_px`` and it stays ``border_px`` inside
    the image. Where the texture is faint (``klt_highpass_below``), KLT sees each image less its local
    mean (``klt_highpass_px``): brightness the camera adds, vignetting and exposure offsets, does not
@@ -247,25 +246,20 @@ class Frontend:
         self._prev_fit: np.ndarray | None = None  # the previous image filtered for KLT, when it was
         self._ids = np.zeros(0, np.int64)
         self._uv = np.zeros((0, 2), np.float32)
-        self._flow = np.zeros((0, 2), np.float32)  # each track's last displacement, px
 
     def process(self, image: np.ndarray) -> Tracks:
         """Track into ``image`` ((H,W) uint8, the camera's size) and top up with new corners."""
         img = self._check(image)
-        ids, uv, flow = self._ids, self._uv, self._flow
+        ids, uv = self._ids, self._uv
         fit = None
         if self._prev is not None and len(uv):
-            # Both images of a pair the same way: filtered where this frame's texture is faint. A track
-            # starts where its last displacement puts it: the image moves smoothly, so the coarse levels
-            # start near their answer and stop sooner, and a pan faster than the pyramid reaches from a
-            # standing start is followed. Not on faint texture, where KLT stops short of the optimum
-            # and the start's error stays in the track (docs/odometry.md, "The frontend on small cameras").
-            pair, fb_max_px, start_flow = (self._prev, img), self.options.fb_max_px, flow
+            # Both images of a pair the same way: filtered where this frame's texture is faint.
+            pair, fb_max_px = (self._prev, img), self.options.fb_max_px
             if self._highpass and local_contrast(img, self._highpass) < self.options.klt_highpass_below:
                 fit = self._klt_image(img)
                 pair = (self._prev_fit if self._prev_fit is not None else self._klt_image(self._prev), fit)
-                fb_max_px, start_flow = self.options.fb_max_faint_px, None
-            keep, uv, flow = self._track(*pair, uv, start_flow, fb_max_px)
+                fb_max_px = self.options.fb_max_faint_px
+            keep, uv = self._track(*pair, uv, fb_max_px)
             ids = ids[keep]
         tracked = len(ids)
         if tracked < self.options.redetect_fraction * self.options.max_features:
@@ -275,9 +269,6 @@ class Frontend:
                 self._next_id += len(new_uv)
                 ids = np.concatenate([ids, new_ids])
                 uv = np.concatenate([uv, new_uv])
-                # A new corner moves as the image does: the tracks' median displacement.
-                new_flow = np.median(flow, axis=0) if len(flow) else np.zeros(2, np.float32)
-                flow = np.concatenate([flow, np.broadcast_to(new_flow.astype(np.float32), new_uv.shape)])
         uv64 = uv.astype(np.float64)
         f_cam = self.camera.pixels_to_bearings(uv64)
         # A pixel the camera model cannot undistort (the corners of a strongly distorted lens) has no
@@ -285,9 +276,9 @@ class Frontend:
         valid = np.isfinite(f_cam.sum(axis=1))
         if not np.all(valid):
             self.dropped_unmappable += int(np.count_nonzero(~valid))
-            ids, uv, flow, uv64, f_cam = ids[valid], uv[valid], flow[valid], uv64[valid], f_cam[valid]
+            ids, uv, uv64, f_cam = ids[valid], uv[valid], uv64[valid], f_cam[valid]
             tracked = int(np.count_nonzero(valid[:tracked]))
-        self._prev, self._ids, self._uv, self._flow = img, ids, uv, flow
+        self._prev, self._ids, self._uv = img, ids, uv
         self._prev_fit = fit
         return Tracks(ids=ids, uv_px=uv64, f_cam=f_cam, tracked=tracked)
 
@@ -319,19 +310,14 @@ class Frontend:
         return cv2.addWeighted(img, _HIGHPASS_GAIN, mean, -_HIGHPASS_GAIN, 128.0)
 
     def _track(
-        self, prev: np.ndarray, cur: np.ndarray, uv0: np.ndarray, flow0: np.ndarray | None, fb_max_px: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        self, prev: np.ndarray, cur: np.ndarray, uv0: np.ndarray, fb_max_px: float
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Forward and backward KLT, a round trip within ``fb_max_px``; (surviving mask over uv0, their
-        new positions, their displacements). ``flow0`` (N,2): where each track starts, px from uv0
-        (None: at uv0)."""
+        new positions)."""
         opt = self.options
         p0 = uv0.reshape(-1, 1, 2)
         lk = dict(winSize=self._win, maxLevel=self.klt_levels, criteria=self._criteria)
-        if flow0 is None:
-            p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, **lk)
-        else:
-            start = (uv0 + flow0).reshape(-1, 1, 2)
-            p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, start, flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, **lk)
         # Backward from the forward result, started at the original positions: a consistent track
         # converges there without the coarse levels (the same keep/drop decision for 99.96% of the
         # tracks of a survey flight as with all levels, at a third of the cost); one that is not
@@ -349,7 +335,7 @@ class Frontend:
             off = off_affine_consensus(uv0, p1, keep, self.consensus_max_px)
             if np.count_nonzero(off & keep) >= opt.consensus_min_share * np.count_nonzero(keep):
                 keep &= ~off
-        return keep, p1[keep], p1[keep] - uv0[keep]
+        return keep, p1[keep]
 
     def _cell(self, uv: np.ndarray, w: int, h: int) -> np.ndarray:
         """(N,) index of each pixel's detection-grid cell."""
