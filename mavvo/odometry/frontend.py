@@ -207,9 +207,8 @@ def local_contrast(img: np.ndarray, box_px: int) -> float:
     small = np.ascontiguousarray(img[::4, ::4])
     k = max((box_px // 4) | 1, 3)
     mean = cv2.blur(small, (k, k), borderType=cv2.BORDER_REFLECT)
-    return math.sqrt(
-        cv2.norm(small, mean, cv2.NORM_L2SQR) / small.size
-    )  # on every frame: one pass, no difference image
+    # On every frame: the squared difference summed in one OpenCV pass, no difference image.
+    return math.sqrt(cv2.norm(small, mean, cv2.NORM_L2SQR) / small.size)
 
 
 def _noise_floor(noise: float) -> int:
