@@ -89,19 +89,15 @@ def test_3pt_sweep_over_many_thousand_scenes_per_case() -> None:
 
 
 def test_3pt_batch_agrees_with_single_calls_over_a_sweep() -> None:
-    # Bit for bit they are not: BLAS rounds differently with the batch size. Where the roots are well
-    # conditioned they agree to 1e-9; where a case makes some root ill-conditioned (a nearly singular
-    # template) that root may differ, but both find the truth or neither does.
+    # A sample's rows are scaled to unit length the same way in a batch and alone, and the kernel solves
+    # each sample on its own, so the two give the same matrices to the last bit, near-degenerate cases
+    # included (with the rows scaled apart by one ulp, 2 of 500 samples moving along gravity had a
+    # solution alone and none in the batch).
     rng = np.random.default_rng(2025)
-    cases = _sweep_cases(rng, 500)
-    solved = {}
-    for name, data in cases.items():
+    for name, data in _sweep_cases(rng, 500).items():
         E, valid = solve_upright_3pt_batch(np.stack([s.f1_lvl for s in data]), np.stack([s.f2_lvl for s in data]))
-        solved[name] = [(E[b][valid[b]], solve_upright_3pt(s.f1_lvl, s.f2_lvl)) for b, s in enumerate(data)]
-        for (batch, single), s in zip(solved[name], data):
-            assert (_best_error(single, s) < 1e-6) == (_best_error(batch, s) < 1e-6), name
-    for batch, single in solved["general"]:
-        np.testing.assert_allclose(single, batch, rtol=0, atol=1e-9)
+        for b, s in enumerate(data):
+            np.testing.assert_array_equal(E[b][valid[b]], solve_upright_3pt(s.f1_lvl, s.f2_lvl), err_msg=f"{name} {b}")
 
 
 def _resident_mib() -> float:

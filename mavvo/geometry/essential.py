@@ -104,13 +104,16 @@ def as_sample_batch(name: str, F: object) -> np.ndarray:
     arr = np.asarray(F, dtype=float)
     if arr.ndim != 3 or arr.shape[1:] != (3, 3):
         raise ValueError(f"{name}: expected a (B,3,3) array (B samples of 3 bearings), got shape {arr.shape}")
-    if not np.isfinite(arr).all():
+    # Scaled as :func:`as_bearings` scales one sample's rows, to the last bit: a batch and the same
+    # samples one at a time then solve the same numbers (a near-degenerate sample can turn on one ulp).
+    unit = np.empty((arr.shape[0] * 3, 3))
+    bad = _unit_rows(np.ascontiguousarray(arr.reshape(-1, 3)), unit)
+    if bad == -2:
         raise ValueError(f"{name}: bearings must be finite, got NaN or inf")
-    norms = np.sqrt(np.einsum("bij,bij->bi", arr, arr))  # (B, 3 points)
-    if (norms < 1e-12).any():
-        b, i = np.unravel_index(int(np.argmin(norms)), norms.shape)
+    if bad >= 0:
+        b, i = divmod(bad, 3)
         raise ValueError(f"{name}: bearings must have non-zero length, sample {b} row {i} is zero")
-    return np.ascontiguousarray(arr / norms[..., None])
+    return unit.reshape(arr.shape)
 
 
 # --------------------------------------------------------------------------- the linear system
