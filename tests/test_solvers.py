@@ -331,6 +331,19 @@ def test_bad_input_raises_value_error_naming_the_argument(f1: np.ndarray, f2: np
         solve_upright_3pt(f1, f2)
 
 
+def test_bearings_of_any_finite_length_are_directions() -> None:
+    """A bearing is a direction: rows whose squares overflow (1e200) solve as their unit rows do, alone
+    and in a batch, where the single call used to end in an AssertionError."""
+    rng = np.random.default_rng(11)
+    s = make_scene(rng, 3, motion="forward", mount="nadir")
+    scaled = s.f1_lvl * np.array([[1e200], [1.0], [3e-5]])
+    expected = solve_upright_3pt(s.f1_lvl, s.f2_lvl)
+    assert len(expected) > 0
+    np.testing.assert_allclose(solve_upright_3pt(scaled, s.f2_lvl), expected, rtol=0, atol=1e-12)
+    E, valid = solve_upright_3pt_batch(scaled[None], s.f2_lvl[None])
+    np.testing.assert_allclose(E[0][valid[0]], expected, rtol=0, atol=1e-12)
+
+
 def test_bad_input_for_the_other_solvers() -> None:
     with pytest.raises(ValueError, match="f1: expected at least 4"):
         solve_upright_4pt(GOOD, GOOD)

@@ -57,7 +57,7 @@ def as_bearings(name: str, f: object, min_rows: int, exact_rows: int | None = No
     if n < min_rows:
         raise ValueError(f"{name}: expected at least {min_rows} bearings, got {n}")
     unit = np.empty((n, 3))
-    bad = _unit_rows(np.ascontiguousarray(arr), unit)
+    bad = unit_rows(np.ascontiguousarray(arr), unit)
     if bad == -2:
         raise ValueError(f"{name}: bearings must be finite, got NaN or inf")
     if bad >= 0:
@@ -66,7 +66,7 @@ def as_bearings(name: str, f: object, min_rows: int, exact_rows: int | None = No
 
 
 @kernel
-def _unit_rows(f: np.ndarray, out: np.ndarray) -> int:
+def unit_rows(f: np.ndarray, out: np.ndarray) -> int:
     """Rows of f (N, 3) scaled to unit length into out; -1 when all are finite and non-zero, else -2
     for a non-finite value, or the index of the first row shorter than 1e-12."""
     zero = -1
@@ -75,6 +75,10 @@ def _unit_rows(f: np.ndarray, out: np.ndarray) -> int:
         if not (abs(x) < np.inf and abs(y) < np.inf and abs(z) < np.inf):
             return -2
         norm = math.sqrt(x * x + y * y + z * z)
+        if norm == np.inf:  # finite but their squares overflow: a direction all the same
+            m = max(abs(x), abs(y), abs(z))
+            x, y, z = x / m, y / m, z / m
+            norm = math.sqrt(x * x + y * y + z * z)
         if norm < 1e-12:
             zero = i if zero < 0 else zero
             continue
@@ -107,7 +111,7 @@ def as_sample_batch(name: str, F: object) -> np.ndarray:
     # Scaled as :func:`as_bearings` scales one sample's rows, to the last bit: a batch and the same
     # samples one at a time then solve the same numbers (a near-degenerate sample can turn on one ulp).
     unit = np.empty((arr.shape[0] * 3, 3))
-    bad = _unit_rows(np.ascontiguousarray(arr.reshape(-1, 3)), unit)
+    bad = unit_rows(np.ascontiguousarray(arr.reshape(-1, 3)), unit)
     if bad == -2:
         raise ValueError(f"{name}: bearings must be finite, got NaN or inf")
     if bad >= 0:

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from mavvo.geometry.essential import as_bearing_pair, as_sample_batch, essential_from_vector
+from mavvo.geometry.essential import as_bearing_pair, as_sample_batch, essential_from_vector, unit_rows
 from mavvo.geometry.polyroots import quartic_roots
 from mavvo.geometry.small_linalg import symmetric_eigen
 from mavvo.jit import kernel
@@ -472,25 +472,12 @@ def solve_upright_3pt(f1: np.ndarray, f2: np.ndarray) -> np.ndarray:
     Returns:
         (k, 3, 3) essential matrices with unit Frobenius norm, 0 <= k <= 4.
     """
-    a, b = np.asarray(f1, dtype=float), np.asarray(f2, dtype=float)
+    a, b = np.ascontiguousarray(f1, dtype=float), np.ascontiguousarray(f2, dtype=float)
     if a.shape == (3, 3) and b.shape == (3, 3):
+        # The rows scaled by the kernel as_sample_batch uses: a sample solves alone as in a batch.
         X = np.empty((2, 1, 3, 3))
-        if _unit_rows(a, b, X):
+        if unit_rows(a, X[0, 0]) == -1 and unit_rows(b, X[1, 0]) == -1:
             e, valid = solve_samples(X[0], X[1])
             return essential_from_vector(e[0, valid[0]])
-    as_bearing_pair(f1, f2, 3, exact_rows=3)  # raises, naming what is wrong
+    as_bearing_pair(f1, f2, 3, exact_rows=3)  # raises, naming what is wrong (the same kernel's verdict)
     raise AssertionError("unreachable: the input was valid")
-
-
-@kernel
-def _unit_rows(f1: np.ndarray, f2: np.ndarray, X: np.ndarray) -> bool:
-    """f1, f2 (3, 3) with unit rows into X (2, 1, 3, 3); False for a non-finite or zero-length row."""
-    for v in range(2):
-        f = f1 if v == 0 else f2
-        for j in range(3):
-            n = math.sqrt(f[j, 0] ** 2 + f[j, 1] ** 2 + f[j, 2] ** 2)
-            if not (math.isfinite(n) and n >= 1e-12):
-                return False
-            for c in range(3):
-                X[v, 0, j, c] = f[j, c] / n
-    return True
