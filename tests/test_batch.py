@@ -108,9 +108,16 @@ def test_ctrl_c_cancels_the_rest_keeps_what_finished_and_the_same_command_resume
     import signal
 
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "mavvo", "batch", str(flights / "recordings" / "*"), "--grid",
-           str(flights / "grid.yaml"), "--out", str(out), "--workers", "1"]  # fmt: skip
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    args = ["batch", str(flights / "recordings" / "*"), "--grid", str(flights / "grid.yaml"), "--out", str(out),
+            "--workers", "1"]  # fmt: skip
+    # Started as a terminal starts its foreground job: SIGINT at its default. A test run started in the
+    # background of a non-interactive shell (`make soak &`) ignores SIGINT, and a child inherits that.
+    at_a_terminal = (
+        "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+        "from mavvo.cli import main; sys.exit(main(sys.argv[1:]))"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", at_a_terminal, *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)  # fmt: skip
     journal = out / "results.jsonl"
     deadline = time.monotonic() + 120
     while not (journal.exists() and journal.read_text().count("\n") >= 1):
@@ -121,7 +128,7 @@ def test_ctrl_c_cancels_the_rest_keeps_what_finished_and_the_same_command_resume
     done = journal.read_text().count("\n")
     assert proc.returncode == 130 and 1 <= done < 4, (proc.returncode, done, err)
     assert "run the same command again to resume" in err and "Traceback" not in err
-    assert _batch(*cmd[4:]) == 0
+    assert _batch(*args[1:]) == 0
     assert f"{done} finished before, {4 - done} to run" in capsys.readouterr().err
     assert len(Journal(out).rows()) == 4
 
