@@ -9,7 +9,7 @@ import pytest
 from mavvo.geometry.camera_model import CameraModel
 from mavvo.geometry.frames import R_BODY_CAM_FORWARD, R_BODY_CAM_NADIR, R_from_euler321, rot_y
 from mavvo.sim.world.render import Renderer, apply_effects
-from mavvo.sim.world.scene import BoxSpec, PatchSpec, TextureLayer, World, WorldSpec
+from mavvo.sim.world.scene import BoxSpec, PatchSpec, TextureLayer, World, WorldSpec, concrete_tile, grass_tile
 
 PINHOLE = CameraModel(640, 480, 500.0, 500.0, 319.5, 239.5)
 RADTAN = CameraModel(640, 480, 420.0, 420.0, 322.0, 236.0, "pinhole", (-0.28, 0.07, 0.0005, -0.0003))
@@ -179,3 +179,24 @@ def test_every_layer_is_drawn_wherever_it_has_weight(mount, pitch_rad, height_m,
     assert img.min() >= 101, f"{np.count_nonzero(img < 101)} pixels darker than every layer"
     lo, hi = greys
     assert np.count_nonzero((img >= lo) & (img <= hi)) > 0.3 * img.size  # ground, blended from the layers
+
+
+@pytest.mark.parametrize("draw", [grass_tile, concrete_tile])
+def test_ground_textures_are_seeded_and_repeat_without_a_seam(draw):
+    tile = draw(512, np.random.default_rng(3)).astype(np.int16)
+    assert np.array_equal(tile, draw(512, np.random.default_rng(3)))  # the same floor every time
+    assert not np.array_equal(tile, draw(512, np.random.default_rng(4)))
+    # The step across the tile's wrap-around edge is one more step between neighbours, row-wise and
+    # column-wise: inside the spread of the steps between the tile's own rows and columns.
+    for t in (tile, tile.T):
+        inner = np.abs(np.diff(t, axis=0)).mean(axis=1)
+        seam = np.abs(t[0] - t[-1]).mean()
+        assert np.percentile(inner, 0.5) <= seam <= np.percentile(inner, 99.5), (
+            seam,
+            np.percentile(inner, [0.5, 99.5]),
+        )
+
+
+def test_grass_lets_the_soil_show_between_the_blades():
+    tile = grass_tile(512, np.random.default_rng(3))
+    assert np.mean(tile < 50) >= 0.05  # darker than any blade

@@ -16,12 +16,13 @@ import numpy as np
 
 from mavvo.options import bounded
 
-TextureKind = Literal["corners", "checker", "flat"]
+TextureKind = Literal["corners", "checker", "flat", "grass", "concrete"]
 
 _TILE_PX = 1024
 _LAYER_RATIO = 8.0
 _BOX_TILE_PX = 256
 _CHECKER_SQUARE_PX = 64
+_GRASS_SHADES = 8
 
 
 @dataclass(frozen=True)
@@ -54,7 +55,8 @@ class WorldSpec:
     """What the ground looks like and what stands on it."""
 
     texture: TextureKind = bounded(
-        "corners", "corners: multi-scale corners; checker: a checkerboard; flat: featureless grey"
+        "corners",
+        "corners: multi-scale corners; checker: a checkerboard; flat: featureless grey; grass: a lawn seen from above; concrete: a trowelled floor",
     )
     texture_seed: int = bounded(0, "seed of the procedural texture", ge=0)
     finest_m_per_px: float = bounded(0.004, "ground size of one texel of the finest layer", gt=0)
@@ -117,9 +119,9 @@ class World:
         elif spec.texture == "flat":
             layers = (TextureLayer(np.full((8, 8), 128, np.uint8), spec.finest_m_per_px),)
         else:
+            draw = {"grass": grass_tile, "concrete": concrete_tile}.get(spec.texture, corner_tile)
             layers = tuple(
-                TextureLayer(corner_tile(_TILE_PX, rng), spec.finest_m_per_px * _LAYER_RATIO**k)
-                for k in range(spec.layers)
+                TextureLayer(draw(_TILE_PX, rng), spec.finest_m_per_px * _LAYER_RATIO**k) for k in range(spec.layers)
             )
         if spec.contrast != 1.0:
             layers = tuple(TextureLayer(_scaled_contrast(la.tile, spec.contrast), la.m_per_px) for la in layers)
@@ -156,6 +158,79 @@ def corner_tile(size_px: int, rng: np.random.Generator) -> np.ndarray:
             q = np.round((pts + [dx, dy]) * 16).astype(np.int32)
             cv2.fillConvexPoly(img, q, int(levels[i]), lineType=cv2.LINE_AA, shift=4)
     return img
+
+
+def grass_tile(size_px: int, rng: np.random.Generator) -> np.ndarray:
+    """A periodic (size,size) uint8 lawn seen from above: blades (strokes 1-2 texels wide, 5 to 30
+    long, every direction) over dark soil and shadow, brighter blades on top, in clumps that a
+    smooth field of about 60 texels makes lighter or darker.
+
+    No corner stands out the way a printed shape's does: what a tracker gets is many thin edges
+    crossing at random, aliasing once a blade is narrower than a pixel. Blades that cross an edge are
+    drawn again on the opposite side, so the tile repeats seamlessly.
+    """
+    n = int(0.06 * size_px * size_px)  # the soil shows between the blades
+    length = np.exp(rng.uniform(np.log(5.0), np.log(30.0), n))
+    angle = rng.uniform(0.0, np.pi, n)
+    start = rng.uniform(0.0, size_px, (n, 2))
+    end = start + length[:, None] * np.column_stack([np.cos(angle), np.sin(angle)])
+    width = np.where(rng.random(n) < 0.6, 1, 2)
+    shade = rng.integers(0, _GRASS_SHADES, n)  # one drawing call per shade and width, darkest first
+    # Drawn on a canvas a blade's length wider all round, then cropped: a line OpenCV clips at the
+    # canvas's edge is anti-aliased differently there, which would show as a seam between tiles.
+    m = 32
+    canvas = np.full((size_px + 2 * m, size_px + 2 * m), 30, np.uint8)
+    shifts = [(dx + m, dy + m) for dx in (-size_px, 0, size_px) for dy in (-size_px, 0, size_px)]
+    for k in range(_GRASS_SHADES):
+        level = int(60 + 110 * k / (_GRASS_SHADES - 1))
+        for w in (1, 2):
+            pick = (shade == k) & (width == w)
+            seg = np.stack([start[pick], end[pick]], axis=1)
+            for dx, dy in shifts:
+                lo, hi = seg.min(axis=1) + [dx, dy], seg.max(axis=1) + [dx, dy]
+                near = np.all((hi >= m - 2) & (lo < size_px + m + 2), axis=1)
+                if np.any(near):
+                    q = np.round((seg[near] + [dx, dy]) * 16).astype(np.int32)
+                    cv2.polylines(canvas, list(q), False, level, w, cv2.LINE_AA, 4)
+    img = canvas[m : m + size_px, m : m + size_px]
+    clumps = 1.0 + 0.25 * _periodic_smooth_noise(size_px, 60.0, rng)
+    return np.clip(img * clumps + 0.5, 0, 255).astype(np.uint8)
+
+
+def concrete_tile(size_px: int, rng: np.random.Generator) -> np.ndarray:
+    """A periodic (size,size) uint8 concrete floor: mottling at three scales (about 40, 10 and 3
+    texels) around mid-grey, dark pores of 1-3 texels and light specks of aggregate.
+
+    What a tracker finds on it is blobs rather than corners: Shi-Tomasi's minimum eigenvalue is high
+    at a pore or a speck and on the mottling's curved edges, FAST's segment test finds few corners.
+    """
+    grey = 128.0 + 18.0 * _periodic_smooth_noise(size_px, 40.0, rng)
+    grey += 10.0 * _periodic_smooth_noise(size_px, 10.0, rng) + 6.0 * _periodic_smooth_noise(size_px, 3.0, rng)
+    img = np.clip(grey + 0.5, 0, 255).astype(np.uint8)
+    for count, level in ((int(0.004 * size_px * size_px), 60), (int(0.002 * size_px * size_px), 200)):
+        centre = np.round(rng.uniform(0.0, size_px, (count, 2)) * 16).astype(np.int32)
+        radius = np.round(rng.uniform(0.5, 1.5, count) * 16).astype(np.int32)
+        for (u, v), r in zip(centre, radius):
+            # Near an edge also drawn where it wraps to: the tile repeats seamlessly.
+            for du in _wraps(int(u), size_px * 16):
+                for dv in _wraps(int(v), size_px * 16):
+                    cv2.circle(img, (int(u + du), int(v + dv)), int(r), level, -1, cv2.LINE_AA, 4)
+    return img
+
+
+def _wraps(x: int, period: int) -> tuple[int, ...]:
+    """Shifts by which a dot at ``x`` (within 4 texels of an edge, 16ths) is drawn again."""
+    margin = 4 * 16
+    return (0, -period) if x > period - margin else (0, period) if x < margin else (0,)
+
+
+def _periodic_smooth_noise(size_px: int, scale_px: float, rng: np.random.Generator) -> np.ndarray:
+    """(size,size) float noise of unit standard deviation, smooth over about ``scale_px`` and periodic
+    (white noise low-passed by a Gaussian in the frequency domain, which wraps around)."""
+    f = np.fft.fftfreq(size_px)
+    gain = np.exp(-0.5 * (2 * np.pi * scale_px / 4) ** 2 * (f[:, None] ** 2 + f[None, :] ** 2))
+    field = np.fft.ifft2(np.fft.fft2(rng.standard_normal((size_px, size_px))) * gain).real
+    return field / field.std()
 
 
 def _scaled_contrast(tile: np.ndarray, contrast: float) -> np.ndarray:
