@@ -199,4 +199,6 @@ def test_ground_textures_are_seeded_and_repeat_without_a_seam(draw):
 
 def test_grass_lets_the_soil_show_between_the_blades():
     tile = grass_tile(512, np.random.default_rng(3))
-    assert np.mean(tile < 50) >= 0.05  # darker than any blade
+    # The soil (grey 30) and the dimmest blades of the darkest clumps: with a third more blades (0.08 a
+    # texel instead of 0.06) this share was 4.5%, and the test failed.
+    assert np.mean(tile < 50) >= 0.05
