@@ -505,7 +505,10 @@ def test_the_close_range_is_entered_below_its_depth_and_left_only_well_beyond_it
 def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_the_translation() -> None:
     """docs/odometry.md, Covariance. At 3 m/s the motion term is position_sigma_per_speed_s * 3 m/s
     times the tracks' noise over track_noise_px (0.1 px), counted from half to ten times it: 4.5 mm for
-    tracks at 0.02 px, 45 mm at 0.5 px, 90 mm at 1 px and more or an unknown noise. A height source's 1% moves a frame 4 m
+    tracks at 0.02 px, 45 mm at 0.5 px, 90 mm at 1 px and more or an unknown noise. The same over a floor
+    0.5 m below as with the scene 10 m away (a track's error grows with its image motion, f x speed /
+    depth, and a pixel moves the position by depth / f): only the image-noise term shrinks with the
+    depth, to a fifth. A height source's 1% moves a frame 4 m
     north of its keyframe by 4 cm north and not at all east or down; the votes' spread (here 0) would
     count everywhere."""
     sc = load_scenario("square")
@@ -517,7 +520,7 @@ def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_
         _failure(RelposeFailure.NO_MODEL, 40), success=True, reason=RelposeFailure.NONE, attitude_resolved=True
     )
 
-    def noise(track_noise_px: float, sensor_spread: float) -> np.ndarray:
+    def noise(track_noise_px: float, sensor_spread: float, depth_m: float = opt.scale.initial_depth_m) -> np.ndarray:
         m = Measurement(
             np.array([5.0, 2.0, -10.0]),
             0.0,
@@ -535,7 +538,7 @@ def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_
             frame,
             kf,
             m,
-            depth_m=opt.scale.initial_depth_m,
+            depth_m=depth_m,
             focal_px=vo._focal_px,
             speed_m_s=3.0,
             view_attitude_sigmas_rad=(0.0, 0.0),
@@ -543,10 +546,14 @@ def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_
         assert p is not None
         return cov
 
-    floor_sq = opt.position_sigma_m**2  # the scene 10 m away (initial_depth_m)
-    for track_px, factor in ((0.02, 0.5), (0.1, 1.0), (0.5, 5.0), (1.0, 10.0), (3.0, 10.0), (math.nan, 10.0)):
-        expected = floor_sq + (opt.position_sigma_per_speed_s * 3.0 * factor) ** 2
-        np.testing.assert_allclose(noise(track_px, 0.0), expected * np.eye(3), rtol=1e-9, atol=1e-15)
+    assert opt.scale.initial_depth_m == 10.0
+    # The image-noise floor: position_sigma_m with the scene 10 m away, a fifth of it at 0.5 m.
+    for depth_m, floor_sq in ((10.0, opt.position_sigma_m**2), (0.5, (opt.position_sigma_m / 5) ** 2)):
+        for track_px, factor in ((0.02, 0.5), (0.1, 1.0), (0.5, 5.0), (1.0, 10.0), (3.0, 10.0), (math.nan, 10.0)):
+            expected = floor_sq + (opt.position_sigma_per_speed_s * 3.0 * factor) ** 2
+            np.testing.assert_allclose(
+                noise(track_px, 0.0, depth_m), expected * np.eye(3), rtol=1e-9, atol=1e-15, err_msg=f"{depth_m} m"
+            )
     extra = noise(0.1, 0.01) - noise(0.1, 0.0)
     np.testing.assert_allclose(extra, np.diag([0.04**2, 0.0, 0.0]), atol=1e-12)
 

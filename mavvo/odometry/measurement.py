@@ -97,15 +97,17 @@ def position_noise(
         # a tilt from a translation, turn every bearing by about their error: the translation moves
         # by depth times it. Resolved ones leave what the pairing's interpolation may add.
         # The motion's errors grow with the tracks' noise (the relative pose's residuals, over
-        # the noise position_sigma_per_speed_s is given for). Independent sources: they add in
-        # quadrature; a height source's noise moves the position along the translation only.
+        # the noise position_sigma_per_speed_s is given for). Not with the depth: a track's error
+        # grows with its image motion (f x speed / depth) and moves the position by depth / f per
+        # pixel, so the product is the speed's. Independent sources: they add in quadrature; a
+        # height source's noise moves the position along the translation only.
         tilt_rad = frame.interpolation_sigma_rad if rp.attitude_resolved else math.hypot(*view_attitude_sigmas_rad)
         resid_px = rp.residual_rms_rad * focal_px if math.isfinite(rp.residual_rms_rad) else math.inf
         track_noise = min(max(resid_px / opt.track_noise_px, _TRACK_NOISE_MIN), _TRACK_NOISE_MAX)  # unknown: the most
         c2_m = float(np.linalg.norm(m.c2_m))
         unresolved = math.hypot(
             m.scale.spread * c2_m,
-            opt.position_sigma_per_speed_s * speed_m_s * track_noise * min(max(depth_m / _REFERENCE_DEPTH_M, 0.2), 1.0),
+            opt.position_sigma_per_speed_s * speed_m_s * track_noise,
             depth_m * tilt_rad,
             kf.unmeasured_m,  # measured from a keyframe whose own place was not
         )

@@ -39,7 +39,7 @@ class OdometryOptions:
     )
     position_sigma_per_speed_s: float = bounded(
         0.003,
-        "vision position noise per m/s of speed with the tracks' noise at track_noise_px and the scene 10 m away or more (the translation's direction and length errors grow with the motion and the noise; counted from half to ten times this noise; nearer, it shrinks with the depth down to a fifth), seconds",
+        "vision position noise per m/s of speed with the tracks' noise at track_noise_px (the translation's direction and length errors grow with the motion and the noise, at any depth; counted from half to ten times this noise), seconds",
         ge=0,
         le=10,
     )
