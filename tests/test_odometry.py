@@ -434,9 +434,11 @@ def test_keyframes_hold_their_level_frame_while_the_scene_is_near() -> None:
 
 
 def test_a_keyframe_placed_off_in_height_is_put_back_by_the_range() -> None:
-    """indoor_hops' first 6 s, the current keyframe moved 2 cm up on each of eight frames in a row (as
-    relative poses on slipped tracks moved it over a printed floor: vision's down is millimetre-tight, so
-    the filter follows). The range is gated out from about 10 cm on; after step_frames of that the
+    """indoor_hops' first 6 s, the current keyframe moved 4 cm up on each of eight frames in a row (as
+    relative poses on slipped tracks moved it over a printed floor: the filter follows, here by a restart
+    at the measurement once its gate has refused five in a row; with 2 cm steps, since the motion noise
+    is no longer scaled down over a close floor, the estimate moved only 6 cm, inside the 5 cm + 2%
+    checked below). The range is gated out from about 10 cm on; after step_frames of that the
     down coordinate is set to the range, and it stays within 5 cm + 2% of the height (the accuracy asked
     of a flight with a range). Before, the range won by an update weighed against vision's tight down,
     which moved it by millimetres, and the next measurement from the same keyframe put the error back."""
@@ -453,7 +455,7 @@ def test_a_keyframe_placed_off_in_height_is_put_back_by_the_range() -> None:
         errors.append((e.t_exposure_s, e.p_ned_m[2] - true_down, -true_down))
         if t_moved is None and e.t_exposure_s >= 2.0 or t_moved is not None and e.t_exposure_s < t_moved + 0.15:
             t_moved = e.t_exposure_s if t_moved is None else t_moved
-            vo.chain.shift_down(-0.02)
+            vo.chain.shift_down(-0.04)
     t, err, height = np.array(errors).T
     err -= err[0]  # the start's offset: where the first keyframe was put
     moved = (t > t_moved) & (t < t_moved + 0.25)
