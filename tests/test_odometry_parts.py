@@ -508,9 +508,8 @@ def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_
     tracks at 0.02 px, 45 mm at 0.5 px, 90 mm at 1 px and more or an unknown noise. The same over a floor
     0.5 m below as with the scene 10 m away (a track's error grows with its image motion, f x speed /
     depth, and a pixel moves the position by depth / f): only the image-noise term shrinks with the
-    depth, to a fifth. A height source's 1% moves a frame 4 m
-    north of its keyframe by 4 cm north and not at all east or down; the votes' spread (here 0) would
-    count everywhere."""
+    depth, to a fifth. A height source's 1% moves a frame 4 m north of its keyframe by 4 cm north and
+    not at all east or down; the votes' spread (here 0) would count everywhere."""
     sc = load_scenario("square")
     vo = Odometry(sc.camera.camera_model(), sc.camera.R_body_cam())
     opt = vo.options
@@ -520,7 +519,7 @@ def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_
         _failure(RelposeFailure.NO_MODEL, 40), success=True, reason=RelposeFailure.NONE, attitude_resolved=True
     )
 
-    def noise(track_noise_px: float, sensor_spread: float, depth_m: float = opt.scale.initial_depth_m) -> np.ndarray:
+    def noise(track_noise_px: float, sensor_spread: float, depth_m: float) -> np.ndarray:
         m = Measurement(
             np.array([5.0, 2.0, -10.0]),
             0.0,
@@ -546,7 +545,6 @@ def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_
         assert p is not None
         return cov
 
-    assert opt.scale.initial_depth_m == 10.0
     # The image-noise floor: position_sigma_m with the scene 10 m away, a fifth of it at 0.5 m.
     for depth_m, floor_sq in ((10.0, opt.position_sigma_m**2), (0.5, (opt.position_sigma_m / 5) ** 2)):
         for track_px, factor in ((0.02, 0.5), (0.1, 1.0), (0.5, 5.0), (1.0, 10.0), (3.0, 10.0), (math.nan, 10.0)):
@@ -554,7 +552,7 @@ def test_the_position_noise_follows_the_tracks_noise_and_a_height_sources_along_
             np.testing.assert_allclose(
                 noise(track_px, 0.0, depth_m), expected * np.eye(3), rtol=1e-9, atol=1e-15, err_msg=f"{depth_m} m"
             )
-    extra = noise(0.1, 0.01) - noise(0.1, 0.0)
+    extra = noise(0.1, 0.01, 10.0) - noise(0.1, 0.0, 10.0)
     np.testing.assert_allclose(extra, np.diag([0.04**2, 0.0, 0.0]), atol=1e-12)
 
 
