@@ -59,7 +59,7 @@ lint: $(STAMP)
 soak: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow -rP
 
-# Every shipped scenario over five draws of its noise (about 45 minutes on 2 cores, the small-quad scenarios the longest): what the vehicle
+# Every shipped scenario over five draws of its noise (about 50 minutes on 2 cores, the small-quad scenarios the longest): what the vehicle
 # would feel, median and range; writes the tables into docs/service.md.
 draws: $(STAMP)
 	$(BIN)/python -m mavvo.sim.scenarios.draws --markdown docs/service.md
@@ -71,7 +71,7 @@ faults: $(STAMP)
 
 # Benchmarks run single-threaded (the last line adds OpenCV on all cores); PoseLib is installed for the
 # comparison when the platform has it.
-# The small-quad benchmark flies fifteen draws of each scenario's noise, two at a time (about 95 minutes
+# The small-quad benchmark flies fifteen draws of each scenario's noise, two at a time (about 110 minutes
 # on 2 cores): five leave centimetre gaps between mavvo and a script inside the draws' spread.
 SMALL_QUAD_SEEDS ?= own,101,102,103,104,105,106,107,108,109,110,111,112,113,114
 bench: $(STAMP)

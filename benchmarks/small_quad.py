@@ -1,7 +1,7 @@
 """mavvo beside what a user would write instead, on a small quad's camera: the same rendered frames,
 attitude and range for each.
 
-    python benchmarks/small_quad.py [--scenarios indoor_hops,indoor_carpet,indoor_patches,indoor_tiles,indoor_concrete,outdoor_grass] [--seeds own,101,102,103,104] [--markdown docs/benchmarks.md]
+    python benchmarks/small_quad.py [--scenarios indoor_hops,indoor_carpet,indoor_patches,indoor_patches_trim,indoor_tiles,indoor_concrete,outdoor_grass] [--seeds own,101,102,103,104] [--markdown docs/benchmarks.md]
 
 Methods, each fed the same paired frames (:class:`mavvo.sim.scenarios.paired_frames.PairedSequence`: the
 scenario's rendered camera, roll/pitch/yaw with its noise, the rangefinder) and started at the true
@@ -220,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument(
         "--scenarios",
-        default="indoor_hops,indoor_carpet,indoor_patches,indoor_tiles,indoor_concrete,outdoor_grass",
+        default="indoor_hops,indoor_carpet,indoor_patches,indoor_patches_trim,indoor_tiles,indoor_concrete,outdoor_grass",
         help="comma-separated names or paths",
     )
     ap.add_argument("--seeds", default="own,101,102,103,104", help="draws of the noise: own is the scenario's seed")

@@ -184,7 +184,7 @@ def test_square_with_altitude_scale() -> None:
 
 
 @functools.lru_cache(maxsize=None)
-def _textureless(coast_max_s: float = OdometryOptions().coast_max_s) -> Run:
+def _textureless(coast_max_s: float = OdometryOptions().coast_max_s, trim_deg: float = 0.0) -> Run:
     scenario = build(
         Scenario,
         {
@@ -192,6 +192,7 @@ def _textureless(coast_max_s: float = OdometryOptions().coast_max_s) -> Run:
             "seed": 3,
             "trajectory": {"type": "square", "altitude_m": 10.0, "side_m": 10.0, "speed_m_s": 2.0},
             "faults": [{"kind": "textureless_frames", "start_s": 6.0, "duration_s": 1.5}],
+            "flight_controller": {"attitude_bias_deg": [trim_deg, trim_deg]},
         },
         "test",
     )
@@ -250,6 +251,24 @@ def test_a_short_textureless_stretch_is_coasted_through_without_a_reset() -> Non
     assert np.all(np.abs(err[:2]) < 3.0 * sigma) and resumed.drift_m >= sigma
     old_err = error(_textureless(coast_max_s=1.0).estimates[first])
     assert np.linalg.norm(err[:2]) < 0.5 * np.linalg.norm(old_err[:2])
+
+
+def test_a_coast_takes_a_trim_error_of_the_flight_controllers_attitude_off_the_tilt() -> None:
+    """The same stretch with the flight controller's roll and pitch 0.5 deg off (the tilt says the
+    vehicle accelerates by 0.09 m/s^2 on each axis when it does not): measured while vision tracked for
+    6 s, the bias is taken off, and tracking goes on within 0.1 m of the truth as without one (0.01 m
+    both when written); taken as the tilt reads it, the 1.5 s coast ended 0.33 m off."""
+
+    def coast_error(run: Run) -> float:
+        failed = np.array([e.diagnostics.state == "failed" for e in run.estimates])
+        resumed = run.estimates[int(np.nonzero(failed)[0][-1]) + 1]
+        truth = run.sequence.trajectory
+        moved = truth.pose(resumed.t_exposure_s)[0] - truth.pose(0.0)[0]
+        return float(np.linalg.norm((resumed.p_ned_m - run.estimates[0].p_ned_m - moved)[:2]))
+
+    trimmed = _textureless(trim_deg=0.5)
+    assert trimmed.resets == 0
+    assert coast_error(trimmed) < 0.1, coast_error(trimmed)
 
 
 def test_no_frozen_pose_is_emitted() -> None:

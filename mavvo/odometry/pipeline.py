@@ -241,6 +241,7 @@ class Odometry:
         self.chain.push(kf, self.reset_counter)
         self._last_yaw_2_1 = 0.0
         self._metric_interval = False
+        self._tilt.lost()  # a new chain's positions may start off the last one's
 
     def _coast(self, frame: PairedFrame, tracks: Tracks, f_lvl: np.ndarray) -> PoseEstimate:
         """After a short outage (:mod:`mavvo.odometry.recovery`): a keyframe where the filter coasted to,
@@ -365,7 +366,6 @@ class Odometry:
     def _remember_good(self, frame: PairedFrame) -> None:
         """The frame's pose was accepted: where a re-initialisation anchors, and the distance flown."""
         f = self.filter
-        self._tilt.pull(f.velocity_ned_m_s)
         self._may_coast = True
         self._good = GoodPose.of(f, frame.t_exposure_s, frame.yaw_rad)
         d = self._drift
@@ -426,6 +426,8 @@ class Odometry:
             self.height.keyframe_pushed(pos_cov[2, 2])
         if accepted:
             self._remember_good(frame)
+            if p_meas is not None:
+                self._tilt.measured(p_meas[:2], pos_cov[:2, :2])
         diag = VoDiagnostics(
             state=VisionState.DEGRADED if degraded else VisionState.TRACKING,
             reason=reason,
@@ -541,6 +543,7 @@ class Odometry:
         return outcome in (Update.FUSED, Update.RESTARTED)
 
     def _failed(self, frame: PairedFrame, reason: StateReason, tracks: int) -> PoseEstimate:
+        self._tilt.lost()
         self._predict_coasting(frame)  # the filter runs from the first keyframe on
         if self._good is not None and self._good.t_s >= self._outage_s and self.options.filter.tilt_acceleration:
             self._outage_s = frame.t_exposure_s  # coast from where the vehicle is going, not the lagging filter
