@@ -61,8 +61,9 @@ class TiltMotion:
 
     The bias is the flight controller's trim error, fixed in the body's level frame: it turns with the
     heading. Both axes share one covariance (a position's covariance is taken as its mean variance on
-    both), so a turn of the heading turns the bias's estimate and leaves the covariance as it is: the
-    estimate's cross terms with the bias, which a turn would mix between the axes, are equal on both.
+    both), and a turn of the heading turns the bias's estimate but not the covariance: an approximation
+    (the cross terms between the bias and the position or velocity would turn too, mixing the axes),
+    exact while the heading holds.
     Unlike vision's constant-velocity filter it does not lag a braking, so a coast starts from its
     velocity; and a coast integrates the acceleration less the bias (:attr:`accel_ned_m_s2`).
     Scalar arithmetic: it runs on every frame, where numpy's per-call cost would be most of it.
