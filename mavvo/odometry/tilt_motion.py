@@ -46,7 +46,11 @@ def tilt_acceleration_lvl_m_s2(roll_rad: float, pitch_rad: float) -> np.ndarray:
     """(3,) horizontal acceleration in the level frame (heading of the body; z 0), m/s^2: with the
     body's z axis b = rot_y(pitch) rot_x(roll) e_z = (cos r sin p, -sin r, cos r cos p),
     -g b_h / b_z = (-g tan p, g tan r / cos p)."""
-    return np.array([-GRAVITY_M_S2 * math.tan(pitch_rad), GRAVITY_M_S2 * math.tan(roll_rad) / math.cos(pitch_rad), 0.0])
+    return np.array([*_tilt_acceleration_xy(roll_rad, pitch_rad), 0.0])
+
+
+def _tilt_acceleration_xy(roll_rad: float, pitch_rad: float) -> tuple[float, float]:
+    return -GRAVITY_M_S2 * math.tan(pitch_rad), GRAVITY_M_S2 * math.tan(roll_rad) / math.cos(pitch_rad)
 
 
 class TiltMotion:
@@ -97,8 +101,8 @@ class TiltMotion:
     def step(self, t_s: float, roll_rad: float, pitch_rad: float, yaw_rad: float) -> None:
         """A frame at ``t_s`` with this attitude (the heading turns the level frame into NED)."""
         dt = 0.0 if self._last_t_s is None else t_s - self._last_t_s
-        a = (-GRAVITY_M_S2 * math.tan(pitch_rad), GRAVITY_M_S2 * math.tan(roll_rad) / math.cos(pitch_rad))
-        last = a if self._last_a_lvl is None else self._last_a_lvl  # tilt_acceleration_lvl_m_s2, written out
+        a = _tilt_acceleration_xy(roll_rad, pitch_rad)
+        last = a if self._last_a_lvl is None else self._last_a_lvl
         ax, ay = 0.5 * (a[0] + last[0]), 0.5 * (a[1] + last[1])  # the step's mean: the trapezoid of its ends
         self._last_a_lvl, self._last_t_s = a, t_s
         c, s = math.cos(yaw_rad), math.sin(yaw_rad)
