@@ -227,17 +227,8 @@ class Odometry:
     def _first_keyframe(self, frame: PairedFrame, tracks: Tracks, f_lvl: np.ndarray, p: np.ndarray, yaw: float) -> None:
         """A keyframe of a new chain (no depths carried into it) at ``p`` (NED, m), heading ``yaw``."""
         depths = np.full(len(tracks.ids), np.nan)
-        kf = Keyframe(
-            frame.seq,
-            frame.t_exposure_s,
-            tracks.ids,
-            f_lvl,
-            depths,
-            p,
-            yaw,
-            frame.yaw_rad,
-            self._attitude_sigma_rad(frame),
-        )
+        sigma = self._attitude_sigma_rad(frame)
+        kf = Keyframe(frame.seq, frame.t_exposure_s, tracks.ids, f_lvl, depths, p, yaw, frame.yaw_rad, sigma)
         self.chain.push(kf, self.reset_counter)
         self._last_yaw_2_1 = 0.0
         self._metric_interval = False
