@@ -316,7 +316,8 @@ def test_tilt_motion_measures_a_trim_error_and_takes_it_off_the_acceleration() -
         tm.step(0.02 * k, 0.0, bias, yaw)
         tm.measured(np.array([1.0, 2.0]) + rng.normal(0.0, 0.005, 2), np.eye(2) * 0.005**2)
     np.testing.assert_allclose(tm.bias_lvl_m_s2, [g_bias, 0.0], atol=0.01)
-    assert np.linalg.norm(tm.accel_ned_m_s2) < 0.01 and np.linalg.norm(tm.v_ne_m_s) < 0.01
+    # The velocity is vision's 5 mm noise filtered: about 0.01 m/s at 1 sigma (0.003-0.016 over seeds 0-4).
+    assert np.linalg.norm(tm.accel_ned_m_s2) < 0.01 and np.linalg.norm(tm.v_ne_m_s) < 0.03
     # The same braking as above with the trim error, measured for 3 s: the stop still within 0.03 m/s.
     tm = TiltMotion()
     v_true = _brake_north(tm, np.random.default_rng(4), pitch_bias_rad=bias)

@@ -28,9 +28,9 @@ GRAVITY_M_S2 = 9.80665
 # What the tilt's acceleration misses, 1 sigma: rotor drag and the attitude's trim error (see above).
 TILT_RESIDUAL_M_S2 = 0.3
 # TiltMotion's model. Its acceleration's error as white noise, (m/s^2)^2 per Hz: the velocity may wander
-# 0.03 m/s in a second. Larger lets vision's position noise into the velocity a coast starts from
-# (indoor_patches, six draws: RMS over the flight 0.15 m at 0.1, 0.08 m at 1e-3); smaller follows the
-# simulator's exact tilt closer (0.06 m at 1e-4) but not a real quad's rotor drag, which is not white.
+# 0.03 m/s in a second. Larger lets vision's position noise into the velocity a coast starts from;
+# smaller follows the simulator's exact tilt closer but not a real quad's rotor drag, which is not white
+# (what each gave: docs/odometry.md, States, "A biased attitude").
 ACCEL_PSD_M2_S3 = 1e-3
 # The bias's random walk, (m/s^2)^2 per second (0.003 m/s^2 in a second: a trim that changes over
 # minutes), and its sigma before vision has measured it (1 deg of trim).
