@@ -86,7 +86,8 @@ def _child(tree: Path, scenario: str, frames_file: Path) -> None:
     from mavvo.types import PairedFrame
 
     sc = load_scenario(scenario)
-    d = np.load(frames_file)
+    # Each read of an .npz key loads the whole array again: read each once (100 frames would hold 100 copies).
+    d = dict(np.load(frames_file))
 
     def reading(x: float) -> float | None:
         return None if np.isnan(x) else float(x)

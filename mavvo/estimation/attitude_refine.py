@@ -142,7 +142,7 @@ def refine_essential(
         steps: Gauss-Newton steps of the refinement (``RelposeOptions.refine_steps``).
     """
     assert run.model is not None
-    pose = decompose_upright(run.model[0], f1[run.inliers], f2[run.inliers])
+    pose = decompose_upright(run.model[0], f1.compress(run.inliers, axis=0), f2.compress(run.inliers, axis=0))
     assert pose is not None  # a model has at least its own sample as inliers
     yaw, t = pose
     if attitude_sigma_rad is None:
@@ -196,7 +196,14 @@ def _refine_uncorrected(
         err = pose_err_sq((yaw, t, zero, zero), f1, f2, max_err_rad)
         inl = err < max_err_rad**2
         noise = robust_sigma(err[inl], max_err_rad)
-        fit = refine_upright(yaw, t, f1[inl], f2[inl], iterations=k, robust_scale_rad=_CAUCHY_NOISE_SIGMAS * noise)
+        fit = refine_upright(
+            yaw,
+            t,
+            f1.compress(inl, axis=0),
+            f2.compress(inl, axis=0),
+            iterations=k,
+            robust_scale_rad=_CAUCHY_NOISE_SIGMAS * noise,
+        )
         yaw, t = fit.yaw_rad, fit.t_2_1
     return yaw, t, zero, zero
 
@@ -249,7 +256,7 @@ def _second_start(
     something of where it started. The start's translation sign is decided by cheirality first (the
     refinement counts points behind a view as outliers)."""
     t = pose[1]
-    c1, c2 = f1[candidates], f2[candidates]
+    c1, c2 = f1.compress(candidates, axis=0), f2.compress(candidates, axis=0)
     on_ground = sees_ground(c1, c2)
     start = None
     if on_ground and ground:
@@ -308,7 +315,7 @@ def _fitted_bearings(
     g1, g2 = f1 @ tilt_rotation(tilt1).T, f2 @ tilt_rotation(tilt2).T
     err = sampson_sq_upright(upright_e(yaw, t)[None], g1, g2)[0]
     inl = err < max_err_rad**2
-    return g1[inl], g2[inl], err[inl]
+    return g1.compress(inl, axis=0), g2.compress(inl, axis=0), err[inl]
 
 
 def _posterior_costs(

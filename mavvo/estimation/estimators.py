@@ -129,7 +129,7 @@ class UprightEssential:
     def generate(self, samples: np.ndarray) -> np.ndarray:
         f1, f2 = self.f1, self.f2
         if self.solver == "3pt":
-            e, valid = solve_upright_3pt_samples(f1[samples], f2[samples])
+            e, valid = solve_upright_3pt_samples(f1.take(samples, axis=0), f2.take(samples, axis=0))
             e = e[valid]
         else:
             solve = solve_upright_4pt if self.solver == "4pt" else solve_upright_linear5pt
@@ -150,7 +150,7 @@ class UprightEssential:
         return sampson_sq_upright(models, self.f1, self.f2)
 
     def refine(self, model: np.ndarray, inliers: np.ndarray) -> np.ndarray:
-        f1, f2 = self.f1[inliers], self.f2[inliers]
+        f1, f2 = self.f1.compress(inliers, axis=0), self.f2.compress(inliers, axis=0)
         out = []
         if self.nonminimal != "none" and len(f1) >= SAMPLE_SIZE[self.nonminimal]:
             solve = solve_upright_4pt if self.nonminimal == "4pt" else solve_upright_linear5pt
@@ -188,7 +188,7 @@ class GroundHomography:
         )
 
     def generate(self, samples: np.ndarray) -> np.ndarray:
-        H, valid = solve_ground_2pt_samples(self.f1[samples], self.f2[samples])
+        H, valid = solve_ground_2pt_samples(self.f1.take(samples, axis=0), self.f2.take(samples, axis=0))
         return H[valid]
 
     def costs(self, models: np.ndarray, thr_sq: float, rows: np.ndarray | None = None) -> np.ndarray:

@@ -113,7 +113,9 @@ def _ground_model(
     below = candidates[(f1[candidates, 2] > _MIN_GROUND_Z) & (f2[candidates, 2] > _MIN_GROUND_Z)]
     if below.size < max(4, 0.8 * candidates.size):
         return None  # a scene that is all ground lies below the horizon in both views
-    run = lo_ransac(GroundHomography(f1[below], f2[below]), _ground_sampling(opt), threshold_rad, rng)
+    run = lo_ransac(
+        GroundHomography(f1.take(below, axis=0), f2.take(below, axis=0)), _ground_sampling(opt), threshold_rad, rng
+    )
     return None if run.model is None else run.model[0]
 
 

@@ -334,7 +334,7 @@ class Frontend:
             off = off_affine_consensus(uv0, p1, keep, self.consensus_max_px)
             if np.count_nonzero(off & keep) >= opt.consensus_min_share * np.count_nonzero(keep):
                 keep &= ~off
-        return keep, p1[keep]
+        return keep, p1.compress(keep, axis=0)
 
     def _cell(self, uv: np.ndarray, w: int, h: int) -> np.ndarray:
         """(N,) index of each pixel's detection-grid cell."""

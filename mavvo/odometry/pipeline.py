@@ -258,7 +258,7 @@ class Odometry:
     ) -> Measurement | NoPose:
         """The frame's pose against the keyframe, or the reason there is none."""
         opt = self.options
-        f1, f2 = kf.f_lvl[i_kf], f_lvl[i_cur]
+        f1, f2 = kf.f_lvl.take(i_kf, axis=0), f_lvl.take(i_cur, axis=0)
         rp = self._relpose(frame, kf, f1, f2)
         if not rp.success and rp.reason != RelposeFailure.PURE_ROTATION:
             return NoPose(StateReason(rp.reason.value))
@@ -270,7 +270,7 @@ class Odometry:
         R_lvl_body2 = T2 @ R_lvl_body(frame.roll_rad, frame.pitch_rad)
         roll2, pitch2, _ = euler321_from_R(R_lvl_body2)  # the frame's roll/pitch with vision's correction
         inl = rp.inliers
-        f1i, f2i = f1[inl], f2[inl]
+        f1i, f2i = f1.compress(inl, axis=0), f2.compress(inl, axis=0)
         n = len(i_kf)
         depth2 = np.full(n, np.nan)
         par = np.zeros(n)
@@ -281,7 +281,7 @@ class Odometry:
         else:
             lam1, lam2, par_i, valid = triangulate_unit(f1i, f2i, rp.R_2_1, rp.t_2_1, self._min_parallax_rad)
             par[inl] = par_i
-            pts = lam1[valid, None] * f1i[valid]
+            pts = lam1[valid, None] * f1i.compress(valid, axis=0)
             carried = kf.depth_m[i_kf][inl][valid]
             known = np.isfinite(carried) & (par_i[valid] >= self._carry_min_parallax_rad)
             down2 = R_lvl_body2[:, 2]
@@ -405,7 +405,7 @@ class Odometry:
                 self.reset_counter,
             )
         survival = len(i_kf) / len(kf.ids)
-        moved = sight_change(kf.f_lvl[i_kf], m.c2_m, self._depth_m())
+        moved = sight_change(kf.f_lvl.take(i_kf, axis=0), m.c2_m, self._depth_m())
         why = dict(parallax_px=m.parallax_px, survival=survival, inliers=rp.num_inliers, depth_change=moved)
         why_kf = keyframe_reason(opt.keyframes, **why) if accepted else ""
         if why_kf:
